@@ -1,0 +1,34 @@
+"""Zenoh key expressions: `bench/<run_id>/<topic>`; the run id keeps parallel runs apart."""
+from __future__ import annotations
+
+import re
+
+PREFIX = "bench"
+
+SENSE_RELPOS = "sense/relpos"
+TRUTH = "truth"
+ESTIMATE_TRANSLATION = "estimate/translation"
+COMMAND_THRUST = "command/thrust"
+ACTUATOR_MTQ = "actuator/mtq"
+EVENT_DEADLINE = "event/deadline"
+STATUS_STEP = "status/step"
+STATUS_STATS = "status/stats"
+ALIVE = "alive"      # liveliness tokens: alive/<process>
+READY = "ready"      # liveliness tokens: ready/<process>, declared once its subscribers match
+
+_RUN_ID = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
+
+
+def check_run_id(run_id: str) -> str:
+    """Run ids become one key-expression chunk and a directory name: keep them plain."""
+    if not _RUN_ID.match(run_id):
+        raise ValueError(f"run id {run_id!r} must be 1-64 characters of letters, digits, '_', '.', '-'")
+    return run_id
+
+
+def key(run_id: str, topic: str) -> str:
+    return f"{PREFIX}/{run_id}/{topic}"
+
+
+def all_topics(run_id: str) -> str:
+    return f"{PREFIX}/{run_id}/**"

@@ -1,0 +1,138 @@
+"""Typed messages of the bench, in the manner of Basilisk's message structs.
+
+Every payload is a msgspec Struct encoded as JSON (so Foxglove and any JSON tool can read a
+recording), with the common `Header`. Decoding validates types, lengths and unknown fields; a bad
+payload raises `MalformedMessage`, which the receiving process counts and logs, never dies on.
+"""
+from __future__ import annotations
+
+from typing import Annotated, Literal, TypeVar
+
+import msgspec
+
+SCHEMA_VERSION = 1
+
+# Monotonic-clock stages a sample passes through, in loop order. Each process that handles a
+# sample stamps `time.monotonic_ns()` under its stage name; latencies are differences of these.
+STAGES = (
+    "sensed",               # plant produced the measurement
+    "estimator_received",
+    "estimated",            # estimator published its estimate
+    "controller_received",
+    "commanded",            # controller published its command
+    "can_sent",             # flight-side driver put the command frame on the bus
+    "board_received",       # magnetorquer board decoded it
+    "plant_received",       # plant received the command
+    "applied",              # plant (or board) applied it
+)
+
+Vec3 = Annotated[list[float], msgspec.Meta(min_length=3, max_length=3)]
+Vec6 = Annotated[list[float], msgspec.Meta(min_length=6, max_length=6)]
+Cov6 = Annotated[list[float], msgspec.Meta(min_length=36, max_length=36)]
+NonNegInt = Annotated[int, msgspec.Meta(ge=0)]
+
+
+class MalformedMessage(ValueError):
+    """A payload that is not a valid message of the expected type."""
+
+
+class Header(msgspec.Struct, forbid_unknown_fields=True):
+    schema_version: int
+    run_id: str
+    seq: NonNegInt                 # index k of the plant sample this message derives from
+    sim_time_s: float
+    stamps_ns: dict[str, int] = {}
+
+    def stamped(self, stage: str, monotonic_ns: int) -> "Header":
+        """A copy of this header with one more stage stamp (headers flow downstream)."""
+        stamps = dict(self.stamps_ns)
+        stamps[stage] = monotonic_ns
+        return Header(self.schema_version, self.run_id, self.seq, self.sim_time_s, stamps)
+
+
+class Message(msgspec.Struct, forbid_unknown_fields=True, tag_field="type"):
+    header: Header
+
+
+class RelativePosition(Message, tag="relpos"):
+    """Noisy relative position of the chaser in the target's LVLH frame."""
+    position_m: Vec3
+    noise_std_m: float
+
+
+class TruthState(Message, tag="truth"):
+    """Ground truth; read by the truth-mode estimator, the recorder and reports only."""
+    state_m_mps: Vec6
+    thrust_applied_n: Vec3
+
+
+class TranslationEstimate(Message, tag="estimate_translation"):
+    state_m_mps: Vec6
+    covariance: Cov6 | None = None          # row-major 6x6, SI units
+    mean_motion_radps: float | None = None  # set when the estimator also estimates the orbit
+
+
+class ThrustCommand(Message, tag="thrust"):
+    thrust_n: Vec3
+    ctrl_feasible: bool
+    status: str
+    solve_time_s: float
+    iterations: NonNegInt = 0
+    fallback: str | None = None          # set when a deadline fallback produced this command
+
+
+class DeadlineEvent(Message, tag="deadline"):
+    process: str
+    cycle_time_s: float
+    budget_s: float
+    missed: bool
+    consecutive_misses: NonNegInt
+    fallback: str | None = None
+
+
+class StepDone(Message, tag="step_done"):
+    """Plant's progress beacon: step k is integrated (drives the launcher's progress bar)."""
+    n_steps: NonNegInt
+    finished: bool = False
+
+
+class ProcessStats(Message, tag="process_stats"):
+    """Counts a process reports at shutdown: what it published and what it had to reject."""
+    process: str
+    published: dict[str, NonNegInt]
+    malformed: dict[str, NonNegInt]
+
+
+M = TypeVar("M", bound=Message)
+
+_encoder = msgspec.json.Encoder()
+_decoders: dict[type, msgspec.json.Decoder] = {}
+
+
+def header(run_id: str, seq: int, sim_time_s: float, **stamps_ns: int) -> Header:
+    return Header(SCHEMA_VERSION, run_id, seq, sim_time_s, dict(stamps_ns))
+
+
+def encode(message: Message) -> bytes:
+    return _encoder.encode(message)
+
+
+def decode(payload: bytes, kind: type[M]) -> M:
+    """Decode and validate; raise MalformedMessage naming what is wrong."""
+    decoder = _decoders.get(kind)
+    if decoder is None:
+        decoder = _decoders[kind] = msgspec.json.Decoder(kind)
+    try:
+        message = decoder.decode(payload)
+    except (msgspec.ValidationError, msgspec.DecodeError) as exc:
+        raise MalformedMessage(f"{kind.__name__}: {exc}") from None
+    if message.header.schema_version != SCHEMA_VERSION:
+        raise MalformedMessage(
+            f"{kind.__name__}: schema version {message.header.schema_version}, expected {SCHEMA_VERSION}"
+        )
+    return message
+
+
+def json_schema(kind: type[Message]) -> dict:
+    """JSON Schema of a message type, for the MCAP recording (Foxglove reads it)."""
+    return msgspec.json.schema(kind)

@@ -1,0 +1,27 @@
+"""Scenario section [plant]: which dynamics, where the chaser starts, the sensors."""
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+import msgspec
+
+Positive = Annotated[float, msgspec.Meta(gt=0)]
+NonNegative = Annotated[float, msgspec.Meta(ge=0)]
+State6 = Annotated[list[float], msgspec.Meta(min_length=6, max_length=6)]
+
+
+class RelativePositionSensorConfig(msgspec.Struct, forbid_unknown_fields=True):
+    noise_std_m: NonNegative = 10.0
+
+
+class PlantConfig(msgspec.Struct, forbid_unknown_fields=True):
+    # "cwh": linear CWH, exact discretisation; "nonlinear": two-body chaser and target (seed 001).
+    dynamics: Literal["cwh", "nonlinear"] = "cwh"
+    # A name from the reference (A, B, C) or an explicit state in m and m/s.
+    initial_condition: str = "A"
+    initial_state_m_mps: State6 | None = None
+    mass_kg: Positive = 300.0
+    gravitational_parameter_m3ps2: Positive = 3.986e14
+    target_radius_m: Positive = 7.0e6
+    time_step_s: Positive = 600.0
+    relpos_sensor: RelativePositionSensorConfig = msgspec.field(default_factory=RelativePositionSensorConfig)

@@ -1,0 +1,193 @@
+"""Clohessy-Wiltshire-Hill relative motion, as seed 003 sets it up (tasks 1 to 5).
+
+State x = [x, y, z, vx, vy, vz] in the target's LVLH frame (x radial out, y along track, z along
+the orbit normal), SI units (m, m/s); input u = thrust in N per axis.
+
+The controllers work in the seed's scaled units (Mm, km/s): x_scaled = V x. Everything that
+crosses a process boundary stays in SI; only `ScaledModel` speaks scaled units.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import cached_property
+import tomllib
+from importlib import resources
+
+import numpy as np
+from scipy.linalg import expm
+
+N_STATE = 6
+N_INPUT = 3
+
+
+def load_reference() -> dict:
+    """The rendezvous reference numbers (seed 003 and its 2022 parameter file)."""
+    text = resources.files("bench.data").joinpath("rendezvous.toml").read_text()
+    return tomllib.loads(text)
+
+
+def mean_motion_radps(gravitational_parameter_m3ps2: float, target_radius_m: float) -> float:
+    """Orbital rate omega_n = sqrt(mu / R^3) of a circular target orbit."""
+    return float(np.sqrt(gravitational_parameter_m3ps2 / target_radius_m**3))
+
+
+def cwh_continuous(mean_motion: float, mass_kg: float) -> tuple[np.ndarray, np.ndarray]:
+    """(A_c, B_c) of x_dot = A_c x + B_c u for the CWH equations (seed 003 eq. 1, task 1)."""
+    n = mean_motion
+    a_c = np.zeros((N_STATE, N_STATE))
+    a_c[0:3, 3:6] = np.eye(3)
+    a_c[3, 0] = 3.0 * n**2
+    a_c[3, 4] = 2.0 * n
+    a_c[4, 3] = -2.0 * n
+    a_c[5, 2] = -(n**2)
+    b_c = np.zeros((N_STATE, N_INPUT))
+    b_c[3:6, :] = np.eye(3) / mass_kg
+    return a_c, b_c
+
+
+def discretise_zoh(a_c: np.ndarray, b_c: np.ndarray, time_step_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Exact zero-order-hold discretisation (seed 003 task 2), via one matrix exponential.
+
+    expm([[A, B], [0, 0]] dt) = [[Ad, Bd], [0, I]]: the same result as MATLAB's c2d.
+    """
+    if not time_step_s > 0:
+        raise ValueError(f"time_step_s must be positive, got {time_step_s}")
+    n_x, n_u = b_c.shape
+    block = np.zeros((n_x + n_u, n_x + n_u))
+    block[:n_x, :n_x] = a_c
+    block[:n_x, n_x:] = b_c
+    phi = expm(block * time_step_s)
+    return phi[:n_x, :n_x], phi[:n_x, n_x:]
+
+
+def scale_system(a_d: np.ndarray, b_d: np.ndarray, scaling: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(A, B) for x_scaled = V x (seed 003 task 3): A = V Ad V^-1, B = V Bd."""
+    v = np.diag(scaling)
+    v_inv = np.diag(1.0 / scaling)
+    return v @ a_d @ v_inv, v @ b_d
+
+
+@dataclass(frozen=True)
+class RendezvousParams:
+    """The seed's `params` struct (seed 003 table 1), built from a scenario or the reference.
+
+    SI units throughout; `scaled` gives the model and constraints in the controllers' units.
+    """
+
+    mass_kg: float = 300.0
+    gravitational_parameter_m3ps2: float = 3.986e14
+    target_radius_m: float = 7.0e6
+    time_step_s: float = 600.0
+    n_steps: int = 288
+    scaling: tuple[float, ...] = (1e-6, 1e-6, 1e-6, 1e-3, 1e-3, 1e-3)
+    max_abs_thrust_n: float = 1.0
+    max_abs_position_xz_m: float = 1.0e5
+    max_abs_position_y_m: float = 1.0e6
+    max_final_position_m: float = 100.0
+    max_final_velocity_mps: float = 1.0
+    initial_conditions_m_mps: dict[str, tuple[float, ...]] = field(default_factory=dict, compare=False)
+
+    @classmethod
+    def from_reference(cls, **overrides) -> "RendezvousParams":
+        ref = load_reference()
+        model, cons = ref["model"], ref["constraints"]
+        scaling = tuple(model["scaling_diag"])
+        ics = {
+            # Rounded to the micrometre: the division leaves float dust (400000.00000000006 m).
+            name: tuple(float(v) for v in np.round(np.asarray(x_scaled) / np.asarray(scaling), 6))
+            for name, x_scaled in ref["initial_conditions_scaled"].items()
+            if len(x_scaled) == N_STATE
+        }
+        values = dict(
+            mass_kg=model["mass_kg"],
+            gravitational_parameter_m3ps2=model["gravitational_parameter"],
+            target_radius_m=model["target_radius_m"],
+            time_step_s=model["time_step_s"],
+            n_steps=int(round(model["final_time_s"] / model["time_step_s"])),
+            scaling=scaling,
+            max_abs_thrust_n=cons["max_abs_thrust_N"],
+            max_abs_position_xz_m=cons["max_abs_position_xz_m"],
+            max_abs_position_y_m=cons["max_abs_position_y_m"],
+            max_final_position_m=cons["max_final_position_m"],
+            max_final_velocity_mps=cons["max_final_velocity_mps"],
+            initial_conditions_m_mps=ics,
+        )
+        values.update(overrides)
+        return cls(**values)
+
+    @property
+    def mean_motion(self) -> float:
+        return mean_motion_radps(self.gravitational_parameter_m3ps2, self.target_radius_m)
+
+    @property
+    def scaling_matrix(self) -> np.ndarray:
+        return np.diag(self.scaling)
+
+    def continuous(self) -> tuple[np.ndarray, np.ndarray]:
+        return cwh_continuous(self.mean_motion, self.mass_kg)
+
+    def discrete_si(self) -> tuple[np.ndarray, np.ndarray]:
+        """(Ad, Bd) on SI state, one time step."""
+        return discretise_zoh(*self.continuous(), self.time_step_s)
+
+    @cached_property
+    def scaled(self) -> "ScaledModel":
+        return ScaledModel.from_params(self)
+
+    def initial_state_m_mps(self, name: str) -> np.ndarray:
+        try:
+            return np.array(self.initial_conditions_m_mps[name])
+        except KeyError:
+            known = ", ".join(sorted(self.initial_conditions_m_mps)) or "none"
+            raise KeyError(f"unknown initial condition {name!r} (known: {known})") from None
+
+
+@dataclass(frozen=True)
+class ScaledModel:
+    """The discrete model and constraints in scaled units (seed 003 tasks 3 and 4).
+
+    Constraints: H_u u <= h_u (|u_i| <= u_max), H_x x <= h_x (|x|,|z| <= s_max, |y| <= y_max),
+    with rows ordered +e_i, -e_i per constrained coordinate.
+    """
+
+    A: np.ndarray
+    B: np.ndarray
+    H_u: np.ndarray
+    h_u: np.ndarray
+    H_x: np.ndarray
+    h_x: np.ndarray
+    scaling: np.ndarray
+
+    @classmethod
+    def from_params(cls, p: RendezvousParams) -> "ScaledModel":
+        scaling = np.asarray(p.scaling, dtype=float)
+        a, b = scale_system(*p.discrete_si(), scaling)
+        h_u_mat, h_u = box_constraints(np.full(N_INPUT, p.max_abs_thrust_n))
+        position_limits_m = np.array([p.max_abs_position_xz_m, p.max_abs_position_y_m, p.max_abs_position_xz_m])
+        h_pos_mat, h_x = box_constraints(position_limits_m * scaling[:3])
+        h_x_mat = np.hstack([h_pos_mat, np.zeros((h_pos_mat.shape[0], 3))])
+        return cls(A=a, B=b, H_u=h_u_mat, h_u=h_u, H_x=h_x_mat, h_x=h_x, scaling=scaling)
+
+    @property
+    def nx(self) -> int:
+        return self.A.shape[0]
+
+    @property
+    def nu(self) -> int:
+        return self.B.shape[1]
+
+    def to_scaled(self, state_si: np.ndarray) -> np.ndarray:
+        return self.scaling * np.asarray(state_si)
+
+    def to_si(self, state_scaled: np.ndarray) -> np.ndarray:
+        return np.asarray(state_scaled) / self.scaling
+
+
+def box_constraints(limits: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """|v_i| <= limits_i as H v <= h, rows +e_i then -e_i for each i."""
+    limits = np.asarray(limits, dtype=float)
+    n = limits.size
+    h_mat = np.zeros((2 * n, n))
+    h_mat[0::2] = np.eye(n)
+    h_mat[1::2] = -np.eye(n)
+    return h_mat, np.repeat(limits, 2)

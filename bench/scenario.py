@@ -1,0 +1,135 @@
+"""Scenario files (TOML), validated on load.
+
+A scenario is composed of one section per part of the loop; each part owns its section's schema
+(`bench/<part>/config.py`). A bad file raises `ScenarioError` with one line naming the field.
+"""
+from __future__ import annotations
+
+import tomllib
+from importlib import resources
+from pathlib import Path
+from typing import Annotated, Literal
+
+import msgspec
+
+from bench.controller.config import ControllerConfig
+from bench.estimator.config import EstimatorConfig
+from bench.plant.config import PlantConfig
+from bench.plant.cwh import RendezvousParams
+
+BUILTIN_PACKAGE = "bench.scenarios"
+
+
+class ScenarioError(ValueError):
+    """A scenario that cannot be run, with the field and the problem in the message."""
+
+
+class RunConfig(msgspec.Struct, forbid_unknown_fields=True):
+    # lock-step: plant waits for each command (deterministic); real-time: plant steps on the
+    # wall clock at time_factor simulated seconds per wall second and never waits.
+    mode: Literal["lock-step", "real-time"] = "lock-step"
+    steps: Annotated[int, msgspec.Meta(ge=1)] | None = None       # default: the reference's 288
+    time_factor: Annotated[float, msgspec.Meta(gt=0)] = 6000.0    # real-time: 600 s steps at 10 Hz
+    seed: Annotated[int, msgspec.Meta(ge=0)] = 1
+    # lock-step: how long the plant waits for a command before it declares the loop broken.
+    command_timeout_s: Annotated[float, msgspec.Meta(gt=0)] = 10.0
+
+
+class Scenario(msgspec.Struct, forbid_unknown_fields=True):
+    name: str
+    description: str = ""
+    run: RunConfig = msgspec.field(default_factory=RunConfig)
+    plant: PlantConfig = msgspec.field(default_factory=PlantConfig)
+    estimator: EstimatorConfig = msgspec.field(default_factory=EstimatorConfig)
+    controller: ControllerConfig = msgspec.field(default_factory=ControllerConfig)
+
+    def params(self) -> RendezvousParams:
+        """The seed's params struct for this scenario (reference numbers, scenario overrides)."""
+        p = self.plant
+        overrides = dict(
+            mass_kg=p.mass_kg,
+            gravitational_parameter_m3ps2=p.gravitational_parameter_m3ps2,
+            target_radius_m=p.target_radius_m,
+            time_step_s=p.time_step_s,
+        )
+        if self.run.steps is not None:
+            overrides["n_steps"] = self.run.steps
+        return RendezvousParams.from_reference(**overrides)
+
+    @property
+    def n_steps(self) -> int:
+        return self.params().n_steps
+
+    def initial_state_m_mps(self):
+        import numpy as np
+
+        if self.plant.initial_state_m_mps is not None:
+            return np.array(self.plant.initial_state_m_mps, dtype=float)
+        return self.params().initial_state_m_mps(self.plant.initial_condition)
+
+
+def _check_semantics(s: Scenario) -> None:
+    if s.plant.initial_state_m_mps is None:
+        known = RendezvousParams.from_reference().initial_conditions_m_mps
+        if s.plant.initial_condition not in known:
+            raise ScenarioError(
+                f"plant.initial_condition: unknown initial condition {s.plant.initial_condition!r} "
+                f"(known: {', '.join(sorted(known))}; or give plant.initial_state_m_mps)"
+            )
+    if len(s.controller.q_diag) != 6:
+        raise ScenarioError(f"controller.q_diag: needs 6 weights, got {len(s.controller.q_diag)}")
+    if len(s.controller.r_diag) != 3:
+        raise ScenarioError(f"controller.r_diag: needs 3 weights, got {len(s.controller.r_diag)}")
+
+
+def _msgspec_message(exc: msgspec.ValidationError) -> str:
+    # msgspec says "Expected `float` >= 0 - at `$.plant.time_step_s`"; lead with the field.
+    text = str(exc)
+    if " - at `$." in text:
+        problem, _, where = text.rpartition(" - at `$.")
+        return f"{where.rstrip('`')}: {problem}"
+    return text
+
+
+def parse_scenario(data: dict, source: str = "<scenario>") -> Scenario:
+    try:
+        scenario = msgspec.convert(data, Scenario, strict=False)
+    except msgspec.ValidationError as exc:
+        raise ScenarioError(f"{source}: {_msgspec_message(exc)}") from None
+    try:
+        _check_semantics(scenario)
+    except ScenarioError as exc:
+        raise ScenarioError(f"{source}: {exc}") from None
+    return scenario
+
+
+def builtin_names() -> list[str]:
+    root = resources.files(BUILTIN_PACKAGE)
+    return sorted(p.name[: -len(".toml")] for p in root.iterdir() if p.name.endswith(".toml"))
+
+
+def load_scenario(name_or_path: str | Path | None = None) -> Scenario:
+    """A built-in scenario by name, or a TOML file by path; the default is `rendezvous_lqr`."""
+    name_or_path = str(name_or_path or "rendezvous_lqr")
+    path = Path(name_or_path)
+    if path.suffix == ".toml" or path.exists():
+        if not path.is_file():
+            raise ScenarioError(f"scenario file {name_or_path!r} does not exist")
+        text, source = path.read_text(), str(path)
+    elif name_or_path in builtin_names():
+        text = resources.files(BUILTIN_PACKAGE).joinpath(f"{name_or_path}.toml").read_text()
+        source = f"built-in scenario {name_or_path!r}"
+    else:
+        raise ScenarioError(
+            f"no scenario file or built-in named {name_or_path!r} (built-ins: {', '.join(builtin_names())})"
+        )
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ScenarioError(f"{source}: not valid TOML: {exc}") from None
+    return parse_scenario(data, source)
+
+
+def scenario_to_toml_dict(s: Scenario) -> dict:
+    """Plain data of a scenario (written into the run directory as what actually ran)."""
+    return msgspec.to_builtins(s)
