@@ -17,6 +17,7 @@ run: $(STAMP)
 	$(VENV)/bin/bench run
 
 test: $(STAMP)
+	bash tools/install-system-deps.sh
 	$(PY) -m pytest
 
 benchmarks: $(STAMP)

@@ -1,0 +1,20 @@
+#!/usr/bin/env bash
+# System packages the tests use, installed by the project itself (CI machines start bare).
+# Where we are not root or apt is missing, say so and go on: the tests that need a package skip
+# with that reason.
+set -u
+PACKAGES=(
+)
+[ ${#PACKAGES[@]} -eq 0 ] && exit 0
+missing=()
+for p in "${PACKAGES[@]}"; do dpkg -s "$p" >/dev/null 2>&1 || missing+=("$p"); done
+[ ${#missing[@]} -eq 0 ] && exit 0
+if [ "$(id -u)" != 0 ] || ! command -v apt-get >/dev/null; then
+  echo "install-system-deps: not root or no apt-get; missing: ${missing[*]} (tests that need them will skip)"
+  exit 0
+fi
+echo "install-system-deps: installing ${missing[*]}"
+export DEBIAN_FRONTEND=noninteractive
+apt-get update -qq >/dev/null && apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null \
+  || echo "install-system-deps: apt-get failed; tests that need ${missing[*]} will skip"
+exit 0
