@@ -43,6 +43,7 @@ class NodeContext:
     run_dir: Path
     log: logging.Logger
     stop: threading.Event = field(default_factory=threading.Event)
+    peers: list[str] = field(default_factory=list)   # nodes whose ready token this one awaits
     published: Counter = field(default_factory=Counter)
     malformed: Counter = field(default_factory=Counter)
     _publishers: dict = field(default_factory=dict)
@@ -96,13 +97,14 @@ class NodeContext:
     def declare_alive(self) -> None:
         self._keepalive.append(self.session.liveliness().declare_token(keys.key(self.run_id, f"{keys.ALIVE}/{self.name}")))
 
-    def declare_ready(self, timeout_s: float = 10.0) -> None:
-        """Declare `ready/<name>` once every publisher declared so far reaches a subscriber.
+    def declare_ready(self, consumed_topics: list[str], timeout_s: float = 20.0) -> None:
+        """Declare `ready/<name>` once each of `consumed_topics` reaches a subscriber.
 
         Lock-step depends on it: a sample published before its subscriber is matched is lost.
         """
         deadline = time.monotonic() + timeout_s
-        for topic, pub in self._publishers.items():
+        for topic in consumed_topics:
+            pub = self._publishers.get(topic) or self.declare_publisher(topic)
             while not pub.matching_status.matching:
                 if time.monotonic() > deadline or self.stop.is_set():
                     raise TimeoutError(f"{self.name}: no subscriber for {topic} after {timeout_s} s")
@@ -144,7 +146,8 @@ def node_options(args) -> SessionOptions:
     )
 
 
-def run_node(name: str, run_id: str, scenario: Scenario, options: SessionOptions, run_dir: Path) -> int:
+def run_node(name: str, run_id: str, scenario: Scenario, options: SessionOptions, run_dir: Path,
+             peers: list[str] | None = None) -> int:
     """Open the session, install signal handlers, run the node, always close cleanly."""
     import importlib
 
@@ -153,7 +156,8 @@ def run_node(name: str, run_id: str, scenario: Scenario, options: SessionOptions
     module = importlib.import_module(NODES[name])
     log = logging.getLogger(f"bench.{name}")
     session = open_session(options)
-    ctx = NodeContext(name=name, run_id=run_id, scenario=scenario, session=session, run_dir=run_dir, log=log)
+    ctx = NodeContext(name=name, run_id=run_id, scenario=scenario, session=session, run_dir=run_dir, log=log,
+                      peers=list(peers or []))
 
     def request_stop(signum, _frame):
         log.info("signal %d: stopping", signum)

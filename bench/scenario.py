@@ -5,6 +5,7 @@ A scenario is composed of one section per part of the loop; each part owns its s
 """
 from __future__ import annotations
 
+import json
 import tomllib
 from importlib import resources
 from pathlib import Path
@@ -112,6 +113,15 @@ def load_scenario(name_or_path: str | Path | None = None) -> Scenario:
     """A built-in scenario by name, or a TOML file by path; the default is `rendezvous_lqr`."""
     name_or_path = str(name_or_path or "rendezvous_lqr")
     path = Path(name_or_path)
+    if path.suffix == ".json":
+        # The scenario a launcher wrote into a run directory, exactly as it ran.
+        if not path.is_file():
+            raise ScenarioError(f"scenario file {name_or_path!r} does not exist")
+        try:
+            data = json.loads(path.read_text())
+        except json.JSONDecodeError as exc:
+            raise ScenarioError(f"{path}: not valid JSON: {exc}") from None
+        return parse_scenario(data, str(path))
     if path.suffix == ".toml" or path.exists():
         if not path.is_file():
             raise ScenarioError(f"scenario file {name_or_path!r} does not exist")

@@ -1,0 +1,144 @@
+"""The plant process: owns simulated time, publishes sensing and truth, applies thrust commands.
+
+lock-step: publish step k, wait for command k, integrate. Deterministic.
+real-time: step k starts at t0 + k * period on the monotonic clock (period = time step divided by
+the scenario's time factor); the command for step k must arrive before step k+1 starts, else it
+is a plant-side deadline miss and the last command received is held (zero-order hold).
+"""
+from __future__ import annotations
+
+import queue
+import time
+
+import numpy as np
+
+from bench.bus import keys
+from bench.bus.schemas import RelativePosition, StepDone, ThrustCommand, TruthState, header
+from bench.node_runtime import NodeContext
+from bench.plant.model import TranslationPlant
+from bench.bus.schemas import STAGES
+
+
+class LoopBroken(RuntimeError):
+    """Lock-step cannot go on: a command never came."""
+
+
+class StampLog:
+    """Monotonic stamps (ns) of every applied command, one row per step, -1 where absent."""
+
+    def __init__(self, n_steps: int):
+        self.stamps = {stage: np.full(n_steps, -1, dtype=np.int64) for stage in STAGES}
+
+    def record(self, k: int, stamps_ns: dict[str, int]) -> None:
+        for stage, value in stamps_ns.items():
+            if stage in self.stamps:
+                self.stamps[stage][k] = value
+
+
+def _publish_sample(ctx: NodeContext, plant: TranslationPlant, last_thrust_n: np.ndarray) -> None:
+    k = plant.step_index
+    hdr = header(ctx.run_id, k, plant.sim_time_s, sensed=time.monotonic_ns())
+    position_m = plant.measure_position_m()
+    ctx.publish(keys.TRUTH, TruthState(hdr, plant.state_m_mps.tolist(), last_thrust_n.tolist()))
+    noise = ctx.scenario.plant.relpos_sensor.noise_std_m
+    ctx.publish(keys.SENSE_RELPOS, RelativePosition(hdr, position_m.tolist(), noise))
+
+
+def _wait_command_lockstep(ctx: NodeContext, commands: queue.Queue, k: int, timeout_s: float) -> ThrustCommand:
+    deadline = time.monotonic() + timeout_s
+    while not ctx.stop.is_set():
+        remaining = deadline - time.monotonic()
+        if remaining <= 0:
+            raise LoopBroken(f"no thrust command for step {k} within {timeout_s} s")
+        try:
+            command = commands.get(timeout=min(remaining, 0.2))
+        except queue.Empty:
+            continue
+        if command.header.seq == k:
+            return command
+        ctx.log.warning("discarding command for step %d while waiting for step %d", command.header.seq, k)
+    raise LoopBroken("stopped")
+
+
+class RealTimeClock:
+    """Step ticks on the monotonic clock; counts commands that miss their step."""
+
+    def __init__(self, period_s: float):
+        self.period_s = period_s
+        self.t0 = time.monotonic() + 0.05
+        self.late_commands = 0     # arrived after their step's deadline
+        self.missed_steps = 0      # steps that ran on a held command
+
+    def tick_s(self, k: int) -> float:
+        return self.t0 + k * self.period_s
+
+    def sleep_until(self, t_s: float) -> None:
+        delay = t_s - time.monotonic()
+        if delay > 0:
+            time.sleep(delay)
+
+
+def _collect_command_realtime(commands: queue.Queue, clock: RealTimeClock, k: int) -> ThrustCommand | None:
+    """The command for step k if it arrives before step k+1's tick; late ones are counted."""
+    deadline = clock.tick_s(k + 1)
+    while True:
+        remaining = deadline - time.monotonic()
+        try:
+            command = commands.get(timeout=max(remaining, 0.0)) if remaining > 0 else commands.get_nowait()
+        except queue.Empty:
+            return None
+        if command.header.seq == k:
+            return command
+        if command.header.seq < k:
+            clock.late_commands += 1
+
+
+def run(ctx: NodeContext) -> int:
+    scenario = ctx.scenario
+    plant = TranslationPlant.from_scenario(scenario)
+    n_steps = scenario.n_steps
+    commands = ctx.subscribe_queue(keys.COMMAND_THRUST, ThrustCommand)
+    sense_topic = keys.TRUTH if scenario.estimator.mode == "truth" else keys.SENSE_RELPOS
+    ctx.declare_publisher(keys.SENSE_RELPOS)
+    ctx.declare_ready([sense_topic])
+    ctx.wait_for_tokens(keys.READY, ctx.peers, timeout_s=30.0)
+    ctx.log.info("peers ready (%s); running %d steps in %s mode", ", ".join(ctx.peers), n_steps, scenario.run.mode)
+
+    stamps = StampLog(n_steps)
+    last_thrust_n = np.zeros(3)
+    realtime = scenario.run.mode == "real-time"
+    clock = RealTimeClock(plant.params.time_step_s / scenario.run.time_factor) if realtime else None
+    try:
+        for k in range(n_steps):
+            if ctx.stop.is_set():
+                ctx.log.warning("stopped at step %d of %d", k, n_steps)
+                return 1
+            if realtime:
+                clock.sleep_until(clock.tick_s(k))
+            _publish_sample(ctx, plant, last_thrust_n)
+            if realtime:
+                command = _collect_command_realtime(commands, clock, k)
+                if command is None:
+                    clock.missed_steps += 1
+            else:
+                command = _wait_command_lockstep(ctx, commands, k, scenario.run.command_timeout_s)
+            if command is not None:
+                received = command.header.stamped("plant_received", time.monotonic_ns())
+                last_thrust_n = np.array(command.thrust_n)
+                stamps.record(k, received.stamped("applied", time.monotonic_ns()).stamps_ns)
+            plant.apply(last_thrust_n)
+            ctx.publish(keys.STATUS_STEP, StepDone(header(ctx.run_id, k, plant.sim_time_s), n_steps, k == n_steps - 1))
+    except LoopBroken as exc:
+        ctx.log.error("%s", exc)
+        return 1
+    finally:
+        _write_trajectory(ctx, plant, stamps, clock)
+    return 0
+
+
+def _write_trajectory(ctx: NodeContext, plant: TranslationPlant, stamps: StampLog, clock: RealTimeClock | None) -> None:
+    arrays = plant.trajectory()
+    arrays.update({f"stamp_{stage}_ns": v for stage, v in stamps.stamps.items()})
+    arrays["plant_late_commands"] = np.array(clock.late_commands if clock else 0)
+    arrays["plant_missed_steps"] = np.array(clock.missed_steps if clock else 0)
+    np.savez(ctx.run_dir / "trajectory.npz", **arrays)
