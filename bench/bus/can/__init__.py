@@ -1,0 +1,1 @@
+"""The actuator bus: the magnetorquer protocol, driver, board, bus model, fault injector, transports."""
