@@ -1,0 +1,171 @@
+"""Deadline monitor, fallbacks, plant-side deadline and the stress injector.
+
+Cycle times are driven by an injected clock wherever a number is checked, so nothing here
+depends on how fast this machine is; the one real-clock test injects delays five times the
+budget and counts them.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from bench.bus.schemas import DeadlineEvent, decode, encode, header
+from bench.controller.deadline import (
+    DeadlineConfig,
+    DeadlineMonitor,
+    PlantCommandDeadline,
+    StressConfig,
+    StressInjector,
+    lqr_fallback_law,
+)
+from bench.scenario import ScenarioError, parse_scenario
+
+BUDGET_S = 0.010
+
+
+class FakeClock:
+    """Monotonic nanoseconds that only move when a fake controller says so."""
+
+    def __init__(self):
+        self.now_ns = 1_000_000_000
+
+    def __call__(self) -> int:
+        return self.now_ns
+
+    def controller(self, cycle_times_s: list[float], plans: bool = False):
+        """A controller whose i-th eval takes cycle_times_s[i] and returns u = [i, 0, 0]."""
+        calls = iter(range(len(cycle_times_s)))
+
+        def evaluate(x):
+            i = next(calls)
+            self.now_ns += int(cycle_times_s[i] * 1e9)
+            info = {"ctrl_feas": True, "solve_time": cycle_times_s[i], "iterations": 10, "status": "solved"}
+            if plans:
+                info["u_plan"] = [[i, k, 0.0] for k in range(3)]
+            return np.array([float(i), 0.0, 0.0]), info
+
+        return evaluate
+
+
+def run(monitor: DeadlineMonitor, evaluate, n: int):
+    return [monitor.run_cycle(np.zeros(6), evaluate) for _ in range(n)]
+
+
+def test_misses_worst_cycle_and_streaks_are_counted():
+    clock = FakeClock()
+    times_s = [0.002, 0.015, 0.020, 0.001, 0.030, 0.004]
+    monitor = DeadlineMonitor(DeadlineConfig(budget_s=BUDGET_S), clock_ns=clock)
+    outcomes = run(monitor, clock.controller(times_s), len(times_s))
+
+    assert [o.missed for o in outcomes] == [False, True, True, False, True, False]
+    assert [o.consecutive_misses for o in outcomes] == [0, 1, 2, 0, 1, 0]
+    assert [o.cycle_time_s for o in outcomes] == pytest.approx(times_s)
+    summary = monitor.summary()
+    assert summary["cycles"] == 6 and summary["misses"] == 3
+    assert summary["max_consecutive_misses"] == 2
+    assert summary["worst_cycle_time_s"] == pytest.approx(0.030)
+    assert summary["fallbacks_applied"] == {"hold": 3}
+    # Events: every miss, and the first on-time cycle that ends a streak.
+    assert [o.cycle_index for o in outcomes if o.has_event] == [1, 2, 3, 4, 5]
+
+
+def test_hold_fallback_repeats_the_last_command_sent():
+    clock = FakeClock()
+    monitor = DeadlineMonitor(DeadlineConfig(budget_s=BUDGET_S, fallback="hold"), clock_ns=clock)
+    outcomes = run(monitor, clock.controller([0.001, 0.001, 0.050, 0.050, 0.001]), 5)
+    assert [o.thrust_n[0] for o in outcomes] == [0.0, 1.0, 1.0, 1.0, 4.0]
+    assert [o.fallback for o in outcomes] == [None, None, "hold", "hold", None]
+
+
+def test_hold_before_any_command_is_zero_thrust():
+    clock = FakeClock()
+    monitor = DeadlineMonitor(DeadlineConfig(budget_s=BUDGET_S), clock_ns=clock)
+    (outcome,) = run(monitor, clock.controller([0.5]), 1)
+    assert outcome.missed and np.array_equal(outcome.thrust_n, np.zeros(3))
+
+
+def test_shifted_plan_replays_the_last_on_time_plan_then_holds():
+    clock = FakeClock()
+    monitor = DeadlineMonitor(DeadlineConfig(budget_s=BUDGET_S, fallback="shifted_plan"), clock_ns=clock)
+    outcomes = run(monitor, clock.controller([0.001, 0.001, 0.05, 0.05, 0.05, 0.001], plans=True), 6)
+    # Plan of cycle 1 is [[1,0,0],[1,1,0],[1,2,0]]: misses replay entries 1 and 2, then hold.
+    assert [o.thrust_n.tolist() for o in outcomes[2:5]] == [[1, 1, 0], [1, 2, 0], [1, 2, 0]]
+    assert [o.fallback for o in outcomes[2:5]] == ["shifted_plan", "shifted_plan", "hold"]
+    assert outcomes[5].fallback is None and outcomes[5].thrust_n[0] == 5.0
+
+
+def test_lqr_fallback_uses_the_scenarios_lqr_gain():
+    scenario = parse_scenario({"name": "t", "controller": {"deadline": {"budget_s": BUDGET_S, "fallback": "lqr"}}})
+    params = scenario.params()
+    law = lqr_fallback_law(scenario.controller, params)
+    clock = FakeClock()
+    monitor = DeadlineMonitor(scenario.controller.deadline, lqr_law=law, clock_ns=clock)
+    x_scaled = np.array(params.scaling) * scenario.initial_state_m_mps()
+    (outcome,) = [monitor.run_cycle(x_scaled, clock.controller([0.05]))]
+    assert outcome.fallback == "lqr"
+    np.testing.assert_allclose(outcome.thrust_n, law(x_scaled))
+    assert np.linalg.norm(outcome.thrust_n) > 0
+
+
+def test_lqr_fallback_without_a_law_is_refused():
+    with pytest.raises(ValueError, match="lqr"):
+        DeadlineMonitor(DeadlineConfig(fallback="lqr"))
+
+
+def test_iteration_cap_follows_measured_time_per_iteration():
+    clock = FakeClock()
+    monitor = DeadlineMonitor(DeadlineConfig(budget_s=BUDGET_S), clock_ns=clock)
+    assert monitor.iteration_cap() is None
+    run(monitor, clock.controller([0.002]), 1)          # 10 iterations in 2 ms: 0.2 ms each
+    assert monitor.iteration_cap(safety=1.0) == 50
+    assert monitor.iteration_cap(elapsed_s=0.004, safety=1.0) == 30
+    assert monitor.iteration_cap(elapsed_s=1.0) == 1    # never zero: proxsuite needs one
+
+
+def test_deadline_event_round_trips_through_the_schema():
+    clock = FakeClock()
+    monitor = DeadlineMonitor(DeadlineConfig(budget_s=BUDGET_S), clock_ns=clock)
+    (outcome,) = run(monitor, clock.controller([0.02]), 1)
+    event = outcome.deadline_event(header("run1", 7, 4200.0), "controller")
+    back = decode(encode(event), DeadlineEvent)
+    assert back.missed and back.consecutive_misses == 1 and back.fallback == "hold"
+    assert back.cycle_time_s == pytest.approx(0.02) and back.budget_s == BUDGET_S
+
+
+def test_stress_schedule_lists_and_every_nth():
+    stress = StressConfig(extra_cycle_time_s=0.05, cycles=[0, 4], every_nth_cycle=3)
+    assert [i for i in range(10) if stress.is_stressed(i)] == [0, 2, 4, 5, 8]
+    assert stress.stressed_count(10) == 5
+    assert StressConfig(cycles=[1]).stressed_count(10) == 0   # no extra time, no stress
+
+
+def test_stress_only_acts_in_the_process_it_names():
+    stress = StressConfig(process="estimator", extra_cycle_time_s=0.05, cycles=[0])
+    assert not StressInjector(stress, "controller").apply(0)
+
+
+def test_injected_delays_far_over_budget_are_each_a_miss_with_fallback():
+    """Real clock: 100 ms busy loops against a 20 ms budget, on every 3rd of 9 cycles."""
+    stress = StressConfig(extra_cycle_time_s=0.1, every_nth_cycle=3, kind="busy")
+    config = DeadlineConfig(budget_s=0.02, fallback="hold", stress=stress)
+    monitor = DeadlineMonitor(config, stress=StressInjector(stress, "controller"))
+    law = lambda x: (np.ones(3), {"ctrl_feas": True, "solve_time": 0.0, "iterations": 0})
+    outcomes = [monitor.run_cycle(np.zeros(6), law) for _ in range(9)]
+    assert [o.cycle_index for o in outcomes if o.missed] == [2, 5, 8]
+    assert all(o.fallback == "hold" for o in outcomes if o.missed)
+    assert monitor.summary()["misses"] == stress.stressed_count(9) == 3
+    assert monitor.summary()["stress_injected_cycles"] == 3
+
+
+def test_plant_side_deadline_counts_steps_without_their_command():
+    plant = PlantCommandDeadline(step_period_s=0.1)
+    plant.command_arrived(0)
+    plant.command_arrived(2)
+    outcomes = [plant.check(k, waited_s=0.1) for k in range(4)]
+    assert [o.missed for o in outcomes] == [False, True, False, True]
+    assert plant.counter.misses == 2 and outcomes[1].fallback == "hold"
+
+
+def test_bad_deadline_section_names_the_field():
+    with pytest.raises(ScenarioError, match="controller.deadline.fallback"):
+        parse_scenario({"name": "t", "controller": {"deadline": {"fallback": "pray"}}})
