@@ -1,0 +1,130 @@
+"""Factor-graph factors of the estimators, built the cheap way where the model allows.
+
+A linear Gaussian term ||sum_i A_i x_i - b||^2_Sigma is a whitened `JacobianFactor` wrapped in a
+`LinearContainerFactor` whose linearisation point is zero, so the container's delta *is* the
+variable and the factor is exact at every linearisation (no Python callback per update). Python
+`CustomFactor`s are used only where the model is nonlinear: the CWH motion with an unknown mean
+motion, and range/bearing measurements.
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import gtsam
+import numpy as np
+from scipy.linalg import cholesky, solve_triangular
+
+from bench.estimator.motion_model import CwhMotionModel
+
+
+def whitening_matrix(covariance: np.ndarray) -> np.ndarray:
+    """W with W' W = Sigma^-1 (inverse of the lower Cholesky factor); raises naming a bad Sigma."""
+    covariance = np.atleast_2d(np.asarray(covariance, dtype=float))
+    if not np.all(np.isfinite(covariance)):
+        raise ValueError("covariance has non-finite entries")
+    try:
+        lower = cholesky(covariance, lower=True)
+    except np.linalg.LinAlgError:
+        raise ValueError("covariance is not positive definite") from None
+    return solve_triangular(lower, np.eye(lower.shape[0]), lower=True)
+
+
+def linear_factor(terms: Sequence[tuple[int, np.ndarray]], rhs: np.ndarray,
+                  covariance: np.ndarray) -> gtsam.LinearContainerFactor:
+    """The Gaussian term ||sum_i A_i x_i - rhs||^2 over covariance, on vector-valued keys."""
+    whiten = whitening_matrix(covariance)
+    rows = len(rhs)
+    unit = gtsam.noiseModel.Unit.Create(rows)
+    args: list = []
+    zero_point = gtsam.Values()
+    for key, matrix in terms:
+        args += [key, whiten @ matrix]
+        zero_point.insert(key, np.zeros(matrix.shape[1]))
+    jacobian = gtsam.JacobianFactor(*args, whiten @ np.asarray(rhs, dtype=float), unit)
+    return gtsam.LinearContainerFactor(jacobian, zero_point)
+
+
+def prior_factor(key: int, mean: np.ndarray, covariance: np.ndarray) -> gtsam.LinearContainerFactor:
+    mean = np.asarray(mean, dtype=float)
+    return linear_factor([(key, np.eye(mean.size))], mean, covariance)
+
+
+def cwh_motion_factor(previous_key: int, key: int, thrust_n: np.ndarray,
+                      transition: np.ndarray, input_matrix: np.ndarray,
+                      process_cov: np.ndarray) -> gtsam.LinearContainerFactor:
+    """x_k - Ad x_{k-1} = Bd u_{k-1} + w, for a known model."""
+    return linear_factor(
+        [(previous_key, -transition), (key, np.eye(transition.shape[0]))],
+        input_matrix @ np.asarray(thrust_n, dtype=float),
+        process_cov,
+    )
+
+
+def cwh_motion_factor_unknown_mean_motion(
+    previous_key: int, key: int, mean_motion_key: int, thrust_n: np.ndarray, n_steps: int,
+    model: CwhMotionModel, believed_mean_motion_radps: float,
+) -> gtsam.CustomFactor:
+    """x_k - Ad(n) x_{k-1} - Bd(n) u = w with n = n_believed (1 + delta) and delta a variable.
+
+    delta is relative (dimensionless, order 1e-2) rather than n itself (order 1e-3 rad/s) so the
+    smoother's relinearisation thresholds mean the same thing for it as for the states.
+    Q is taken at the believed mean motion: it depends on n only weakly.
+    """
+    thrust_n = np.asarray(thrust_n, dtype=float).copy()
+    whiten = whitening_matrix(model.discrete(believed_mean_motion_radps, n_steps).process_cov)
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians) -> np.ndarray:
+        x_prev = values.atVector(previous_key)
+        x_now = values.atVector(key)
+        delta = values.atVector(mean_motion_key)[0]
+        mean_motion = believed_mean_motion_radps * (1.0 + delta)
+        m = model.discrete(mean_motion, n_steps)
+        residual = x_now - m.transition @ x_prev - m.input_matrix @ thrust_n
+        if jacobians is not None:
+            d_transition, d_input = model.derivative(mean_motion, n_steps)
+            d_residual_d_delta = -(d_transition @ x_prev + d_input @ thrust_n) * believed_mean_motion_radps
+            jacobians[0] = -whiten @ m.transition
+            jacobians[1] = whiten
+            jacobians[2] = (whiten @ d_residual_d_delta).reshape(-1, 1)
+        return whiten @ residual
+
+    unit = gtsam.noiseModel.Unit.Create(whiten.shape[0])
+    return gtsam.CustomFactor(unit, [previous_key, key, mean_motion_key], error)
+
+
+def range_bearing(position_m: np.ndarray) -> np.ndarray:
+    """[range m, azimuth rad (atan2(y, x)), elevation rad (asin(z / range))] of a relative position."""
+    x, y, z = position_m
+    rng = float(np.linalg.norm(position_m))
+    return np.array([rng, np.arctan2(y, x), np.arcsin(z / rng)])
+
+
+def range_bearing_jacobian(position_m: np.ndarray) -> np.ndarray:
+    """d[range, azimuth, elevation]/d position, 3x3."""
+    x, y, z = position_m
+    rho2 = x * x + y * y
+    rho = np.sqrt(rho2)
+    r2 = rho2 + z * z
+    r = np.sqrt(r2)
+    return np.array([
+        [x / r, y / r, z / r],
+        [-y / rho2, x / rho2, 0.0],
+        [-x * z / (r2 * rho), -y * z / (r2 * rho), rho / r2],
+    ])
+
+
+def range_bearing_factor(key: int, measured: np.ndarray, range_std_m: float,
+                         bearing_std_rad: float) -> gtsam.CustomFactor:
+    """Range, azimuth, elevation of the chaser's relative position (the state's first three)."""
+    measured = np.asarray(measured, dtype=float).copy()
+    sigmas = np.array([range_std_m, bearing_std_rad, bearing_std_rad])
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians) -> np.ndarray:
+        position = values.atVector(key)[:3]
+        residual = range_bearing(position) - measured
+        residual[1] = (residual[1] + np.pi) % (2.0 * np.pi) - np.pi    # azimuth wraps
+        if jacobians is not None:
+            jacobians[0] = np.hstack([range_bearing_jacobian(position), np.zeros((3, 3))])
+        return residual
+
+    return gtsam.CustomFactor(gtsam.noiseModel.Diagonal.Sigmas(sigmas), [key], error)

@@ -1,0 +1,31 @@
+"""The [estimator] section: the smoother options load, bad values are named."""
+from __future__ import annotations
+
+import pytest
+
+from bench.scenario import ScenarioError, parse_scenario
+
+
+def test_smoother_options_load():
+    s = parse_scenario({"name": "t", "estimator": {
+        "mode": "smoother",
+        "translation": {"lag_steps": 30, "believed_radius_error": 0.01, "estimate_mean_motion": True},
+        "attitude": {"keyframe_period_s": 2.0},
+    }})
+    assert s.estimator.mode == "smoother"
+    assert s.estimator.translation.lag_steps == 30 and s.estimator.translation.estimate_mean_motion
+    assert s.estimator.attitude.keyframe_period_s == 2.0
+
+
+@pytest.mark.parametrize("section, field", [
+    ({"mode": "kalman"}, "estimator.mode"),
+    ({"translation": {"lag_steps": 0}}, "estimator.translation.lag_steps"),
+    ({"translation": {"process_noise_psd_m2ps3": -1.0}}, "estimator.translation.process_noise_psd_m2ps3"),
+    ({"translation": {"believed_radius_error": 0.7}}, "estimator.translation.believed_radius_error"),
+    ({"translation": {"sensor": "lidar"}}, "estimator.translation.sensor"),
+    ({"attitude": {"magnetometer_noise_std_t": 0.0}}, "estimator.attitude.magnetometer_noise_std_t"),
+    ({"translation": {"lag": 3}}, "lag"),
+])
+def test_bad_estimator_values_are_named(section, field):
+    with pytest.raises(ScenarioError, match=field.replace(".", r"\.")):
+        parse_scenario({"name": "t", "estimator": section})
