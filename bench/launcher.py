@@ -252,12 +252,13 @@ def _wait_alive(session, run_id: str, children: list[Child]) -> None:
 def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None, show_progress: bool = True,
               zenoh_config: str | None = None) -> tuple[int, Path]:
     """Run a scenario as separate processes. Returns (exit code, run directory)."""
+    hub = loopback_endpoint(port or free_loopback_port())
+    # The session first: a taken port must fail before anything is written or started.
+    session = open_session(SessionOptions(listen=(hub,), config_file=Path(zenoh_config) if zenoh_config else None))
     run_dir = runs_dir / run_id
     (run_dir / "logs").mkdir(parents=True, exist_ok=True)
     scenario_path = run_dir / "scenario.json"
     scenario_path.write_bytes(msgspec.json.format(msgspec.json.encode(scenario)))
-    hub = loopback_endpoint(port or free_loopback_port())
-    session = open_session(SessionOptions(listen=(hub,), config_file=Path(zenoh_config) if zenoh_config else None))
     children: list[Child] = []
     started = time.monotonic()
     stats, stats_subscriber = _collect_stats(session, run_id)
