@@ -11,6 +11,7 @@ import sys
 
 COMMAND_MODULES = [
     "bench.launcher",          # run, node, scenarios
+    "bench.bus.can.vcan",      # vcan up/down
 ]
 
 
