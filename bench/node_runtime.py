@@ -22,6 +22,7 @@ from typing import Callable
 import zenoh
 
 from bench.bus import keys
+from bench.bus.clock_sync import declare_clock_responder
 from bench.bus.schemas import MalformedMessage, Message, ProcessStats, decode, encode, header
 from bench.bus.session import SessionOptions, open_session
 from bench.scenario import Scenario
@@ -31,6 +32,7 @@ NODES: dict[str, str] = {
     "plant": "bench.plant.node",
     "estimator": "bench.estimator.node",
     "controller": "bench.controller.node",
+    "recorder": "bench.recorder",
 }
 
 
@@ -167,6 +169,7 @@ def run_node(name: str, run_id: str, scenario: Scenario, options: SessionOptions
     signal.signal(signal.SIGINT, request_stop)
     try:
         ctx.declare_alive()
+        ctx._keepalive.append(declare_clock_responder(session, run_id, name))   # clock offsets (recorder)
         code = module.run(ctx)
         ctx.publish_stats()
         time.sleep(0.05)  # let the stats sample leave before the session closes

@@ -1,0 +1,214 @@
+"""The recorder node: every sample of a run into runs/<run_id>/recording.mcap.
+
+It subscribes to `bench/<run_id>/**` raw, so it sees whatever is published, known or not. Each
+sample is classified by its "type" tag against the bench's message types: a valid message goes to
+a JSON channel named after its topic with that type's JSON schema (Foxglove reads it); a payload
+that does not decode goes, byte for byte, to `malformed/<topic>` and is counted. Nothing is
+dropped.
+
+Zenoh delivers samples on its own threads; they are queued with their arrival time and written by
+the node's thread, because mcap's Writer is not thread-safe and a slow disk must not block Zenoh.
+
+At the end it writes recorder_counts.json: per topic what it recorded, what was malformed, and
+what the publishers say they published (their ProcessStats), so a lost sample shows up as a
+difference. It also pings every process's clock (bench/bus/clock_sync.py) during the run and
+writes clock_offsets.json.
+"""
+from __future__ import annotations
+
+import json
+import queue
+import threading
+import time
+from collections import Counter
+from pathlib import Path
+from typing import Union
+
+import msgspec
+from mcap.writer import Writer
+
+from bench.bus import clock_sync, keys
+from bench.bus.schemas import SCHEMA_VERSION, Message, ProcessStats, json_schema
+
+RECORDING_FILE = "recording.mcap"
+COUNTS_FILE = "recorder_counts.json"
+OFFSETS_FILE = "clock_offsets.json"
+MALFORMED_PREFIX = "malformed/"
+CLOCK_SYNC_PERIOD_S = 0.5   # cheap (one query per round); catches short-lived runs
+DRAIN_POLL_S = 0.1
+
+MESSAGE_TYPES: tuple[type[Message], ...] = tuple(Message.__subclasses__())
+_any_message = msgspec.json.Decoder(Union[MESSAGE_TYPES])  # tagged union: dispatches on "type"
+
+
+def classify(payload: bytes, run_id: str) -> Message | None:
+    """The message in `payload` if it is a valid bench message of this run, else None."""
+    try:
+        message = _any_message.decode(payload)
+    except (msgspec.ValidationError, msgspec.DecodeError):
+        return None
+    header = message.header
+    if header.schema_version != SCHEMA_VERSION or header.run_id != run_id:
+        return None
+    return message
+
+
+def topic_of(key_expr: str, run_id: str) -> str:
+    """`bench/<run_id>/sense/relpos` -> `sense/relpos`."""
+    prefix = keys.key(run_id, "")
+    return key_expr[len(prefix):] if key_expr.startswith(prefix) else key_expr
+
+
+class Recording:
+    """An MCAP file with one JSON channel per (topic, message type) and raw malformed channels."""
+
+    def __init__(self, path: Path, run_id: str):
+        self.run_id = run_id
+        self._file = open(path, "wb")
+        self._writer = Writer(self._file)
+        self._writer.start(profile="", library="orbit-hil-bench recorder")
+        self._schemas: dict[type, int] = {}
+        self._channels: dict[str, int] = {}
+        self._sequence = 0
+        self.recorded: Counter = Counter()
+        self.malformed: Counter = Counter()
+        self.published_by: dict[str, dict[str, int]] = {}
+
+    def write(self, topic: str, payload: bytes, log_time_ns: int) -> Message | None:
+        """Record one sample; returns the decoded message, None if it was malformed."""
+        message = classify(payload, self.run_id)
+        if message is None:
+            self.malformed[topic] += 1
+            channel_id = self._channel(MALFORMED_PREFIX + topic, None)
+        else:
+            self.recorded[topic] += 1
+            channel_id = self._channel(topic, type(message))
+            if isinstance(message, ProcessStats):
+                self.published_by[message.process] = dict(message.published)
+        self._sequence += 1
+        self._writer.add_message(channel_id, log_time=log_time_ns, data=payload,
+                                 publish_time=log_time_ns, sequence=self._sequence)
+        return message
+
+    def _channel(self, topic: str, kind: type[Message] | None) -> int:
+        name = topic if kind is None else f"{topic}#{kind.__name__}"
+        channel_id = self._channels.get(name)
+        if channel_id is None:
+            if kind is None:
+                # Schemaless and not JSON: the bytes as they came, for whoever debugs the sender.
+                channel_id = self._writer.register_channel(topic, "application/octet-stream", 0)
+            else:
+                channel_id = self._writer.register_channel(topic, "json", self._schema(kind))
+            self._channels[name] = channel_id
+        return channel_id
+
+    def _schema(self, kind: type[Message]) -> int:
+        if kind not in self._schemas:
+            data = json.dumps(json_schema(kind)).encode()
+            self._schemas[kind] = self._writer.register_schema(kind.__name__, "jsonschema", data)
+        return self._schemas[kind]
+
+    def close(self) -> None:
+        self._writer.finish()
+        self._file.close()
+
+    def counts(self) -> dict:
+        """Recorded and malformed per topic, beside what the publishers reported publishing."""
+        published: Counter = Counter()
+        for topics in self.published_by.values():
+            published.update(topics)
+        topics = {}
+        for topic in sorted(set(self.recorded) | set(self.malformed) | set(published)):
+            seen = self.recorded[topic] + self.malformed[topic]
+            reported = published.get(topic)
+            topics[topic] = {
+                "recorded": self.recorded[topic],
+                "malformed": self.malformed[topic],
+                "published": reported,
+                "missing": None if reported is None else max(0, reported - seen),
+            }
+        return {"run_id": self.run_id, "topics": topics, "publishers": self.published_by}
+
+
+class ClockSyncThread(threading.Thread):
+    """Re-estimates clock offsets every few seconds, keeping each process's best reading."""
+
+    def __init__(self, ctx):
+        super().__init__(name="clock-sync", daemon=True)
+        self.ctx = ctx
+        self.offsets: dict[str, clock_sync.ClockOffset] = {}
+
+    def run(self) -> None:
+        while not self.ctx.stop.wait(CLOCK_SYNC_PERIOD_S):
+            try:
+                self.offsets = clock_sync.estimate_offsets(self.ctx.session, self.ctx.run_id, rounds=3,
+                                                           known=self.offsets)
+            except Exception as exc:   # a closed session at shutdown is not worth a crash
+                self.ctx.log.warning("clock sync failed: %s", exc)
+                return
+        if not self.offsets:
+            # A run shorter than the first period still gets one reading of each live process.
+            try:
+                self.offsets = clock_sync.estimate_offsets(self.ctx.session, self.ctx.run_id, rounds=3)
+            except Exception as exc:
+                self.ctx.log.warning("clock sync failed: %s", exc)
+
+
+class Recorder:
+    """Subscription, queue and recording of one run; `run(ctx)` drives it until ctx.stop."""
+
+    def __init__(self, ctx):
+        self.ctx = ctx
+        self.recording = Recording(ctx.run_dir / RECORDING_FILE, ctx.run_id)
+        self.samples: queue.SimpleQueue = queue.SimpleQueue()
+        self.arrived = 0     # samples handed over by Zenoh so far (tests wait on it)
+        self.subscriber = ctx.session.declare_subscriber(keys.all_topics(ctx.run_id), self._on_sample)
+
+    def _on_sample(self, sample) -> None:
+        self.samples.put((str(sample.key_expr), sample.payload.to_bytes(), time.time_ns()))
+        self.arrived += 1
+
+    def drain(self, timeout_s: float) -> None:
+        """Write every queued sample, waiting up to timeout_s for the first one."""
+        try:
+            item = self.samples.get(timeout=timeout_s) if timeout_s > 0 else self.samples.get_nowait()
+        except queue.Empty:
+            return
+        while True:
+            key_expr, payload, log_time_ns = item
+            self.recording.write(topic_of(key_expr, self.ctx.run_id), payload, log_time_ns)
+            try:
+                item = self.samples.get_nowait()
+            except queue.Empty:
+                return
+
+    def finish(self) -> dict:
+        """Stop listening, write what is still queued, close the file; the counts."""
+        self.subscriber.undeclare()
+        self.drain(0.0)
+        self.recording.close()
+        counts = self.recording.counts()
+        _write_json(self.ctx.run_dir / COUNTS_FILE, counts)
+        return counts
+
+
+def run(ctx) -> int:
+    """Node entry point: record until ctx.stop is set, then flush and write the counts."""
+    recorder = Recorder(ctx)
+    ctx.declare_ready([])   # subscribed: the plant may start publishing
+    clock = ClockSyncThread(ctx)
+    clock.start()
+    try:
+        while not ctx.stop.is_set():
+            recorder.drain(DRAIN_POLL_S)
+    finally:
+        recorder.finish()
+        ctx.malformed.update(recorder.recording.malformed)
+        clock.join(timeout=3.0)
+        _write_json(ctx.run_dir / OFFSETS_FILE, {p: o.to_dict() for p, o in sorted(clock.offsets.items())})
+    ctx.log.info("recorded %s; malformed %s", dict(recorder.recording.recorded), dict(recorder.recording.malformed))
+    return 0
+
+
+def _write_json(path: Path, data: dict) -> None:
+    path.write_text(json.dumps(data, indent=2, sort_keys=True))
