@@ -41,7 +41,8 @@ def frame(arbitration_id: int, data: bytes = b"", **kwargs) -> can.Message:
 
 
 def start_peer(mode: str, run_id: str, endpoint: str, count: int) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, str(PEER), mode, run_id, "vcan0", endpoint, str(count)],
+    return subprocess.Popen([sys.executable, str(PEER), mode, str(count), "--interface", "zenoh", "--channel", "vcan0",
+                             "--run-id", run_id, "--connect", endpoint],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 

@@ -4,6 +4,7 @@
 # with that reason.
 set -u
 PACKAGES=(
+  user-mode-linux kmod iproute2   # SocketCAN tests: a kernel with vcan in user-mode Linux (tools/uml)
 )
 [ ${#PACKAGES[@]} -eq 0 ] && exit 0
 missing=()

@@ -1,0 +1,90 @@
+"""Run commands and pytest selections inside user-mode Linux, for the SocketCAN tests.
+
+The kernels here have no CAN, so a real kernel vcan comes from Debian's user-mode Linux booted with
+the host filesystem as root (tools/uml/run-in-uml.sh): the guest runs this checkout's .venv Python
+against vcan0/vcan1. One boot runs a whole pytest selection; the host test reads the guest's
+JUnit XML and reports each guest test on its own.
+
+Tests skip, with the reason, only when UML cannot be installed (no package and not root or no
+apt) or the host refuses to boot it (the kernel never reaches init). Anything that goes wrong
+after the guest is up is a failure.
+"""
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+RUN_IN_UML = REPO / "tools" / "uml" / "run-in-uml.sh"
+INSTALL_DEPS = REPO / "tools" / "install-system-deps.sh"
+UML_KERNEL = Path("/usr/bin/linux.uml")
+INSTALL_TIMEOUT_S = 300
+BOOT_ERROR = 125          # run-in-uml.sh: UML or the guest's CAN setup failed
+INIT_REACHED = "as init process"   # the kernel's console line when it starts our init
+
+
+class UmlUnavailable(Exception):
+    """UML cannot run on this host; the message is the reason tests skip with."""
+
+
+@dataclass
+class UmlResult:
+    returncode: int
+    output: str
+    job_dir: Path
+
+
+def ensure_uml() -> None:
+    """Install user-mode Linux if missing and possible (root with apt), or raise UmlUnavailable.
+
+    `make test` installs it first through tools/install-system-deps.sh; this covers a bare
+    `pytest` run on the same kind of machine.
+    """
+    if UML_KERNEL.exists() and shutil.which("ip") and shutil.which("insmod"):
+        return
+    result = subprocess.run(["bash", str(INSTALL_DEPS)], capture_output=True, text=True, timeout=INSTALL_TIMEOUT_S)
+    if not UML_KERNEL.exists():
+        said = (result.stdout + result.stderr).strip() or "no output"
+        raise UmlUnavailable(f"user-mode Linux is not installed and could not be installed: {said}")
+
+
+def run(command: list[str], job_dir: Path, *, timeout_s: float = 60) -> UmlResult:
+    """Boot UML, run `command` (from the repository root) inside it, and return its result."""
+    ensure_uml()
+    proc = subprocess.run(
+        ["bash", str(RUN_IN_UML), "--timeout", str(int(timeout_s)), "--job", str(job_dir), "--", *command],
+        capture_output=True, text=True, cwd=REPO, timeout=timeout_s + 15,
+    )
+    console = job_dir / "console.log"
+    if proc.returncode == BOOT_ERROR and not (job_dir / "status").exists():
+        console_text = console.read_text(errors="replace") if console.exists() else ""
+        if INIT_REACHED not in console_text:
+            tail = " | ".join(console_text.strip().splitlines()[-3:]) or proc.stderr.strip()
+            raise UmlUnavailable(f"user-mode Linux does not boot on this host: {tail}")
+    return UmlResult(proc.returncode, proc.stdout + proc.stderr, job_dir)
+
+
+def run_pytest(selection: list[str], job_dir: Path, *, timeout_s: float = 60) -> tuple[UmlResult, dict[str, str]]:
+    """Run a pytest selection inside one UML boot; returns the result and {test name: outcome}.
+
+    Guest tests live in files named guest_*.py so the host's pytest never collects them.
+    """
+    junit = job_dir / "junit.xml"
+    command = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-o", "python_files=guest_*.py",
+               f"--junitxml={junit}", f"--basetemp={job_dir / 'tmp'}", "--timeout=30", *selection]
+    result = run(command, job_dir, timeout_s=timeout_s)
+    outcomes: dict[str, str] = {}
+    if junit.exists():
+        for case in ET.parse(junit).getroot().iter("testcase"):
+            outcome = "passed"
+            for child in case:
+                if child.tag in ("failure", "error"):
+                    outcome = "failed"
+                elif child.tag == "skipped":
+                    outcome = "skipped"
+            outcomes[case.get("name")] = outcome
+    return result, outcomes
