@@ -1,0 +1,218 @@
+"""The virtual magnetorquer board: what a real coil-driver board does on its CAN bus.
+
+It accepts only commands that pass the E2E check, quantises each axis to its driver's resolution
+and saturates it, drives coil currents that follow with a first-order lag (the coil's L/R), turns
+the coils off when commands stop (safe state) or while the magnetometer samples, and sends
+heartbeat and telemetry at fixed periods and an emergency frame for every rejected command.
+
+`step(now_s)` handles what arrived and what is due at `now_s`; `run(stop)` is the process loop.
+Time comes from the caller's clock, so unit tests drive the board deterministically.
+"""
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from typing import Callable
+
+import can
+import numpy as np
+
+from bench.bus.can import protocol as p
+from bench.bus.can.config import BoardConfig
+
+log = logging.getLogger(__name__)
+
+ERROR_REGISTER_GENERIC = 0x01
+ERROR_REGISTER_COMMUNICATION = 0x10
+
+
+@dataclass
+class AppliedCommand:
+    """One accepted command, for whoever publishes the applied dipole (the node)."""
+    dipole_am2: np.ndarray          # after quantisation and saturation: the coil driver's target
+    alive_counter: int
+    received_ns: int                # board decoded the frame
+    applied_ns: int                 # board set the coil targets
+
+
+@dataclass
+class BoardState:
+    target_dipole_am2: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    coil_current_a: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    safe_state: bool = True          # coils off until the first valid command
+    command_timeout: bool = False
+    actuation_paused: bool = False
+    saturated: bool = False
+    mode: int = p.MODE_OFF
+    last_command_counter: int = 0
+    command_rejected_since_tlm: bool = False
+
+
+class MagnetorquerBoard:
+    def __init__(self, bus: can.BusABC, config: BoardConfig, protocol: p.Protocol,
+                 clock: Callable[[], float] = time.monotonic,
+                 on_applied: Callable[[AppliedCommand], None] | None = None):
+        self.bus = bus
+        self.config = config
+        self.protocol = protocol
+        self.clock = clock
+        self.on_applied = on_applied
+        self.state = BoardState()
+        self.e2e = p.E2EReceiver(config.max_delta_counter)
+        self.rejected: Counter = Counter()     # by E2E status name or "wrong_length"
+        self.accepted = 0
+        self.sent: Counter = Counter()
+        self._tx_counter: Counter = Counter()  # alive counters of the board's own protected frames
+        self._started_s: float | None = None
+        self._last_update_s: float | None = None
+        self._last_command_s: float | None = None
+        self._next_heartbeat_s = 0.0
+        self._next_telemetry_s = 0.0
+
+    @property
+    def applied_dipole_am2(self) -> np.ndarray:
+        return self.state.coil_current_a * self.config.coil_gain_am2_per_a
+
+    # --- the loop -------------------------------------------------------------------------
+    def start(self, now_s: float) -> None:
+        """Boot: announce ourselves (CANopen boot-up heartbeat) and schedule periodic frames."""
+        self._started_s = self._last_update_s = now_s
+        self._send(self.protocol.encode(p.HEARTBEAT, {"NmtState": p.NMT_BOOT_UP}))
+        self._next_heartbeat_s = now_s + self.config.heartbeat_period_s
+        self._next_telemetry_s = now_s + self.config.telemetry_period_s
+
+    def step(self, now_s: float | None = None) -> None:
+        """Handle every frame waiting on the bus, then advance the coils and send what is due."""
+        now_s = self.clock() if now_s is None else now_s
+        if self._started_s is None:
+            self.start(now_s)
+        while (msg := self.bus.recv(timeout=0.0)) is not None:
+            self.handle(msg, now_s)
+        self.update(now_s)
+
+    def run(self, stop: threading.Event) -> None:
+        """Process loop: wake on every frame or when the next periodic frame is due."""
+        self.start(self.clock())
+        while not stop.is_set():
+            wait_s = max(0.0, min(self._next_heartbeat_s, self._next_telemetry_s) - self.clock())
+            msg = self.bus.recv(timeout=min(wait_s, 0.01))
+            now_s = self.clock()
+            if msg is not None:
+                self.handle(msg, now_s)
+            self.update(now_s)
+
+    # --- receiving ------------------------------------------------------------------------
+    def handle(self, msg: can.Message, now_s: float) -> None:
+        """One frame from the bus. Anything but a valid command is counted and ignored."""
+        received_ns = time.monotonic_ns()
+        if msg.arbitration_id == self.protocol.frame_ids[p.CMD] and len(msg.data) != 8 and not msg.is_error_frame:
+            self._reject("wrong_length", None, p.EMCY_PDO_LENGTH, 0)
+        frame = self.protocol.decode(msg)
+        if frame is None or frame.name != p.CMD:
+            return  # other nodes' frames (our own telemetry echoed, a babbler) are not for us
+        status = self.e2e.check(frame.counter, frame.crc_ok)
+        if not status.accepted:
+            self._reject(status.name, frame.counter, p.EMCY_E2E_CHECK_FAILED, int(status))
+            return
+        self.update(now_s)  # coils run up to now on the old target before it changes
+        self._apply(frame, now_s, received_ns)
+
+    def _apply(self, frame: p.Frame, now_s: float, received_ns: int) -> None:
+        s, c = self.state, self.config
+        requested = np.array([frame.signals[f"Dipole{a}"] for a in p.AXES])
+        quantised = np.round(requested / c.dipole_resolution_am2) * c.dipole_resolution_am2
+        saturated = np.clip(quantised, -c.max_dipole_am2, c.max_dipole_am2)
+        s.saturated = bool(np.any(saturated != quantised))
+        s.mode = int(frame.signals["Mode"])
+        s.target_dipole_am2 = saturated if s.mode == p.MODE_DIPOLE else np.zeros(3)
+        s.last_command_counter = frame.counter
+        s.safe_state = s.command_timeout = False
+        self._last_command_s = now_s
+        self.accepted += 1
+        if self.on_applied is not None:
+            self.on_applied(AppliedCommand(s.target_dipole_am2.copy(), frame.counter, received_ns, time.monotonic_ns()))
+
+    def _reject(self, reason: str, counter: int | None, error_code: int, e2e_status: int) -> None:
+        self.rejected[reason] += 1
+        self.state.command_rejected_since_tlm = True
+        self._send(self.protocol.encode(p.EMCY, {
+            "ErrorCode": error_code, "ErrorRegister": ERROR_REGISTER_GENERIC | ERROR_REGISTER_COMMUNICATION,
+            "E2eStatus": e2e_status, "RejectedCounter": counter or 0,
+            "RejectedFrames": min(sum(self.rejected.values()), 0xFFFF),
+        }))
+
+    # --- time -----------------------------------------------------------------------------
+    def update(self, now_s: float) -> None:
+        """Safe state and magnetometer windows, coil currents up to now, periodic frames."""
+        s, c = self.state, self.config
+        if (self._last_command_s is not None and not s.safe_state
+                and now_s - self._last_command_s > c.command_timeout_s):
+            self._enter_safe_state()
+        s.actuation_paused = self._in_mag_window(now_s)
+        target = np.zeros(3) if (s.safe_state or s.actuation_paused) else s.target_dipole_am2
+        self._advance_coils(target / c.coil_gain_am2_per_a, now_s)
+        if now_s >= self._next_telemetry_s:
+            self._send_telemetry()
+            self._next_telemetry_s = _next_tick(self._next_telemetry_s, c.telemetry_period_s, now_s)
+        if now_s >= self._next_heartbeat_s:
+            self._send(self.protocol.encode(p.HEARTBEAT, {"NmtState": p.NMT_OPERATIONAL}))
+            self._next_heartbeat_s = _next_tick(self._next_heartbeat_s, c.heartbeat_period_s, now_s)
+
+    def _enter_safe_state(self) -> None:
+        self.state.safe_state = self.state.command_timeout = True
+        log.warning("no valid command for %.3f s: coils off", self.config.command_timeout_s)
+        self._send(self.protocol.encode(p.EMCY, {"ErrorCode": p.EMCY_COMMAND_TIMEOUT,
+                                                 "ErrorRegister": ERROR_REGISTER_COMMUNICATION}))
+
+    def _in_mag_window(self, now_s: float) -> bool:
+        c = self.config
+        if c.mag_window_period_s <= 0 or c.mag_window_s <= 0:
+            return False
+        return (now_s - self._started_s) % c.mag_window_period_s < c.mag_window_s
+
+    def _advance_coils(self, target_current_a: np.ndarray, now_s: float) -> None:
+        # Exact discretisation of di/dt = (i_target - i) / tau over the elapsed time.
+        dt_s = max(0.0, now_s - self._last_update_s)
+        self._last_update_s = now_s
+        decay = math.exp(-dt_s / self.config.coil_time_constant_s)
+        s = self.state
+        s.coil_current_a = target_current_a + (s.coil_current_a - target_current_a) * decay
+
+    # --- sending --------------------------------------------------------------------------
+    def _send_telemetry(self) -> None:
+        s = self.state
+        dipole = self.applied_dipole_am2
+        self._send(self._protected(p.TLM_DIPOLE, {
+            "SafeState": s.safe_state, "ActuationPaused": s.actuation_paused,
+            "CommandTimeout": s.command_timeout, "Saturated": s.saturated,
+            **{f"AppliedDipole{a}": float(v) for a, v in zip(p.AXES, dipole)},
+        }))
+        self._send(self._protected(p.TLM_COIL, {
+            "CommandRejected": s.command_rejected_since_tlm, "OverTemperature": False,
+            **{f"CoilCurrent{a}": float(v) for a, v in zip(p.AXES, s.coil_current_a)},
+            "Temperature": self.config.ambient_temperature_c, "LastCommandCounter": s.last_command_counter,
+        }))
+        s.command_rejected_since_tlm = False
+
+    def _protected(self, name: str, signals: dict) -> can.Message:
+        counter = self._tx_counter[name]
+        self._tx_counter[name] = (counter + 1) % p.COUNTER_MODULO
+        return self.protocol.encode(name, signals, counter)
+
+    def _send(self, msg: can.Message) -> None:
+        try:
+            self.bus.send(msg)
+            self.sent[self.protocol.name_of(msg.arbitration_id)] += 1
+        except can.CanError as exc:  # a full or broken bus must not kill the board
+            self.sent["send_failed"] += 1
+            log.warning("send failed: %s", exc)
+
+
+def _next_tick(previous_s: float, period_s: float, now_s: float) -> float:
+    """The next periodic deadline after now, without bursts after a late wake-up."""
+    nxt = previous_s + period_s
+    return nxt if nxt > now_s else now_s + period_s

@@ -1,0 +1,94 @@
+"""The scenario's [can] section: transport, bus, board, driver, scripted dipoles and faults.
+
+Defaults are those of a CubeSat-class magnetorquer set (0.2 A m^2 per axis, coils of a few ms
+time constant); the seeds give no board numbers, so these are assumptions a scenario overrides.
+"""
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+import msgspec
+
+from bench.bus.can.faults import FaultSpec
+
+PositiveS = Annotated[float, msgspec.Meta(gt=0)]
+NonNegS = Annotated[float, msgspec.Meta(ge=0)]
+Vec3 = Annotated[list[float], msgspec.Meta(min_length=3, max_length=3)]
+
+
+class BoardConfig(msgspec.Struct, forbid_unknown_fields=True):
+    max_dipole_am2: Annotated[float, msgspec.Meta(gt=0, le=3.2)] = 0.2   # per axis; DBC holds +-3.27
+    dipole_resolution_am2: Annotated[float, msgspec.Meta(ge=1e-4)] = 1e-3  # coil driver DAC step
+    coil_time_constant_s: PositiveS = 0.005          # L/R of a coil
+    coil_gain_am2_per_a: PositiveS = 2.0             # turns x area: dipole per ampere
+    command_timeout_s: PositiveS = 0.1               # no valid command this long: coils off
+    heartbeat_period_s: PositiveS = 0.1
+    telemetry_period_s: PositiveS = 0.05
+    # Magnetometer sampling windows: coils held off for window_s every period_s (0: never).
+    mag_window_period_s: NonNegS = 0.0
+    mag_window_s: NonNegS = 0.0
+    ambient_temperature_c: float = 20.0
+    max_delta_counter: Annotated[int, msgspec.Meta(ge=1, le=15)] = 2   # lost commands tolerated + 1
+
+    def __post_init__(self):
+        if self.mag_window_period_s and self.mag_window_s >= self.mag_window_period_s:
+            raise ValueError("mag_window_s must be shorter than mag_window_period_s")
+
+
+class DriverConfig(msgspec.Struct, forbid_unknown_fields=True):
+    command_period_s: PositiveS = 0.02
+    # A board is lost when its heartbeat is this many heartbeat periods late (CANopen consumer time).
+    heartbeat_timeout_periods: Annotated[float, msgspec.Meta(ge=1.0)] = 2.5
+    telemetry_timeout_periods: Annotated[float, msgspec.Meta(ge=1.0)] = 3.0
+    max_delta_counter: Annotated[int, msgspec.Meta(ge=1, le=15)] = 2
+    # Plausibility of the applied dipole against the command: beyond tolerance for longer than
+    # mismatch_time_s (after the coils had settle_s to follow) is a stuck or corrupted actuator.
+    dipole_tolerance_am2: PositiveS = 0.01
+    settle_s: PositiveS = 0.06
+    mismatch_time_s: PositiveS = 0.15
+
+
+class DipoleStep(msgspec.Struct, forbid_unknown_fields=True):
+    t_s: NonNegS
+    dipole_am2: Vec3
+
+
+def _default_profile() -> list[DipoleStep]:
+    # Each axis in turn, both signs: every applied value differs from the one before.
+    return [DipoleStep(0.0, [0.1, 0.0, 0.0]), DipoleStep(0.3, [0.0, 0.1, 0.0]), DipoleStep(0.6, [0.0, 0.0, 0.1]),
+            DipoleStep(0.9, [-0.1, 0.0, 0.0]), DipoleStep(1.2, [0.0, -0.1, 0.0]), DipoleStep(1.5, [0.0, 0.0, -0.1])]
+
+
+class CanConfig(msgspec.Struct, forbid_unknown_fields=True):
+    transport: Literal["zenoh", "socketcan", "virtual"] = "zenoh"
+    flight_channel: str = "flight"     # the driver's side of the bus model
+    board_channel: str = "board"       # the board's side
+    bitrate_bps: Annotated[int, msgspec.Meta(ge=10_000, le=1_000_000)] = 1_000_000
+    node_id: Annotated[int, msgspec.Meta(ge=1, le=127)] = 0x10
+    tx_queue_frames: Annotated[int, msgspec.Meta(ge=1, le=1024)] = 8   # a controller's transmit buffers
+    board: BoardConfig = msgspec.field(default_factory=BoardConfig)
+    driver: DriverConfig = msgspec.field(default_factory=DriverConfig)
+    # Scripted dipole (until the attitude law commands it): steps held until the next, repeated
+    # every profile_repeat_s when that is set.
+    dipole_profile: list[DipoleStep] = msgspec.field(default_factory=_default_profile)
+    profile_repeat_s: NonNegS = 1.8
+    faults: list[FaultSpec] = []
+    capture: bool = True               # candump .log of the bus model in the run directory
+
+    def __post_init__(self):
+        times = [s.t_s for s in self.dipole_profile]
+        if times != sorted(times):
+            raise ValueError("dipole_profile steps must be in increasing t_s")
+
+    def dipole_at(self, t_s: float) -> list[float]:
+        """The scripted dipole at time t_s since the start of commanding."""
+        if not self.dipole_profile:
+            return [0.0, 0.0, 0.0]
+        if self.profile_repeat_s > 0:
+            t_s = t_s % self.profile_repeat_s
+        current = [0.0, 0.0, 0.0]
+        for step in self.dipole_profile:
+            if step.t_s > t_s:
+                break
+            current = step.dipole_am2
+        return list(current)

@@ -1,0 +1,278 @@
+"""Flight-side magnetorquer driver: what the on-board computer runs to command the board.
+
+`command(dipole_am2)` sends one E2E-protected command; `poll()` reads what the board sent and
+checks the deadlines; `health()` says whether the board can be trusted. Every anomaly becomes a
+`FaultEvent` with the time it was detected and the driver's estimate of how long after the fault
+it noticed (the latency): a lost heartbeat counts from when the next one was due, a bad frame
+from when it was on the bus, a rejected command from when the driver sent it.
+
+What the driver detects, and from what evidence:
+- board lost / back: heartbeat (CANopen consumer) and telemetry deadlines;
+- corrupted, repeated, out-of-sequence or lost telemetry: the E2E check of each telemetry frame;
+- commands the board rejected (corrupted, repeated, out of sequence, wrong length) and its
+  command timeout: the board's emergency frames;
+- spoofed or replayed commands: a frame with the command identifier that this driver did not
+  send (a CAN controller never receives its own frames, so any such frame has another source);
+- stuck actuator or a command corrupted before protection: applied dipole against commanded;
+- its own controller's error-passive, bus-off and restart: SocketCAN error frames.
+"""
+from __future__ import annotations
+
+import time
+from collections import Counter, deque
+from dataclasses import dataclass, field
+from typing import Callable
+
+import can
+import numpy as np
+
+from bench.bus.can import errors
+from bench.bus.can import protocol as p
+from bench.bus.can.config import BoardConfig, DriverConfig
+
+MAX_EVENTS_KEPT = 10_000
+RECENT_COMMANDS = 64
+
+
+@dataclass(frozen=True)
+class FaultEvent:
+    kind: str                 # see KINDS
+    detected_ns: int          # time.monotonic_ns() when detected
+    latency_s: float          # driver's estimate of detection latency (see module docstring)
+    frame: str = ""
+    detail: str = ""
+
+
+KINDS = (
+    "heartbeat_timeout", "heartbeat_resumed", "board_rebooted", "telemetry_timeout",
+    "telemetry_corrupted", "telemetry_repeated", "telemetry_out_of_sequence", "telemetry_lost",
+    "command_rejected", "board_command_timeout", "spoofed_command", "actuator_mismatch",
+    "error_warning", "error_passive", "bus_off", "bus_restarted",
+)
+
+
+@dataclass
+class BoardHealth:
+    """What the driver knows about the board now; `ok` is the one bit a controller needs."""
+    alive: bool
+    nmt_state: int | None
+    safe_state: bool
+    actuation_paused: bool
+    applied_dipole_am2: list[float]
+    coil_current_a: list[float]
+    temperature_c: float | None
+    heartbeat_age_s: float | None
+    bus_state: str
+    events: dict[str, int]
+    bad_frames: dict[str, int]
+
+    @property
+    def ok(self) -> bool:
+        return self.alive and not self.safe_state and self.bus_state != errors.ErrorState.BUS_OFF.value
+
+
+@dataclass
+class _Sent:
+    counter: int
+    dipole_am2: np.ndarray
+    sent_s: float
+
+
+@dataclass
+class _Deadline:
+    """A frame expected every period_s; late by timeout_s means lost."""
+    period_s: float
+    timeout_s: float
+    last_s: float | None = None
+    lost: bool = False
+
+
+class MagnetorquerDriver:
+    def __init__(self, bus: can.BusABC, config: DriverConfig, board: BoardConfig, protocol: p.Protocol,
+                 clock: Callable[[], float] = time.monotonic, wall_clock: Callable[[], float] = time.time):
+        self.bus = bus
+        self.config = config
+        self.board = board
+        self.protocol = protocol
+        self.clock = clock
+        self.wall_clock = wall_clock
+        self.events: deque[FaultEvent] = deque(maxlen=MAX_EVENTS_KEPT)
+        self.event_counts: Counter = Counter()
+        self.sent_frames = 0
+        self._counter = 0
+        self._sent: deque[_Sent] = deque(maxlen=RECENT_COMMANDS)
+        self._rx_e2e = {name: p.E2EReceiver(config.max_delta_counter) for name in (p.TLM_DIPOLE, p.TLM_COIL)}
+        self._heartbeat = _Deadline(board.heartbeat_period_s, board.heartbeat_period_s * config.heartbeat_timeout_periods)
+        self._telemetry = _Deadline(board.telemetry_period_s, board.telemetry_period_s * config.telemetry_timeout_periods)
+        self._nmt_state: int | None = None
+        self._tlm: dict[str, dict] = {}
+        self._bus_state = errors.ErrorState.ACTIVE
+        self._mismatch_since_s: float | None = None
+        self._start_s = clock()
+        self._new_events: list[FaultEvent] = []
+
+    # --- commanding -----------------------------------------------------------------------
+    def command(self, dipole_am2, mode: int = p.MODE_DIPOLE) -> int:
+        """Send one command; returns its alive counter. Raises can.CanError if the bus refuses it."""
+        counter = self._counter
+        msg = self.protocol.command(dipole_am2, counter, mode)
+        self.bus.send(msg)
+        self._counter = (counter + 1) % p.COUNTER_MODULO
+        self.sent_frames += 1
+        requested = np.asarray(dipole_am2, dtype=float) if mode == p.MODE_DIPOLE else np.zeros(3)
+        self._sent.append(_Sent(counter, requested, self.clock()))
+        return counter
+
+    # --- receiving ------------------------------------------------------------------------
+    def poll(self, timeout_s: float = 0.0, max_frames: int = 1000) -> list[FaultEvent]:
+        """Handle the frames that arrived (waiting up to timeout_s for the first), check deadlines.
+
+        Returns the events detected during this call.
+        """
+        self._new_events = []
+        msg = self.bus.recv(timeout=timeout_s)
+        handled = 0
+        while msg is not None:
+            self.handle(msg)
+            handled += 1
+            if handled >= max_frames:
+                break  # a flood must not starve the deadline checks below
+            msg = self.bus.recv(timeout=0.0)
+        self.check_deadlines(self.clock())
+        return self._new_events
+
+    def handle(self, msg: can.Message) -> None:
+        now_s = self.clock()
+        if msg.is_error_frame:
+            self._on_error_frame(msg)
+            return
+        if msg.arbitration_id == self.protocol.frame_ids[p.CMD]:
+            # Our own identifier, sent by someone else.
+            self._event("spoofed_command", self._wire_age_s(msg), p.CMD, f"data {bytes(msg.data).hex()}")
+            return
+        frame = self.protocol.decode(msg)
+        if frame is None:
+            return
+        if frame.name == p.HEARTBEAT:
+            self._on_heartbeat(frame, now_s)
+        elif frame.name == p.EMCY:
+            self._on_emergency(frame, msg)
+        elif frame.name in self._rx_e2e:
+            self._on_telemetry(frame, msg, now_s)
+
+    def _on_heartbeat(self, frame: p.Frame, now_s: float) -> None:
+        state = int(frame.signals["NmtState"])
+        if state == p.NMT_BOOT_UP and self._nmt_state is not None:
+            self._event("board_rebooted", 0.0, p.HEARTBEAT)
+        self._nmt_state = state
+        self._arrived(self._heartbeat, now_s, "heartbeat_resumed", p.HEARTBEAT)
+
+    def _on_emergency(self, frame: p.Frame, msg: can.Message) -> None:
+        code = int(frame.signals["ErrorCode"])
+        if code == p.EMCY_COMMAND_TIMEOUT:
+            self._event("board_command_timeout", self._wire_age_s(msg), p.EMCY)
+        elif code in (p.EMCY_E2E_CHECK_FAILED, p.EMCY_PDO_LENGTH):
+            status = int(frame.signals["E2eStatus"])
+            reason = p.E2EStatus(status).name if status in p.E2EStatus._value2member_map_ else "WRONG_LENGTH"
+            counter = int(frame.signals["RejectedCounter"])
+            self._event("command_rejected", self._command_age_s(counter, msg), p.EMCY,
+                        f"{reason} counter {counter}")
+
+    def _on_telemetry(self, frame: p.Frame, msg: can.Message, now_s: float) -> None:
+        status = self._rx_e2e[frame.name].check(frame.counter, frame.crc_ok)
+        kind = {p.E2EStatus.WRONG_CRC: "telemetry_corrupted", p.E2EStatus.REPEATED: "telemetry_repeated",
+                p.E2EStatus.WRONG_SEQUENCE: "telemetry_out_of_sequence",
+                p.E2EStatus.OK_SOME_LOST: "telemetry_lost"}.get(status)
+        if kind is not None:
+            self._event(kind, self._wire_age_s(msg), frame.name, f"counter {frame.counter}")
+        if not status.accepted:
+            return
+        self._tlm[frame.name] = frame.signals
+        self._arrived(self._telemetry, now_s, None, frame.name)
+        if frame.name == p.TLM_DIPOLE:
+            self._check_plausibility(frame.signals, now_s)
+
+    def _on_error_frame(self, msg: can.Message) -> None:
+        state, restarted = errors.read_error_frame(msg)
+        if restarted:
+            self._bus_state = errors.ErrorState.ACTIVE
+            self._event("bus_restarted", self._wire_age_s(msg))
+            return
+        if state is not self._bus_state and state is not errors.ErrorState.ACTIVE:
+            self._event(state.value, self._wire_age_s(msg), detail=f"tec {msg.data[6] if len(msg.data) > 6 else '?'}")
+        self._bus_state = state
+
+    # --- deadlines and plausibility -------------------------------------------------------
+    def check_deadlines(self, now_s: float) -> None:
+        for deadline, kind, frame in ((self._heartbeat, "heartbeat_timeout", p.HEARTBEAT),
+                                      (self._telemetry, "telemetry_timeout", p.TLM_DIPOLE)):
+            # Before the first frame, count from the driver's start: a board that never comes
+            # up is as lost as one that went quiet.
+            last_s = deadline.last_s if deadline.last_s is not None else self._start_s
+            if not deadline.lost and now_s - last_s > deadline.timeout_s:
+                deadline.lost = True
+                self._event(kind, now_s - (last_s + deadline.period_s), frame)
+
+    def _arrived(self, deadline: _Deadline, now_s: float, resumed_kind: str | None, frame: str) -> None:
+        if deadline.lost and resumed_kind is not None:
+            self._event(resumed_kind, 0.0, frame)
+        deadline.lost = False
+        deadline.last_s = now_s
+
+    def _check_plausibility(self, tlm: dict, now_s: float) -> None:
+        """Applied dipole far from every command the coils had time to follow, for too long."""
+        if tlm["SafeState"] or tlm["ActuationPaused"] or not self._sent:
+            self._mismatch_since_s = None
+            return
+        applied = np.array([tlm[f"AppliedDipole{a}"] for a in p.AXES])
+        settled = [s for s in self._sent if now_s - s.sent_s >= self.config.settle_s]
+        if not settled:
+            return
+        limit = self.board.max_dipole_am2
+        candidates = [settled[-1].dipole_am2] + [s.dipole_am2 for s in self._sent if s.sent_s > settled[-1].sent_s]
+        close = any(np.max(np.abs(applied - np.clip(c, -limit, limit))) <= self.config.dipole_tolerance_am2
+                    for c in candidates)
+        if close:
+            self._mismatch_since_s = None
+            return
+        if self._mismatch_since_s is None:
+            self._mismatch_since_s = now_s
+        elif now_s - self._mismatch_since_s >= self.config.mismatch_time_s:
+            self._event("actuator_mismatch", now_s - self._mismatch_since_s + self.config.settle_s, p.TLM_DIPOLE,
+                        f"applied {np.round(applied, 4).tolist()} commanded {np.round(candidates[-1], 4).tolist()}")
+            self._mismatch_since_s = None  # report again if it persists another mismatch_time_s
+
+    # --- reporting ------------------------------------------------------------------------
+    def _event(self, kind: str, latency_s: float, frame: str = "", detail: str = "") -> None:
+        event = FaultEvent(kind, time.monotonic_ns(), max(0.0, latency_s), frame, detail)
+        self.events.append(event)
+        self._new_events.append(event)
+        self.event_counts[kind] += 1
+
+    def _wire_age_s(self, msg: can.Message) -> float:
+        # python-can stamps a received frame with the (wall-clock) time it was on the wire.
+        return self.wall_clock() - msg.timestamp if msg.timestamp else 0.0
+
+    def _command_age_s(self, counter: int, msg: can.Message) -> float:
+        for sent in reversed(self._sent):
+            if sent.counter == counter:
+                return self.clock() - sent.sent_s
+        return self._wire_age_s(msg)
+
+    def health(self) -> BoardHealth:
+        now_s = self.clock()
+        dipole = self._tlm.get(p.TLM_DIPOLE, {})
+        coil = self._tlm.get(p.TLM_COIL, {})
+        return BoardHealth(
+            alive=self._heartbeat.last_s is not None and not self._heartbeat.lost,
+            nmt_state=self._nmt_state,
+            safe_state=bool(dipole.get("SafeState", True)),
+            actuation_paused=bool(dipole.get("ActuationPaused", False)),
+            applied_dipole_am2=[float(dipole.get(f"AppliedDipole{a}", 0.0)) for a in p.AXES],
+            coil_current_a=[float(coil.get(f"CoilCurrent{a}", 0.0)) for a in p.AXES],
+            temperature_c=float(coil["Temperature"]) if coil else None,
+            heartbeat_age_s=now_s - self._heartbeat.last_s if self._heartbeat.last_s is not None else None,
+            bus_state=self._bus_state.value,
+            events=dict(self.event_counts),
+            bad_frames=dict(self.protocol.bad.counts),
+        )

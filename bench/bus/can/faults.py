@@ -1,0 +1,132 @@
+"""Fault descriptions for the bus model, in the manner of Vector CANoe's disturbance settings.
+
+A fault in a scenario names what it does (`name`, a key of FAULTS), which frames it acts on
+(`frames`, DBC message names), when (`start_s` after the bus model starts, for `duration_s`),
+how many frames it affects (`count`, 0 = no limit), how often (`every` n-th matching frame) and
+its own parameters (`params`), each with a range. What a fault does to frames is in injector.py;
+this module only describes and validates, so `bench faults` and the scenario loader share it.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Annotated
+
+import msgspec
+
+BOARD_FRAMES = ("MTQ_TLM_DIPOLE", "MTQ_TLM_COIL", "MTQ_HEARTBEAT", "MTQ_EMCY")
+
+
+@dataclass(frozen=True)
+class Param:
+    name: str
+    default: float | int | bool
+    low: float | None = None
+    high: float | None = None
+    unit: str = ""
+    doc: str = ""
+
+    def check(self, value) -> None:
+        if isinstance(self.default, bool):
+            if not isinstance(value, bool):
+                raise ValueError(f"{self.name} must be true or false, not {value!r}")
+            return
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ValueError(f"{self.name} must be a number, not {value!r}")
+        if isinstance(self.default, int) and not float(value).is_integer():
+            raise ValueError(f"{self.name} must be an integer, not {value!r}")
+        if not self.low <= value <= self.high:
+            raise ValueError(f"{self.name} = {value} is out of range [{self.low}, {self.high}]{' ' + self.unit if self.unit else ''}")
+
+
+@dataclass(frozen=True)
+class FaultKind:
+    name: str
+    summary: str
+    default_frames: tuple[str, ...]
+    params: tuple[Param, ...] = ()
+    # "frame": acts on each matching frame a node sends; "window": acts for a time window,
+    # whatever the nodes send, and needs duration_s.
+    trigger: str = "frame"
+
+
+_SEED = Param("seed", 1, 0, 2**31 - 1, "", "random generator seed (which bits)")
+FAULTS: dict[str, FaultKind] = {f.name: f for f in (
+    FaultKind("drop", "frame lost on the bus", ("MTQ_CMD",)),
+    FaultKind("delay", "frame held back before it competes for the bus", ("MTQ_CMD",),
+              (Param("delay_s", 0.05, 1e-4, 2.0, "s", "how long each frame is held"),)),
+    FaultKind("duplicate", "frame sent again right after itself", ("MTQ_CMD",),
+              (Param("copies", 1, 1, 10, "", "extra copies per frame"),)),
+    FaultKind("replay", "an earlier frame, recorded on the bus, sent again", ("MTQ_CMD",),
+              (Param("after_s", 0.2, 0.0, 10.0, "s", "age of the recording when replays start"),)),
+    FaultKind("corrupt", "bits flipped in the payload, E2E CRC left or recomputed", ("MTQ_CMD",),
+              (Param("bits", 1, 1, 3, "", "bits flipped per frame (CRC-8 0x2F detects up to 3 here)"),
+               Param("recompute_crc", False, doc="recompute the E2E CRC with the right data id (corruption before protection)"),
+               _SEED)),
+    FaultKind("spoof", "a command from another source, sent right after a genuine one", ("MTQ_CMD",),
+              (Param("dipole_am2", 0.15, -3.2, 3.2, "A.m2", "dipole the spoofer commands on every axis"),
+               Param("knows_data_id", False, doc="spoofer knows the E2E data ids (E2E then cannot reject it)"),
+               Param("data_id", 0x00, 0, 255, "", "data id the spoofer's CRC uses when it does not know ours"))),
+    FaultKind("counter_freeze", "alive counter stuck at its value when the fault starts (CRC valid)", ("MTQ_CMD",)),
+    FaultKind("counter_offset", "alive counter shifted by an offset (CRC valid)", ("MTQ_CMD",),
+              (Param("offset", 5, 1, 15, "", "added to the counter modulo 16"),)),
+    FaultKind("flood", "babbling node sending back to back at a higher priority", (),
+              (Param("frame_id", 0x010, 0, 0x7FF, "", "its 11-bit identifier (lower wins arbitration)"),
+               Param("period_s", 0.0, 0.0, 1.0, "s", "time between its frames; 0 = back to back"),
+               Param("dlc", 8, 0, 8, "bytes", "its payload length")), trigger="window"),
+    FaultKind("board_death", "the board falls silent: no heartbeat, telemetry or emergency", BOARD_FRAMES,
+              trigger="window"),
+    FaultKind("stuck_actuator", "telemetry frozen at its values when the fault starts while commands arrive",
+              ("MTQ_TLM_DIPOLE", "MTQ_TLM_COIL"),
+              (Param("freeze_counter", False, doc="freeze the alive counter too (else it keeps counting)"),),
+              trigger="window"),
+    FaultKind("error_frames", "each transmission of a matching frame destroyed by an error frame", ("MTQ_CMD",),
+              (Param("restart_delay_s", 0.1, 0.0, 5.0, "s", "bus-off recovery delay (SocketCAN restart-ms)"),)),
+)}
+
+
+class FaultSpec(msgspec.Struct, forbid_unknown_fields=True):
+    name: str
+    frames: list[str] = []
+    start_s: Annotated[float, msgspec.Meta(ge=0)] = 0.0
+    duration_s: Annotated[float, msgspec.Meta(gt=0)] | None = None
+    count: Annotated[int, msgspec.Meta(ge=0)] = 0
+    every: Annotated[int, msgspec.Meta(ge=1)] = 1
+    params: dict[str, bool | int | float] = {}
+
+    def __post_init__(self):
+        kind = FAULTS.get(self.name)
+        if kind is None:
+            raise ValueError(f"unknown fault {self.name!r} (known: {', '.join(sorted(FAULTS))})")
+        declared = {p.name: p for p in kind.params}
+        for key, value in self.params.items():
+            if key not in declared:
+                known = ", ".join(declared) or "none"
+                raise ValueError(f"fault {self.name!r}: unknown parameter {key!r} (known: {known})")
+            try:
+                declared[key].check(value)
+            except ValueError as exc:
+                raise ValueError(f"fault {self.name!r}: parameter {exc}") from None
+        from bench.bus.can.protocol import database  # the DBC is the list of frame names
+        names = {m.name for m in database().messages}
+        for frame in self.frames:
+            if frame not in names:
+                raise ValueError(f"fault {self.name!r}: unknown frame {frame!r} (known: {', '.join(sorted(names))})")
+        if kind.trigger == "window" and self.duration_s is None:
+            raise ValueError(f"fault {self.name!r} acts for a time window: give duration_s")
+
+    @property
+    def kind(self) -> FaultKind:
+        return FAULTS[self.name]
+
+    def param(self, name: str):
+        """The parameter's value, or its default."""
+        if name in self.params:
+            return self.params[name]
+        return next(p.default for p in self.kind.params if p.name == name)
+
+    def target_frames(self) -> tuple[str, ...]:
+        return tuple(self.frames) or self.kind.default_frames
+
+    def window_ns(self, t0_ns: int) -> tuple[int, int | None]:
+        start = t0_ns + round(self.start_s * 1e9)
+        return start, (start + round(self.duration_s * 1e9) if self.duration_s is not None else None)
