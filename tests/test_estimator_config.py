@@ -10,11 +10,11 @@ def test_smoother_options_load():
     s = parse_scenario({"name": "t", "estimator": {
         "mode": "smoother",
         "translation": {"lag_steps": 30, "believed_radius_error": 0.01, "estimate_mean_motion": True},
-        "attitude": {"keyframe_period_s": 2.0},
+        "attitude": {"lag_s": 30.0},
     }})
     assert s.estimator.mode == "smoother"
     assert s.estimator.translation.lag_steps == 30 and s.estimator.translation.estimate_mean_motion
-    assert s.estimator.attitude.keyframe_period_s == 2.0
+    assert s.estimator.attitude.lag_s == 30.0
 
 
 @pytest.mark.parametrize("section, field", [

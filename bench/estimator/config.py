@@ -44,8 +44,8 @@ class TranslationSmootherConfig(msgspec.Struct, forbid_unknown_fields=True):
 
 
 class AttitudeSmootherConfig(msgspec.Struct, forbid_unknown_fields=True):
-    # Keyframes (smoother states) every keyframe_period_s; the window is lag_s long.
-    keyframe_period_s: Positive = 1.0
+    # One smoother state (attitude, gyro bias) per magnetometer or star-tracker sample; gyro
+    # samples in between are preintegrated. The window keeps the states of the last lag_s seconds.
     lag_s: Positive = 20.0
     # Assumed sensor noise. Gyro: white rate noise density and bias random walk (continuous).
     gyro_noise_density_radps_per_rthz: Positive = 1.0e-4
@@ -53,8 +53,6 @@ class AttitudeSmootherConfig(msgspec.Struct, forbid_unknown_fields=True):
     initial_gyro_bias_std_radps: Positive = 1.0e-3
     magnetometer_noise_std_t: Positive = 1.0e-7
     star_tracker_noise_std_rad: Positive = 1.0e-4
-    # Prior on the first attitude when no star-tracker fix is available at start.
-    initial_attitude_std_rad: Positive = 0.5
 
 
 class EstimatorConfig(msgspec.Struct, forbid_unknown_fields=True):

@@ -1,0 +1,255 @@
+"""Attitude and gyro-bias estimation: gtsam incremental fixed-lag smoothing for the magnetorquer loop.
+
+States per keyframe k (one per magnetometer or star-tracker sample): R_k = ^N R ^B (Rot3, body to
+inertial) and the gyro bias b_k (rad/s). Factors:
+- gyro samples between keyframes preintegrated (`PreintegratedAhrsMeasurements`) into one
+  `AHRSFactor` (R_{k-1}, R_k, b_{k-1}): it fixes all three degrees of freedom of R_k;
+- bias random walk b_k - b_{k-1} ~ N(0, sigma_bw^2 dt): linear, so a whitened JacobianFactor; it
+  fixes b_k. With these two, every new key is fully constrained whatever else arrives;
+- `MagFactor1` for the magnetometer against the on-board field model (two degrees of freedom);
+- a Rot3 prior for a star-tracker fix (three degrees of freedom).
+The smoother starts at the first star-tracker fix (the magnetometer alone cannot fix attitude).
+A failed gtsam update is logged, counted, and the smoother restarts from the last good estimate
+carried forward by the gyro; bad input raises ValueError naming the problem.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+from bench.estimator import factors
+from bench.estimator.config import AttitudeSmootherConfig
+
+log = logging.getLogger(__name__)
+
+
+def attitude_key(seq: int) -> int:
+    return gtsam.symbol("r", seq)
+
+
+def bias_key(seq: int) -> int:
+    return gtsam.symbol("b", seq)
+
+
+@dataclass(frozen=True)
+class AttitudeEstimateResult:
+    seq: int
+    sim_time_s: float
+    q_wxyz: np.ndarray                    # body to inertial, scalar first
+    attitude_covariance_rad2: np.ndarray  # (3, 3), of the body-frame error: R_true = R_est Exp(e)
+    gyro_bias_radps: np.ndarray           # (3,)
+    gyro_bias_covariance: np.ndarray      # (3, 3), (rad/s)^2
+    failed_updates: int
+    reinitialised: bool
+
+    @property
+    def rotation(self) -> gtsam.Rot3:
+        return gtsam.Rot3.Quaternion(*self.q_wxyz)
+
+
+@dataclass(frozen=True)
+class _GoodEstimate:
+    seq: int
+    sim_time_s: float
+    rotation: gtsam.Rot3
+    rotation_cov: np.ndarray
+    bias: np.ndarray
+    bias_cov: np.ndarray
+
+
+class AttitudeSmoother:
+    """add_gyro(omega_radps, dt_s) between keyframes; update(seq, sim_time_s, ...) at each keyframe."""
+
+    def __init__(self, config: AttitudeSmootherConfig):
+        self.config = config
+        self.failed_updates = 0
+        self._gyro_params = gtsam.PreintegratedRotationParams()
+        self._gyro_params.setGyroscopeCovariance(np.eye(3) * config.gyro_noise_density_radps_per_rthz**2)
+        self._smoother: gtsam.IncrementalFixedLagSmoother | None = None
+        self._last: _GoodEstimate | None = None
+        self._preintegrated: gtsam.PreintegratedAhrsMeasurements | None = None
+
+    def add_gyro(self, omega_radps: np.ndarray, dt_s: float) -> None:
+        """One gyro sample (mean body rate over dt_s, bias included). Ignored before the first fix."""
+        omega = np.asarray(omega_radps, dtype=float).reshape(-1)
+        if omega.size != 3 or not np.all(np.isfinite(omega)):
+            raise ValueError(f"omega_radps must be 3 finite numbers, got {omega_radps!r}")
+        if not (np.isfinite(dt_s) and dt_s > 0):
+            raise ValueError(f"gyro dt_s must be positive and finite, got {dt_s}")
+        if self._preintegrated is not None:
+            self._preintegrated.integrateMeasurement(omega, float(dt_s))
+
+    def update(self, seq: int, sim_time_s: float, magnetometer_t: np.ndarray | None = None,
+               field_inertial_t: np.ndarray | None = None,
+               star_tracker_wxyz: np.ndarray | None = None) -> AttitudeEstimateResult | None:
+        """A keyframe at `seq`: the measured body-frame field with the model's inertial field, and/or
+        a star-tracker quaternion (body to inertial). None until the first star-tracker fix."""
+        measurement_factors = self._measurement_factors(seq, magnetometer_t, field_inertial_t, star_tracker_wxyz)
+        if self._last is None:
+            if star_tracker_wxyz is None:
+                return None
+            return self._start(seq, sim_time_s, self._first_prior(seq, star_tracker_wxyz), measurement_factors)
+        if seq <= self._last.seq:
+            raise ValueError(f"seq must increase: got {seq} after {self._last.seq}")
+        if self._preintegrated.deltaTij() <= 0.0:
+            raise ValueError(f"no gyro samples between keyframe {self._last.seq} and {seq}: "
+                             "the new attitude would be unconstrained")
+        if self._smoother is None:
+            return self._restart(seq, sim_time_s, measurement_factors)
+
+        graph = gtsam.NonlinearFactorGraph()
+        previous = self._last.seq
+        graph.add(gtsam.AHRSFactor(attitude_key(previous), attitude_key(seq), bias_key(previous), self._preintegrated))
+        graph.add(self._bias_walk_factor(previous, seq))
+        for f in measurement_factors:
+            graph.add(f)
+        rotation_guess, bias_guess = self._predict_last()
+        guess = gtsam.Values()
+        guess.insert(attitude_key(seq), rotation_guess)
+        guess.insert(bias_key(seq), bias_guess)
+        try:
+            return self._apply(self._smoother, seq, sim_time_s, graph, guess, reinitialised=False)
+        except Exception as exc:     # gtsam raises RuntimeError subclasses; never let one out
+            self.failed_updates += 1
+            log.warning("attitude smoother update %d failed (%d so far): %s; restarting from the "
+                        "estimate of keyframe %d", seq, self.failed_updates, exc, self._last.seq)
+            self._smoother = None
+            return self._restart(seq, sim_time_s, measurement_factors)
+
+    # ---- factors ------------------------------------------------------------------------------
+
+    def _measurement_factors(self, seq, magnetometer_t, field_inertial_t, star_tracker_wxyz) -> list:
+        out = []
+        if (magnetometer_t is None) != (field_inertial_t is None):
+            raise ValueError("magnetometer_t and field_inertial_t come together (measurement and model)")
+        if magnetometer_t is not None:
+            measured = _vector("magnetometer_t", magnetometer_t)
+            model = _vector("field_inertial_t", field_inertial_t)
+            strength = float(np.linalg.norm(model))
+            if strength == 0.0:
+                raise ValueError("field_inertial_t is zero: no direction to compare with")
+            noise = gtsam.noiseModel.Isotropic.Sigma(3, self.config.magnetometer_noise_std_t)
+            out.append(gtsam.MagFactor1(attitude_key(seq), measured, strength, gtsam.Unit3(model), np.zeros(3), noise))
+        if star_tracker_wxyz is not None:
+            noise = gtsam.noiseModel.Isotropic.Sigma(3, self.config.star_tracker_noise_std_rad)
+            out.append(gtsam.PriorFactorRot3(attitude_key(seq), _rotation("star_tracker_wxyz", star_tracker_wxyz), noise))
+        return out
+
+    def _bias_walk_factor(self, previous: int, seq: int):
+        dt_s = self._preintegrated.deltaTij()
+        variance = self.config.gyro_bias_random_walk_radps2_per_rthz**2 * dt_s
+        return factors.linear_factor([(bias_key(previous), -np.eye(3)), (bias_key(seq), np.eye(3))],
+                                     np.zeros(3), np.eye(3) * variance)
+
+    def _first_prior(self, seq: int, star_tracker_wxyz) -> list:
+        # The star-tracker fix (a measurement factor) fixes R_0; the bias needs its prior.
+        bias_var = self.config.initial_gyro_bias_std_radps**2
+        return [factors.prior_factor(bias_key(seq), np.zeros(3), np.eye(3) * bias_var)], \
+            _rotation("star_tracker_wxyz", star_tracker_wxyz), np.zeros(3)
+
+    def _predict_last(self) -> tuple[gtsam.Rot3, np.ndarray]:
+        """Last estimate carried across the preintegrated gyro interval (the new keys' guess)."""
+        # The preintegration was started about last.bias, so deltaRij needs no bias correction.
+        last = self._last
+        return last.rotation.compose(self._preintegrated.deltaRij()), last.bias.copy()
+
+    # ---- starting and restarting --------------------------------------------------------------
+
+    def _start(self, seq, sim_time_s, prior, measurement_factors, reinitialised: bool = False):
+        prior_factors, rotation_guess, bias_guess = prior
+        graph = gtsam.NonlinearFactorGraph()
+        for f in [*prior_factors, *measurement_factors]:
+            graph.add(f)
+        guess = gtsam.Values()
+        guess.insert(attitude_key(seq), rotation_guess)
+        guess.insert(bias_key(seq), np.asarray(bias_guess, dtype=float))
+        smoother = gtsam.IncrementalFixedLagSmoother(self.config.lag_s, self._isam_params())
+        result = self._apply(smoother, seq, sim_time_s, graph, guess, reinitialised)
+        self._smoother = smoother
+        return result
+
+    def _restart(self, seq, sim_time_s, measurement_factors):
+        """New smoother at `seq` with the last good estimate, carried by the gyro, as its prior."""
+        last, pim = self._last, self._preintegrated
+        rotation, bias = self._predict_last()
+        # Attitude uncertainty grows by the preintegration noise and by the bias uncertainty
+        # integrated over the interval (first order).
+        dt_s = pim.deltaTij()
+        rotation_cov = last.rotation_cov + pim.preintMeasCov() + last.bias_cov * dt_s**2
+        bias_cov = last.bias_cov + np.eye(3) * self.config.gyro_bias_random_walk_radps2_per_rthz**2 * dt_s
+        prior_factors = [
+            gtsam.PriorFactorRot3(attitude_key(seq), rotation, gtsam.noiseModel.Gaussian.Covariance(rotation_cov)),
+            factors.prior_factor(bias_key(seq), bias, bias_cov),
+        ]
+        try:
+            return self._start(seq, sim_time_s, (prior_factors, rotation, bias), measurement_factors, reinitialised=True)
+        except Exception as exc:
+            self.failed_updates += 1
+            log.warning("attitude smoother restart at keyframe %d failed (%d so far): %s; "
+                        "publishing the gyro prediction", seq, self.failed_updates, exc)
+            self._smoother = None
+            self._last = _GoodEstimate(seq, sim_time_s, rotation, rotation_cov, bias, bias_cov)
+            self._reset_preintegration()
+            return self._result(self._last, reinitialised=True)
+
+    def _isam_params(self) -> gtsam.ISAM2Params:
+        params = gtsam.ISAM2Params()
+        # Rotations are nonlinear: relinearise any variable that moved by more than 1e-3 rad (or
+        # rad/s), checked every update. The linearisation error left is second order, ~1e-6 rad,
+        # far below the star tracker's 1e-4 rad; a tighter threshold costs time for nothing.
+        params.setRelinearizeThreshold(1e-3)
+        params.relinearizeSkip = 1
+        return params
+
+    # ---- solving ------------------------------------------------------------------------------
+
+    def _apply(self, smoother, seq, sim_time_s, graph, guess, reinitialised: bool):
+        stamps = gtsam.FixedLagSmootherKeyTimestampMap()
+        stamps.insert((attitude_key(seq), float(sim_time_s)))
+        stamps.insert((bias_key(seq), float(sim_time_s)))
+        smoother.update(graph, guess, stamps)
+        rotation = smoother.calculateEstimateRot3(attitude_key(seq))
+        bias = np.asarray(smoother.calculateEstimateVector(bias_key(seq)), dtype=float)
+        rotation_cov = np.asarray(smoother.marginalCovariance(attitude_key(seq)), dtype=float)
+        bias_cov = np.asarray(smoother.marginalCovariance(bias_key(seq)), dtype=float)
+        if not all(np.all(np.isfinite(a)) for a in (rotation.matrix(), bias, rotation_cov, bias_cov)):
+            raise RuntimeError(f"non-finite attitude estimate at keyframe {seq}")
+        self._last = _GoodEstimate(seq, float(sim_time_s), rotation, rotation_cov, bias, bias_cov)
+        self._reset_preintegration()
+        return self._result(self._last, reinitialised)
+
+    def _reset_preintegration(self) -> None:
+        # Preintegrate about the newest bias estimate: the factor's first-order bias correction
+        # is then applied to small deviations only.
+        self._preintegrated = gtsam.PreintegratedAhrsMeasurements(self._gyro_params, self._last.bias)
+
+    def _result(self, good: _GoodEstimate, reinitialised: bool) -> AttitudeEstimateResult:
+        q = good.rotation.toQuaternion()
+        return AttitudeEstimateResult(
+            seq=good.seq, sim_time_s=good.sim_time_s,
+            q_wxyz=np.array([q.w(), q.x(), q.y(), q.z()]),
+            attitude_covariance_rad2=0.5 * (good.rotation_cov + good.rotation_cov.T),
+            gyro_bias_radps=good.bias.copy(),
+            gyro_bias_covariance=0.5 * (good.bias_cov + good.bias_cov.T),
+            failed_updates=self.failed_updates, reinitialised=reinitialised,
+        )
+
+
+def _vector(name: str, value) -> np.ndarray:
+    v = np.asarray(value, dtype=float).reshape(-1)
+    if v.size != 3 or not np.all(np.isfinite(v)):
+        raise ValueError(f"{name} must be 3 finite numbers, got {value!r}")
+    return v
+
+
+def _rotation(name: str, q_wxyz) -> gtsam.Rot3:
+    q = np.asarray(q_wxyz, dtype=float).reshape(-1)
+    if q.size != 4 or not np.all(np.isfinite(q)):
+        raise ValueError(f"{name} must be 4 finite numbers [w, x, y, z], got {q_wxyz!r}")
+    norm = np.linalg.norm(q)
+    if abs(norm - 1.0) > 1e-3:
+        raise ValueError(f"{name} must be a unit quaternion, got norm {norm:.6f}")
+    return gtsam.Rot3.Quaternion(*(q / norm))
