@@ -166,3 +166,19 @@ def test_garbage_on_every_bench_key_crashes_nothing(runs_dir):
     for name, text in logs.items():
         assert "malformed message" in text, name
         assert "Traceback" not in text, name
+
+
+@pytest.mark.parametrize("name", ["rendezvous_smoother", "rendezvous_uncertain_orbit"])
+def test_smoother_in_the_loop_reproduces_in_process(runs_dir, name):
+    # The estimator process needs the command of step k-1 with fix k; the in-process loop has it
+    # by construction. Equal trajectories show the process wiring hands over exactly that.
+    import msgspec
+
+    result = run_bench_cli("run", name, "--steps", "40", "--run-id", name, "--runs-dir", str(runs_dir), "--no-progress")
+    assert result.returncode == 0, result.stderr
+    _, trajectory = load_run(runs_dir / name)
+    scenario = load_scenario(name)
+    scenario = msgspec.structs.replace(scenario, run=msgspec.structs.replace(scenario.run, steps=40))
+    reference, _ = simulate_in_process(scenario)
+    scale = np.abs(reference["state_m_mps"]).max(axis=0)
+    np.testing.assert_allclose(trajectory["state_m_mps"] / scale, reference["state_m_mps"] / scale, rtol=0, atol=1e-9)

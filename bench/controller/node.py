@@ -1,6 +1,11 @@
-"""The controller process: estimate in, thrust command out, once per plant step."""
+"""The controller process: estimate in, thrust command out, once per plant step, under a deadline.
+
+Every cycle runs under the deadline monitor; a miss applies the configured fallback and is
+published as a DeadlineEvent as it happens. The monitor's summary goes to deadline.json.
+"""
 from __future__ import annotations
 
+import json
 import queue
 import time
 
@@ -8,24 +13,32 @@ import numpy as np
 
 from bench.bus import keys
 from bench.bus.schemas import ThrustCommand, TranslationEstimate
-from bench.controller.thrust import ThrustLaw
+from bench.controller.cycle import ControlCycle
 from bench.node_runtime import NodeContext
 
 
 def run(ctx: NodeContext) -> int:
-    law = ThrustLaw(ctx.scenario)
+    control = ControlCycle(ctx.scenario)
     estimates = ctx.subscribe_queue(keys.ESTIMATE_TRANSLATION, TranslationEstimate)
+    ctx.declare_publisher(keys.EVENT_DEADLINE)
     ctx.declare_ready([keys.COMMAND_THRUST])
     while not ctx.stop.is_set():
         try:
             estimate = estimates.get(timeout=0.2)
         except queue.Empty:
             continue
-        hdr = estimate.header.stamped("controller_received", time.monotonic_ns())
-        thrust_n, info = law.command(np.array(estimate.state_m_mps))
+        received_ns = time.monotonic_ns()
+        hdr = estimate.header.stamped("controller_received", received_ns)
+        outcome = control.run(np.array(estimate.state_m_mps), estimate.mean_motion_radps, start_ns=received_ns)
         hdr = hdr.stamped("commanded", time.monotonic_ns())
+        info = outcome.info
         ctx.publish(keys.COMMAND_THRUST, ThrustCommand(
-            hdr, thrust_n.tolist(), bool(info["ctrl_feas"]), str(info["status"]),
-            float(info["solve_time"]), int(info.get("iterations", 0)),
+            hdr, outcome.thrust_n.tolist(), bool(info.get("ctrl_feas", False)), str(info.get("status", "")),
+            float(info.get("solve_time", 0.0)), int(info.get("iterations", 0)), outcome.fallback,
         ))
+        if outcome.has_event:
+            ctx.publish(keys.EVENT_DEADLINE, outcome.deadline_event(hdr))
+    summary = control.monitor.summary() | {"saturated_cycles": control.saturated_cycles,
+                                           "model_updates": control.law.model_updates}
+    (ctx.run_dir / "deadline_controller.json").write_text(json.dumps(summary, indent=2))
     return 0

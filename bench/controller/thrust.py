@@ -1,21 +1,56 @@
 """The translational control law as the controller process sees it: SI in, SI out.
 
-The seed's controllers work on the scaled state (Mm, km/s); the scaling stays inside here.
+The seed's controllers work on the scaled state (Mm, km/s); the scaling stays inside here. Where
+the estimator estimates the orbit (seed 001's uncertain orbit radius), the law is rebuilt on the
+estimated mean motion, so the controller's A and B are the estimated ones.
 """
 from __future__ import annotations
+
+from dataclasses import replace
 
 import numpy as np
 
 from bench.controller.factory import build_controller
+from bench.plant.cwh import RendezvousParams
 from bench.scenario import Scenario
+
+# Rebuild the controller when the estimated mean motion has moved this much (relative) since the
+# model it was built on: the gains vary smoothly with n, so a small dead band costs nothing.
+MODEL_REFRESH_REL = 1e-3
+
+
+def radius_for_mean_motion_m(params: RendezvousParams, mean_motion_radps: float) -> float:
+    return float((params.gravitational_parameter_m3ps2 / mean_motion_radps**2) ** (1.0 / 3.0))
 
 
 class ThrustLaw:
     def __init__(self, scenario: Scenario):
-        self.params = scenario.params()
-        self.scaled = self.params.scaled
-        self.controller = build_controller(scenario.controller, self.params)
+        self.config = scenario.controller
+        params = scenario.params()
+        if scenario.estimator.mode == "smoother":
+            # The flight side only knows the believed orbit radius.
+            believed_error = scenario.estimator.translation.believed_radius_error
+            params = replace(params, target_radius_m=params.target_radius_m * (1.0 + believed_error))
+        self.model_updates = 0
+        self._build(params)
 
-    def command(self, state_m_mps: np.ndarray) -> tuple[np.ndarray, dict]:
-        u_n, info = self.controller.eval(self.scaled.to_scaled(state_m_mps))
+    def _build(self, params: RendezvousParams) -> None:
+        self.params = params
+        self.scaled = params.scaled
+        self.controller = build_controller(self.config, params)
+
+    def update_model(self, mean_motion_radps: float | None) -> bool:
+        """Rebuild on an estimated mean motion that moved past the dead band; True if rebuilt."""
+        if mean_motion_radps is None or abs(mean_motion_radps / self.params.mean_motion - 1.0) <= MODEL_REFRESH_REL:
+            return False
+        self._build(replace(self.params, target_radius_m=radius_for_mean_motion_m(self.params, mean_motion_radps)))
+        self.model_updates += 1
+        return True
+
+    def to_scaled(self, state_m_mps: np.ndarray) -> np.ndarray:
+        return self.scaled.to_scaled(np.asarray(state_m_mps, dtype=float))
+
+    def command(self, state_m_mps: np.ndarray, mean_motion_radps: float | None = None) -> tuple[np.ndarray, dict]:
+        self.update_model(mean_motion_radps)
+        u_n, info = self.controller.eval(self.to_scaled(state_m_mps))
         return np.asarray(u_n, dtype=float).reshape(3), info

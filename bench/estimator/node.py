@@ -1,33 +1,79 @@
 """The estimator process: turns the plant's sensing into a state estimate for the controller.
 
-mode "truth" passes ground truth through (seed 001's full state knowledge).
+truth mode: ground truth passed through. smoother mode: the relative-position fix of step k plus
+the thrust the controller commanded at step k-1 (what the flight side knows it asked for).
 """
 from __future__ import annotations
 
 import queue
 import time
 
+import numpy as np
+
 from bench.bus import keys
-from bench.bus.schemas import TranslationEstimate, TruthState
-from bench.estimator.truth import TruthEstimator
+from bench.bus.schemas import RelativePosition, ThrustCommand, TranslationEstimate, TruthState
+from bench.estimator.frontend import StateEstimator
 from bench.node_runtime import NodeContext
+
+# How long to wait for command k-1 once fix k is in. In lock-step it was sent before fix k was
+# taken, so it is in flight; in real-time a missing command means the plant held the last one.
+COMMAND_WAIT_S = {"lock-step": 2.0, "real-time": 0.0}
+
+
+class CommandHistory:
+    """Thrust commanded per step, from the controller's published commands."""
+
+    def __init__(self, commands: "queue.Queue[ThrustCommand]"):
+        self._queue = commands
+        self._by_seq: dict[int, np.ndarray] = {}
+        self._last = np.zeros(3)
+
+    def thrust_for(self, seq: int, wait_s: float) -> np.ndarray:
+        """Thrust commanded for step `seq` (the last one known if it does not come in time)."""
+        deadline = time.monotonic() + wait_s
+        while seq not in self._by_seq:
+            remaining = deadline - time.monotonic()
+            try:
+                command = self._queue.get(timeout=remaining) if remaining > 0 else self._queue.get_nowait()
+            except queue.Empty:
+                break
+            self._by_seq[command.header.seq] = np.array(command.thrust_n)
+        if seq in self._by_seq:
+            self._last = self._by_seq[seq]
+        self._by_seq = {k: v for k, v in self._by_seq.items() if k > seq}
+        return self._last
 
 
 def run(ctx: NodeContext) -> int:
-    estimator = TruthEstimator()
-    truths = ctx.subscribe_queue(keys.TRUTH, TruthState)
+    scenario = ctx.scenario
+    estimator = StateEstimator(scenario)
+    if estimator.needs_truth:
+        samples = ctx.subscribe_queue(keys.TRUTH, TruthState)
+        history = None
+    else:
+        samples = ctx.subscribe_queue(keys.SENSE_RELPOS, RelativePosition)
+        history = CommandHistory(ctx.subscribe_queue(keys.COMMAND_THRUST, ThrustCommand))
+    command_wait_s = COMMAND_WAIT_S[scenario.run.mode]
     ctx.declare_ready([keys.ESTIMATE_TRANSLATION])
     while not ctx.stop.is_set():
         try:
-            truth = truths.get(timeout=0.2)
+            sample = samples.get(timeout=0.2)
         except queue.Empty:
             continue
-        hdr = truth.header.stamped("estimator_received", time.monotonic_ns())
-        state_m_mps, covariance, mean_motion = estimator.estimate(truth.state_m_mps)
+        hdr = sample.header.stamped("estimator_received", time.monotonic_ns())
+        k = hdr.seq
+        if history is None:
+            estimate = estimator.step(k, hdr.sim_time_s, truth_m_mps=sample.state_m_mps)
+        else:
+            thrust_n = history.thrust_for(k - 1, command_wait_s) if k > 0 else np.zeros(3)
+            estimate = estimator.step(k, hdr.sim_time_s, position_m=sample.position_m,
+                                      position_noise_std_m=sample.noise_std_m, thrust_commanded_n=thrust_n)
+        if estimate is None:
+            continue
         hdr = hdr.stamped("estimated", time.monotonic_ns())
+        covariance = None if estimate.covariance is None else estimate.covariance.ravel().tolist()
         ctx.publish(keys.ESTIMATE_TRANSLATION, TranslationEstimate(
-            hdr, state_m_mps.tolist(),
-            None if covariance is None else covariance.ravel().tolist(),
-            mean_motion,
-        ))
+            hdr, estimate.state_m_mps.tolist(), covariance, estimate.mean_motion_radps))
+    if estimator.failed_updates:
+        ctx.log.warning("smoother updates failed and were re-initialised: %d", estimator.failed_updates)
     return 0

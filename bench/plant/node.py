@@ -17,6 +17,7 @@ from bench.bus.schemas import RelativePosition, StepDone, ThrustCommand, TruthSt
 from bench.node_runtime import NodeContext
 from bench.plant.model import TranslationPlant
 from bench.bus.schemas import STAGES
+from bench.controller.deadline import PlantCommandDeadline
 
 
 class LoopBroken(RuntimeError):
@@ -61,13 +62,13 @@ def _wait_command_lockstep(ctx: NodeContext, commands: queue.Queue, k: int, time
 
 
 class RealTimeClock:
-    """Step ticks on the monotonic clock; counts commands that miss their step."""
+    """Step ticks on the monotonic clock, and the plant's view of each command's deadline."""
 
     def __init__(self, period_s: float):
         self.period_s = period_s
         self.t0 = time.monotonic() + 0.05
-        self.late_commands = 0     # arrived after their step's deadline
-        self.missed_steps = 0      # steps that ran on a held command
+        self.deadline = PlantCommandDeadline(period_s)
+        self.late_commands = 0     # arrived after their step had been integrated
 
     def tick_s(self, k: int) -> float:
         return self.t0 + k * self.period_s
@@ -77,20 +78,20 @@ class RealTimeClock:
         if delay > 0:
             time.sleep(delay)
 
-
-def _collect_command_realtime(commands: queue.Queue, clock: RealTimeClock, k: int) -> ThrustCommand | None:
-    """The command for step k if it arrives before step k+1's tick; late ones are counted."""
-    deadline = clock.tick_s(k + 1)
-    while True:
-        remaining = deadline - time.monotonic()
-        try:
-            command = commands.get(timeout=max(remaining, 0.0)) if remaining > 0 else commands.get_nowait()
-        except queue.Empty:
-            return None
-        if command.header.seq == k:
-            return command
-        if command.header.seq < k:
-            clock.late_commands += 1
+    def collect_command(self, commands: queue.Queue, k: int) -> ThrustCommand | None:
+        """The command for step k if it arrives before step k+1's tick; late ones are counted."""
+        deadline = self.tick_s(k + 1)
+        while True:
+            remaining = deadline - time.monotonic()
+            try:
+                command = commands.get(timeout=remaining) if remaining > 0 else commands.get_nowait()
+            except queue.Empty:
+                return None
+            if command.header.seq == k:
+                self.deadline.command_arrived(k)
+                return command
+            if command.header.seq < k:
+                self.late_commands += 1
 
 
 def run(ctx: NodeContext) -> int:
@@ -100,6 +101,7 @@ def run(ctx: NodeContext) -> int:
     commands = ctx.subscribe_queue(keys.COMMAND_THRUST, ThrustCommand)
     sense_topic = keys.TRUTH if scenario.estimator.mode == "truth" else keys.SENSE_RELPOS
     ctx.declare_publisher(keys.SENSE_RELPOS)
+    ctx.declare_publisher(keys.EVENT_DEADLINE)
     ctx.declare_ready([sense_topic])
     ctx.wait_for_tokens(keys.READY, ctx.peers, timeout_s=30.0)
     ctx.log.info("peers ready (%s); running %d steps in %s mode", ", ".join(ctx.peers), n_steps, scenario.run.mode)
@@ -117,9 +119,10 @@ def run(ctx: NodeContext) -> int:
                 clock.sleep_until(clock.tick_s(k))
             _publish_sample(ctx, plant, last_thrust_n)
             if realtime:
-                command = _collect_command_realtime(commands, clock, k)
-                if command is None:
-                    clock.missed_steps += 1
+                command = clock.collect_command(commands, k)
+                outcome = clock.deadline.check(k, time.monotonic() - clock.tick_s(k))
+                if outcome.has_event:
+                    ctx.publish(keys.EVENT_DEADLINE, outcome.deadline_event(header(ctx.run_id, k, plant.sim_time_s), "plant"))
             else:
                 command = _wait_command_lockstep(ctx, commands, k, scenario.run.command_timeout_s)
             if command is not None:
@@ -140,5 +143,5 @@ def _write_trajectory(ctx: NodeContext, plant: TranslationPlant, stamps: StampLo
     arrays = plant.trajectory()
     arrays.update({f"stamp_{stage}_ns": v for stage, v in stamps.stamps.items()})
     arrays["plant_late_commands"] = np.array(clock.late_commands if clock else 0)
-    arrays["plant_missed_steps"] = np.array(clock.missed_steps if clock else 0)
+    arrays["plant_missed_steps"] = np.array(clock.deadline.counter.misses if clock else 0)
     np.savez(ctx.run_dir / "trajectory.npz", **arrays)
