@@ -21,6 +21,7 @@ from pathlib import Path
 
 import msgspec
 import numpy as np
+import zenoh
 
 from bench.bus import keys
 from bench.bus.schemas import ProcessStats, StepDone, decode, MalformedMessage
@@ -107,6 +108,17 @@ def _check_children(children: list[Child], allowed_done: set[str]) -> None:
             raise NodeFailed(
                 f"process '{child.name}' (pid {child.process.pid}) exited with code {code}; "
                 f"last lines of {child.log_path}:\n{child.tail()}"
+            )
+
+
+def _check_liveliness(children: list[Child], lost: list[str]) -> None:
+    """A node whose token vanished while its process runs is hung (or cut off from the bus)."""
+    for name in lost:
+        child = next((c for c in children if c.name == name), None)
+        if child is not None and child.process.poll() is None:
+            raise NodeFailed(
+                f"process '{name}' (pid {child.process.pid}) stopped answering on Zenoh: its liveliness "
+                f"token expired (hung, or cut off from the bus)"
             )
 
 
@@ -202,6 +214,13 @@ def _follow_run(session, run_id: str, children: list[Child], n_steps: int, show_
             pass   # garbage on the status topic must not stop the launcher
 
     subscriber = session.declare_subscriber(keys.key(run_id, keys.STATUS_STEP), on_step)
+    lost: list[str] = []
+
+    def on_token(sample) -> None:
+        if sample.kind == zenoh.SampleKind.DELETE:
+            lost.append(str(sample.key_expr).rsplit("/", 1)[-1])
+
+    tokens = session.liveliness().declare_subscriber(keys.key(run_id, f"{keys.ALIVE}/*"), on_token)
     plant = next(c for c in children if c.name == "plant")
     columns = [TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn()]
     with Progress(*columns, disable=not show_progress, transient=False) as progress:
@@ -209,6 +228,7 @@ def _follow_run(session, run_id: str, children: list[Child], n_steps: int, show_
         done = 0
         while plant.process.poll() is None:
             _check_children(children, allowed_done=set())
+            _check_liveliness(children, lost)
             try:
                 done = max(done, steps.get(timeout=0.1) + 1)
                 progress.update(task, completed=done)
@@ -216,6 +236,7 @@ def _follow_run(session, run_id: str, children: list[Child], n_steps: int, show_
                 pass
         progress.update(task, completed=done)
     subscriber.undeclare()
+    tokens.undeclare()
     if plant.process.returncode != 0:
         _check_children([plant], allowed_done=set())
 

@@ -46,6 +46,7 @@ class NodeContext:
     log: logging.Logger
     stop: threading.Event = field(default_factory=threading.Event)
     peers: list[str] = field(default_factory=list)   # nodes whose ready token this one awaits
+    lost_peers: list[str] = field(default_factory=list)
     published: Counter = field(default_factory=Counter)
     malformed: Counter = field(default_factory=Counter)
     _publishers: dict = field(default_factory=dict)
@@ -127,6 +128,22 @@ class NodeContext:
             if time.monotonic() > deadline or self.stop.is_set():
                 raise TimeoutError(f"{self.name}: no {kind} token from {', '.join(sorted(missing))} after {timeout_s} s")
             time.sleep(0.02)
+
+    def watch_peers(self, names: list[str]) -> None:
+        """Note a peer whose `alive` token vanishes (process died, or hung past the lease).
+
+        The node's loop reads `lost_peers`; Zenoh drops a hung peer's token after the lease.
+        """
+        watched = set(names)
+
+        def on_token(sample: zenoh.Sample) -> None:
+            peer = str(sample.key_expr).rsplit("/", 1)[-1]
+            if sample.kind == zenoh.SampleKind.DELETE and peer in watched:
+                self.lost_peers.append(peer)
+                self.log.error("peer '%s' lost (its liveliness token vanished)", peer)
+
+        self._keepalive.append(self.session.liveliness().declare_subscriber(
+            keys.key(self.run_id, f"{keys.ALIVE}/*"), on_token))
 
     # --- shutdown -------------------------------------------------------------------------
     def publish_stats(self) -> None:

@@ -182,3 +182,24 @@ def test_smoother_in_the_loop_reproduces_in_process(runs_dir, name):
     reference, _ = simulate_in_process(scenario)
     scale = np.abs(reference["state_m_mps"]).max(axis=0)
     np.testing.assert_allclose(trajectory["state_m_mps"] / scale, reference["state_m_mps"] / scale, rtol=0, atol=1e-9)
+
+
+def test_hung_process_is_noticed_through_its_liveliness_token(runs_dir):
+    # SIGSTOP freezes the controller without closing its sockets: only the Zenoh lease
+    # (600 ms) can tell. The launcher names it and stops everything.
+    import os
+
+    run_id = "hung-controller"
+    proc = _start_long_run(runs_dir, run_id)
+    pid = json_pid(runs_dir / run_id, "controller")
+    os.kill(pid, signal.SIGSTOP)
+    try:
+        _, stderr = proc.communicate(timeout=30)
+    finally:
+        try:
+            os.kill(pid, signal.SIGCONT)
+        except ProcessLookupError:
+            pass
+    assert proc.returncode == 1
+    assert "process 'controller'" in stderr and "liveliness" in stderr
+    assert _wait_gone(run_id) == []

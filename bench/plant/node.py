@@ -51,6 +51,8 @@ def _wait_command_lockstep(ctx: NodeContext, commands: queue.Queue, k: int, time
         remaining = deadline - time.monotonic()
         if remaining <= 0:
             raise LoopBroken(f"no thrust command for step {k} within {timeout_s} s")
+        if ctx.lost_peers:
+            raise LoopBroken(f"peer '{ctx.lost_peers[0]}' lost while waiting for the command of step {k}")
         try:
             command = commands.get(timeout=min(remaining, 0.2))
         except queue.Empty:
@@ -104,6 +106,7 @@ def run(ctx: NodeContext) -> int:
     ctx.declare_publisher(keys.EVENT_DEADLINE)
     ctx.declare_ready([sense_topic])
     ctx.wait_for_tokens(keys.READY, ctx.peers, timeout_s=30.0)
+    ctx.watch_peers(ctx.peers)
     ctx.log.info("peers ready (%s); running %d steps in %s mode", ", ".join(ctx.peers), n_steps, scenario.run.mode)
 
     stamps = StampLog(n_steps)
@@ -115,6 +118,8 @@ def run(ctx: NodeContext) -> int:
             if ctx.stop.is_set():
                 ctx.log.warning("stopped at step %d of %d", k, n_steps)
                 return 1
+            if ctx.lost_peers:
+                raise LoopBroken(f"peer '{ctx.lost_peers[0]}' lost at step {k}")
             if realtime:
                 clock.sleep_until(clock.tick_s(k))
             _publish_sample(ctx, plant, last_thrust_n)
