@@ -203,3 +203,33 @@ def test_hung_process_is_noticed_through_its_liveliness_token(runs_dir):
     assert proc.returncode == 1
     assert "process 'controller'" in stderr and "liveliness" in stderr
     assert _wait_gone(run_id) == []
+
+
+def test_nodes_started_by_hand_form_the_loop(tmp_path):
+    # As a user placing processes on several hosts would: one node listens, the others connect.
+    port = free_loopback_port()
+    run_dir = tmp_path / "by-hand"
+    scenario = tmp_path / "short.toml"
+    scenario.write_text('name = "short"\n[run]\nsteps = 15\n')
+    common = ["--run-id", "by-hand", "--scenario", str(scenario), "--run-dir", str(run_dir)]
+    endpoint = loopback_endpoint(port)
+
+    def node(name, *extra):
+        return subprocess.Popen([sys.executable, "-m", "bench.cli", "node", name, *common, *extra], cwd=REPO,
+                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+    estimator = node("estimator", "--listen", endpoint)
+    controller = node("controller", "--connect", endpoint)
+    plant = node("plant", "--connect", endpoint, "--wait-for", "estimator,controller")
+    try:
+        output, _ = plant.communicate(timeout=60)
+        assert plant.returncode == 0, output
+    finally:
+        for proc in (estimator, controller):
+            proc.send_signal(signal.SIGTERM)
+            proc.communicate(timeout=20)
+    assert estimator.returncode == 0 and controller.returncode == 0
+    with np.load(run_dir / "trajectory.npz") as data:
+        trajectory = {k: data[k] for k in data.files}
+    reference, _ = simulate_in_process(load_scenario(str(scenario)))
+    np.testing.assert_allclose(trajectory["state_m_mps"], reference["state_m_mps"], rtol=1e-9)
