@@ -12,6 +12,8 @@ import sys
 COMMAND_MODULES = [
     "bench.launcher",          # run, node, scenarios
     "bench.bus.can.vcan",      # vcan up/down
+    "bench.report.cli",        # report, compare
+    "bench.bus.can.cli",       # faults
 ]
 
 

@@ -1,0 +1,1 @@
+"""Run reports: latency from header stamps, deadlines, plots, HTML/Markdown, run comparison."""

@@ -1,0 +1,190 @@
+"""`bench report RUN_DIR`: report.md, report.html and plots/*.png of one run; numbers into metrics.json.
+
+Each analysis (latency, deadlines, estimation, CAN) returns its numbers once; the same numbers go
+into the tables, the pictures and metrics.json.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from bench.metrics import trajectory_metrics
+from bench.report import canbus, plots
+from bench.report.deadlines import DeadlineResult, deadlines
+from bench.report.document import Document, Figure, Section, Table, fmt, write
+from bench.report.estimation import AXES, estimation_error
+from bench.report.latency import LatencyResult, latency
+from bench.report.rundata import RunData, load_run
+
+PLOTS_DIR = "plots"
+MISSION_ROWS = (
+    ("final position error [m]", "final_position_error_m"),
+    ("final velocity error [m/s]", "final_velocity_error_mps"),
+    ("input cost J_u [N²]", "input_cost"),
+    ("fuel (L2) [N s]", "fuel_l2"),
+    ("max |thrust| [N]", "max_abs_thrust_N"),
+    ("constraints satisfied", "constraints_satisfied"),
+    ("steps", "steps"),
+)
+LATENCY_COLUMNS = ("n", "mean_ms", "p50_ms", "p90_ms", "p99_ms", "max_ms")
+
+
+def trajectory_series(run: RunData, label: str) -> plots.TrajectorySeries | None:
+    t = run.trajectory
+    if "state_m_mps" not in t:
+        return None
+    return plots.TrajectorySeries(label, t["t_s"], t["state_m_mps"], t["thrust_n"].reshape(-1, 3))
+
+
+def mission_metrics(run: RunData) -> dict:
+    """The launcher's metrics where it wrote them, else computed from the trajectory."""
+    if "final_position_error_m" in run.metrics or "state_m_mps" not in run.trajectory:
+        return run.metrics
+    return trajectory_metrics(run.trajectory["state_m_mps"], run.trajectory["thrust_n"], run.scenario.params())
+
+
+def latency_table(summary: dict[str, dict]) -> Table:
+    return Table(["hop", *LATENCY_COLUMNS],
+                 [[hop, *(fmt(s.get(c)) for c in LATENCY_COLUMNS)] for hop, s in summary.items()])
+
+
+# --- sections ---------------------------------------------------------------------------------
+def summary_section(run: RunData, mission: dict) -> Section:
+    s = run.scenario
+    text = (f"Scenario {s.name!r}, {s.run.mode}, controller {s.controller.type}, estimator {s.estimator.mode}, "
+            f"{s.n_steps} steps of {s.plant.time_step_s:g} s.")
+    rows = [[name, fmt(mission.get(key))] for name, key in MISSION_ROWS if key in mission]
+    return Section("Summary", [text], [Table(["metric", "value"], rows)])
+
+
+def trajectory_section(run: RunData, plot_dir: Path) -> Section | None:
+    series = trajectory_series(run, run.run_id)
+    if series is None:
+        return None
+    path = plots.trajectory([series], run.scenario.params(), plot_dir / "trajectory.png")
+    return Section("Trajectory", figures=[Figure(Path(PLOTS_DIR) / path.name, "States and thrust against the constraints")])
+
+
+def latency_section(run: RunData, result: LatencyResult, plot_dir: Path) -> Section:
+    section = Section("Latency", [
+        "From the monotonic stamps each stage writes into the message header (recording.mcap), and the "
+        "plant's record of the command it applied (trajectory.npz) for plant_received and applied."
+    ])
+    if not result.hops:
+        section.paragraphs.append("No stamped messages in this run.")
+        return section
+    section.tables.append(latency_table(result.summary))
+    section.tables.append(clock_table(run))
+    hops_only = {k: v for k, v in result.hops.items() if "→" in k or "compute" in k or "apply" in k}
+    cdf = plots.latency_cdfs(result.hops, plot_dir / "latency_cdf.png", "Latency per hop (CDF)")
+    hist = plots.latency_histograms(hops_only, plot_dir / "latency_hist.png")
+    section.figures += [Figure(Path(PLOTS_DIR) / cdf.name, "Latency per hop and end to end, CDF"),
+                        Figure(Path(PLOTS_DIR) / hist.name, "Latency per hop, histograms")]
+    return section
+
+
+def clock_table(run: RunData) -> Table:
+    rows = [[p, o.get("host", "?"), fmt(o["offset_ns"] / 1e3), fmt(o["uncertainty_ns"] / 1e3), str(o.get("rounds", ""))]
+            for p, o in sorted(run.clock_offsets.items())]
+    if not rows:
+        rows = [["(no clock readings)", "", "", "", ""]]
+    return Table(["process", "host", "offset [µs]", "± [µs]", "pings"], rows)
+
+
+def deadline_section(result: DeadlineResult, plot_dir: Path) -> Section:
+    m = result.to_metrics()
+    rows = [
+        ["budget [ms]", fmt(None if m["budget_s"] is None else m["budget_s"] * 1e3)],
+        ["controller cycles", fmt(m["controller_cycles"])],
+        ["controller misses (cycle over budget)", fmt(m["controller_misses"])],
+        ["worst cycle time [ms]", fmt(None if m["worst_cycle_time_s"] is None else m["worst_cycle_time_s"] * 1e3)],
+        ["fallbacks applied", ", ".join(f"{k}: {v}" for k, v in sorted(m["fallbacks_applied"].items())) or "none"],
+        ["plant-side missed steps (real-time)", fmt(m["plant_missed_steps"])],
+        ["  of which the controller was slow", fmt(m["plant_misses_controller_slow"])],
+        ["  of which transport/estimator was slow", fmt(m["plant_misses_transport_slow"])],
+        ["solve time p50 / p99 [ms]", f"{fmt(m['solve_time_p50_ms'])} / {fmt(m['solve_time_p99_ms'])}"],
+    ]
+    section = Section("Deadlines", [
+        "A controller miss is a cycle (estimate received to command ready) over the budget; the fallback "
+        "replaced its late result. A plant-side miss is a real-time step integrated before its command arrived."
+    ], [Table(["deadline", "value"], rows)])
+    if result.cycle_time_s.size:
+        cycle = plots.cycle_times(result.cycle_seq, result.cycle_time_s, result.budget_s,
+                                  result.controller_miss_seq, result.plant_miss_seq, plot_dir / "cycle_time.png")
+        section.figures.append(Figure(Path(PLOTS_DIR) / cycle.name, "Cycle time per step and deadline misses"))
+    if result.solve_time_s.size:
+        solve = plots.solve_times({"solver": result.solve_time_s}, plot_dir / "solve_time.png")
+        section.figures.append(Figure(Path(PLOTS_DIR) / solve.name, "Solve-time distribution (on-time cycles)"))
+    return section
+
+
+def estimation_section(run: RunData, plot_dir: Path) -> tuple[Section | None, dict | None]:
+    result = estimation_error(run)
+    if result is None:
+        return None, None
+    m = result.to_metrics()
+    rows = [[axis, fmt(m["rms_error"][axis])] for axis in AXES]
+    path = plots.estimator_error(result.sim_time_s, result.error, result.bound_3sigma, plot_dir / "estimator_error.png")
+    section = Section("Estimator", [f"Fraction of errors inside ±3σ: {fmt(m['fraction_within_3sigma'])}."],
+                      [Table(["component", "RMS error (m, m/s)"], rows)],
+                      [Figure(Path(PLOTS_DIR) / path.name, "Estimator error with bounds")])
+    return section, m
+
+
+def can_section(run: RunData, plot_dir: Path) -> tuple[Section | None, dict | None]:
+    load = canbus.bus_load(run)
+    if load is None:
+        return None, None
+    m = load.to_metrics()
+    rows = [["frames", fmt(m["frames"])], ["bitrate [bit/s]", fmt(m["bitrate_bps"])],
+            ["mean load [%]", fmt(m["mean_load"] * 100)], ["peak load [%]", fmt(m["peak_load"] * 100)]]
+    rows += [[f"fault {f['name']}", f"{fmt(f['start_s'])} s to {fmt(f['end_s'])} s"] for f in m["faults"]]
+    section = Section("CAN bus", ["From can.log (candump format)."], [Table(["bus", "value"], rows)])
+    if load.load.size:
+        path = plots.bus_load(load.window_start_s, load.load, load.fault_windows, plot_dir / "bus_load.png")
+        section.figures.append(Figure(Path(PLOTS_DIR) / path.name, "Bus load and fault timeline"))
+    return section, m
+
+
+def recording_section(run: RunData) -> tuple[Section, dict]:
+    counts = run.recorder_counts or {"topics": {}}
+    rows = [[topic, fmt(c["published"]), fmt(c["recorded"]), fmt(c["malformed"]), fmt(c["missing"])]
+            for topic, c in counts["topics"].items()]
+    missing = sum(c["missing"] or 0 for c in counts["topics"].values())
+    malformed = sum(c["malformed"] for c in counts["topics"].values())
+    note = ("recording.mcap holds every sample the recorder saw; 'published' is what each publisher reported "
+            f"at shutdown. Missing in total: {missing}; malformed (kept raw): {malformed}.")
+    if run.recorder_counts is None:
+        note = "No recorder ran in this run."
+    section = Section("Recording", [note], [Table(["topic", "published", "recorded", "malformed", "missing"], rows)])
+    return section, {"missing": missing, "malformed": malformed,
+                     "recorded": sum(c["recorded"] for c in counts["topics"].values())}
+
+
+# --- the report -------------------------------------------------------------------------------
+def write_report(run_dir: str | Path) -> tuple[Path, Path]:
+    """Write report.md, report.html, plots/ and the report's numbers into metrics.json."""
+    run = load_run(run_dir)
+    plot_dir = run.run_dir / PLOTS_DIR
+    plot_dir.mkdir(exist_ok=True)
+    mission = mission_metrics(run)
+    lat = latency(run)
+    dl = deadlines(run)
+    est_section, est_metrics = estimation_section(run, plot_dir)
+    can_sec, can_metrics = can_section(run, plot_dir)
+    rec_section, rec_metrics = recording_section(run)
+    sections = [summary_section(run, mission), trajectory_section(run, plot_dir), latency_section(run, lat, plot_dir),
+                deadline_section(dl, plot_dir), est_section, can_sec, rec_section]
+    doc = Document(f"Run {run.run_id}", [s for s in sections if s is not None])
+    paths = write(doc, run.run_dir, "report")
+    metrics = {**mission, **run.metrics}
+    metrics.update({
+        "latency_ms": lat.to_metrics(),
+        "deadlines": dl.to_metrics(),
+        "recording": rec_metrics,
+        "clock_offsets": run.clock_offsets,
+        "estimator_error": est_metrics,
+        "can_bus": can_metrics,
+    })
+    (run.run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    return paths

@@ -1,0 +1,100 @@
+"""`bench compare RUN_DIR...`: runs side by side in one table and one set of plots.
+
+Seed 001's question is the first user: LQR, LQT and MPC, with full state knowledge and with noisy
+sensing, compared on fuel, accuracy, compute cost and success. Each run keeps its own report; this
+one reads the same analyses (mission metrics, latency, deadlines) and lays them next to each other.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from pathlib import Path
+
+from bench.report import plots
+from bench.report.build import PLOTS_DIR, mission_metrics, trajectory_series
+from bench.report.deadlines import DeadlineResult, deadlines
+from bench.report.document import Document, Figure, Section, Table, fmt, write
+from bench.report.latency import END_TO_END, LatencyResult, latency
+from bench.report.rundata import RunData, load_run
+
+
+@dataclass
+class RunSummary:
+    label: str
+    run: RunData
+    mission: dict
+    latency: LatencyResult
+    deadlines: DeadlineResult
+
+
+def summarise(run_dir: Path) -> RunSummary:
+    run = load_run(run_dir)
+    s = run.scenario
+    label = f"{run.run_id} ({s.controller.type}, {s.estimator.mode})"
+    return RunSummary(label, run, mission_metrics(run), latency(run), deadlines(run))
+
+
+def _lat(summary: RunSummary, hop: str, key: str):
+    return summary.latency.summary.get(hop, {}).get(key)
+
+
+# One row per quantity: (name, function of a RunSummary).
+ROWS = (
+    ("scenario", lambda r: r.run.scenario.name),
+    ("mode", lambda r: r.run.scenario.run.mode),
+    ("controller", lambda r: r.run.scenario.controller.type),
+    ("estimator", lambda r: r.run.scenario.estimator.mode),
+    ("plant dynamics", lambda r: r.run.scenario.plant.dynamics),
+    ("steps", lambda r: r.mission.get("steps")),
+    ("final position error [m]", lambda r: r.mission.get("final_position_error_m")),
+    ("final velocity error [m/s]", lambda r: r.mission.get("final_velocity_error_mps")),
+    ("input cost J_u [N²]", lambda r: r.mission.get("input_cost")),
+    ("fuel (L2) [N s]", lambda r: r.mission.get("fuel_l2")),
+    ("max |thrust| [N]", lambda r: r.mission.get("max_abs_thrust_N")),
+    ("constraints satisfied", lambda r: r.mission.get("constraints_satisfied")),
+    ("end-to-end latency p50 [ms]", lambda r: _lat(r, END_TO_END.name, "p50_ms")),
+    ("end-to-end latency p99 [ms]", lambda r: _lat(r, END_TO_END.name, "p99_ms")),
+    ("controller compute p50 [ms]", lambda r: _lat(r, "controller compute", "p50_ms")),
+    ("solve time p50 [ms]", lambda r: r.deadlines.to_metrics()["solve_time_p50_ms"]),
+    ("solve time p99 [ms]", lambda r: r.deadlines.to_metrics()["solve_time_p99_ms"]),
+    ("controller deadline misses", lambda r: len(r.deadlines.controller_miss_seq)),
+    ("plant-side missed steps", lambda r: len(r.deadlines.plant_miss_seq)),
+)
+
+
+def comparison_table(summaries: list[RunSummary]) -> Table:
+    return Table(["", *(s.run.run_id for s in summaries)],
+                 [[name, *(fmt(get(s)) for s in summaries)] for name, get in ROWS])
+
+
+def default_out_dir(run_dirs: list[Path]) -> Path:
+    stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S")
+    return Path(run_dirs[0]).resolve().parent / f"compare-{stamp}"
+
+
+def write_comparison(run_dirs: list[str | Path], out_dir: str | Path | None = None) -> tuple[Path, Path]:
+    """compare.md, compare.html and plots/ in out_dir (default: runs/compare-<time>)."""
+    run_dirs = [Path(d) for d in run_dirs]
+    out_dir = Path(out_dir) if out_dir else default_out_dir(run_dirs)
+    plot_dir = out_dir / PLOTS_DIR
+    plot_dir.mkdir(parents=True, exist_ok=True)
+    summaries = [summarise(d) for d in run_dirs]
+
+    figures = []
+    trajectories = [t for t in (trajectory_series(s.run, s.label) for s in summaries) if t is not None]
+    if trajectories:
+        path = plots.trajectory(trajectories, summaries[0].run.scenario.params(), plot_dir / "trajectories.png")
+        figures.append(Figure(Path(PLOTS_DIR) / path.name, "Trajectories against the constraints (first run's limits)"))
+    e2e = {s.label: s.latency.hops[END_TO_END.name] for s in summaries if END_TO_END.name in s.latency.hops}
+    if e2e:
+        path = plots.latency_cdfs(e2e, plot_dir / "latency_cdf.png", "End-to-end latency (CDF)")
+        figures.append(Figure(Path(PLOTS_DIR) / path.name, "End-to-end latency per run"))
+    solve = {s.label: s.deadlines.solve_time_s for s in summaries if s.deadlines.solve_time_s.size}
+    if solve:
+        path = plots.solve_times(solve, plot_dir / "solve_time.png")
+        figures.append(Figure(Path(PLOTS_DIR) / path.name, "Solve-time distribution per run"))
+
+    runs_text = "Runs: " + "; ".join(f"{s.run.run_id} = {s.run.run_dir}" for s in summaries) + "."
+    doc = Document(f"Comparison of {len(summaries)} runs",
+                   [Section("Runs side by side", [runs_text], [comparison_table(summaries)], figures)])
+    return write(doc, out_dir, "compare")

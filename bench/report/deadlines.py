@@ -1,0 +1,95 @@
+"""Deadline misses, cycle times and solve times of a run, from the recording and the plant.
+
+Two views of the same deadline:
+- the controller's: DeadlineEvents on `event/deadline` (process "controller"), one per miss,
+  and its cycle time per step = commanded - controller_received of the command's header;
+- the plant's (real-time mode): a step whose command was not in when the step was integrated has
+  no `plant_received` stamp in trajectory.npz.
+A plant-side miss in a step the controller met its budget was lost to transport (or to the
+estimator), not to the controller: the report counts both kinds separately.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from bench.bus import keys
+from bench.report.rundata import RunData
+
+
+@dataclass
+class DeadlineResult:
+    budget_s: float | None
+    cycle_seq: np.ndarray                   # steps with a controller cycle time
+    cycle_time_s: np.ndarray
+    solve_time_s: np.ndarray
+    controller_miss_seq: list[int]
+    fallbacks: dict[str, int]               # fallback name -> commands it produced
+    plant_miss_seq: list[int] = field(default_factory=list)
+    events_by_process: dict[str, int] = field(default_factory=dict)
+
+    @property
+    def plant_misses_controller_slow(self) -> int:
+        return len(set(self.plant_miss_seq) & set(self.controller_miss_seq))
+
+    @property
+    def plant_misses_transport_slow(self) -> int:
+        return len(set(self.plant_miss_seq) - set(self.controller_miss_seq))
+
+    def to_metrics(self) -> dict:
+        return {
+            "budget_s": self.budget_s,
+            "controller_cycles": int(self.cycle_time_s.size),
+            "controller_misses": len(self.controller_miss_seq),
+            "worst_cycle_time_s": float(self.cycle_time_s.max()) if self.cycle_time_s.size else None,
+            "fallbacks_applied": self.fallbacks,
+            "plant_missed_steps": len(self.plant_miss_seq),
+            "plant_misses_controller_slow": self.plant_misses_controller_slow,
+            "plant_misses_transport_slow": self.plant_misses_transport_slow,
+            "events_by_process": self.events_by_process,
+            "solve_time_p50_ms": _p(self.solve_time_s, 50),
+            "solve_time_p99_ms": _p(self.solve_time_s, 99),
+        }
+
+
+def _p(values_s: np.ndarray, q: float) -> float | None:
+    return float(np.percentile(values_s, q) * 1e3) if values_s.size else None
+
+
+def plant_missed_steps(run: RunData) -> list[int]:
+    """Real-time steps that ran on a held command (no plant_received stamp for the step)."""
+    if run.scenario is None or run.scenario.run.mode != "real-time":
+        return []
+    received = run.trajectory.get("stamp_plant_received_ns")
+    return [] if received is None else [int(k) for k in np.flatnonzero(np.asarray(received) < 0)]
+
+
+def deadlines(run: RunData) -> DeadlineResult:
+    events = [m.body for m in run.on(keys.EVENT_DEADLINE)]
+    events_by_process: dict[str, int] = {}
+    for e in events:
+        events_by_process[e["process"]] = events_by_process.get(e["process"], 0) + 1
+    controller_misses = sorted({e["header"]["seq"] for e in events if e["process"] == "controller" and e["missed"]})
+
+    seqs, cycle_s, solve_s, fallbacks = [], [], [], {}
+    for m in run.on(keys.COMMAND_THRUST):
+        stamps, body = m.stamps_ns, m.body
+        if "controller_received" in stamps and "commanded" in stamps:
+            seqs.append(m.seq)
+            cycle_s.append((stamps["commanded"] - stamps["controller_received"]) / 1e9)
+        if body.get("fallback"):
+            fallbacks[body["fallback"]] = fallbacks.get(body["fallback"], 0) + 1
+        else:
+            solve_s.append(float(body["solve_time_s"]))   # a fallback's solve time is not a solve
+    budget = run.scenario.controller.deadline.budget_s if run.scenario is not None else None
+    return DeadlineResult(
+        budget_s=budget,
+        cycle_seq=np.asarray(seqs, dtype=int),
+        cycle_time_s=np.asarray(cycle_s, dtype=float),
+        solve_time_s=np.asarray(solve_s, dtype=float),
+        controller_miss_seq=controller_misses,
+        fallbacks=fallbacks,
+        plant_miss_seq=plant_missed_steps(run),
+        events_by_process=events_by_process,
+    )

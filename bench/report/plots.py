@@ -1,0 +1,177 @@
+"""The report's pictures (matplotlib, Agg, PNG). Each function draws one figure into `path`.
+
+Functions take lists of labelled series so the single-run report and `bench compare` draw the
+same pictures: one series per hop for a run, one series per run for a comparison.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")   # no display: reports are rendered in batch and in CI
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from bench.plant.cwh import RendezvousParams  # noqa: E402
+
+DPI = 100
+
+
+@dataclass
+class TrajectorySeries:
+    label: str
+    t_s: np.ndarray            # (n+1,)
+    state_m_mps: np.ndarray    # (n+1, 6)
+    thrust_n: np.ndarray       # (n, 3)
+
+
+def _save(fig, path: Path) -> Path:
+    fig.tight_layout()
+    fig.savefig(path, dpi=DPI)
+    plt.close(fig)
+    return path
+
+
+def _bounds(ax, limit: float, scale: float = 1.0) -> None:
+    for sign in (-1, 1):
+        ax.axhline(sign * limit * scale, color="tab:red", linestyle="--", linewidth=1)
+
+
+def trajectory(series: list[TrajectorySeries], params: RendezvousParams, path: Path) -> Path:
+    """States and inputs against the constraints, as seed 003's plot_trajectory: positions (with
+    s_max on x, z and y_max on y), velocities, and thrust per axis (with u_max)."""
+    fig, axes = plt.subplots(3, 3, figsize=(13, 8), sharex=True)
+    position_limits_m = (params.max_abs_position_xz_m, params.max_abs_position_y_m, params.max_abs_position_xz_m)
+    for s in series:
+        t_h = np.asarray(s.t_s) / 3600.0
+        for i, axis in enumerate("xyz"):
+            axes[0, i].plot(t_h, s.state_m_mps[:, i] / 1e3, label=s.label)
+            axes[1, i].plot(t_h, s.state_m_mps[:, 3 + i], label=s.label)
+            if len(s.thrust_n):
+                axes[2, i].step(t_h[: len(s.thrust_n)], s.thrust_n[:, i], where="post", label=s.label)
+    for i, axis in enumerate("xyz"):
+        _bounds(axes[0, i], position_limits_m[i], 1e-3)
+        _bounds(axes[2, i], params.max_abs_thrust_n)
+        axes[0, i].set_ylabel(f"{axis} [km]")
+        axes[1, i].set_ylabel(f"v{axis} [m/s]")
+        axes[2, i].set_ylabel(f"u{axis} [N]")
+        axes[2, i].set_xlabel("time [h]")
+    axes[0, 0].legend(fontsize="small")
+    fig.suptitle("Trajectory against constraints (dashed: limits)")
+    return _save(fig, path)
+
+
+def _cdf(ax, samples_ms: np.ndarray, label: str) -> None:
+    values = np.sort(samples_ms)
+    ax.step(values, np.arange(1, values.size + 1) / values.size, where="post", label=f"{label} (n={values.size})")
+
+
+def latency_cdfs(series_s: dict[str, np.ndarray], path: Path, title: str) -> Path:
+    """Empirical CDFs of latencies (one line per hop or per run), log time axis."""
+    fig, ax = plt.subplots(figsize=(10, 5))
+    for label, samples_s in series_s.items():
+        if samples_s.size:
+            _cdf(ax, np.asarray(samples_s) * 1e3, label)
+    ax.set_xscale("log")
+    ax.set_xlabel("latency [ms]")
+    ax.set_ylabel("fraction of steps")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize="small", loc="lower right")
+    ax.set_title(title)
+    return _save(fig, path)
+
+
+def latency_histograms(series_s: dict[str, np.ndarray], path: Path) -> Path:
+    """One histogram per hop, each on its own scale (hops differ by orders of magnitude)."""
+    n = len(series_s)
+    cols = 3
+    rows = max(1, -(-n // cols))
+    fig, axes = plt.subplots(rows, cols, figsize=(13, 3.2 * rows), squeeze=False)
+    for ax, (label, samples_s) in zip(axes.flat, series_s.items()):
+        ms = np.asarray(samples_s) * 1e3
+        ax.hist(ms, bins=min(50, max(5, ms.size // 4)), color="tab:blue")
+        ax.axvline(np.percentile(ms, 50), color="k", linewidth=1, label="p50")
+        ax.axvline(np.percentile(ms, 99), color="tab:red", linewidth=1, label="p99")
+        ax.set_title(label, fontsize="medium")
+        ax.set_xlabel("latency [ms]")
+        ax.legend(fontsize="x-small")
+    for ax in list(axes.flat)[n:]:
+        ax.axis("off")
+    return _save(fig, path)
+
+
+def cycle_times(seq: np.ndarray, cycle_time_s: np.ndarray, budget_s: float | None,
+                controller_misses: list[int], plant_misses: list[int], path: Path) -> Path:
+    """Controller cycle time per step against the budget, with the misses of both sides marked."""
+    fig, ax = plt.subplots(figsize=(11, 4.5))
+    ax.plot(seq, np.asarray(cycle_time_s) * 1e3, ".-", linewidth=0.7, markersize=3, label="controller cycle time")
+    if budget_s is not None:
+        ax.axhline(budget_s * 1e3, color="tab:red", linestyle="--", label=f"budget {budget_s * 1e3:g} ms")
+    by_seq = dict(zip(np.asarray(seq).tolist(), np.asarray(cycle_time_s).tolist()))
+    missed = [k for k in controller_misses if k in by_seq]
+    if missed:
+        ax.plot(missed, [by_seq[k] * 1e3 for k in missed], "rx", markersize=8,
+                label=f"controller misses ({len(controller_misses)})")
+    for i, k in enumerate(plant_misses):
+        ax.axvline(k, color="tab:orange", alpha=0.4, label=f"plant-side misses ({len(plant_misses)})" if i == 0 else None)
+    ax.set_yscale("log")
+    ax.set_xlabel("step")
+    ax.set_ylabel("cycle time [ms]")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize="small")
+    ax.set_title("Deadline: controller cycle time and misses over the run")
+    return _save(fig, path)
+
+
+def solve_times(series_s: dict[str, np.ndarray], path: Path) -> Path:
+    """Distribution of solver times (histogram and CDF), one series per run or controller."""
+    fig, (hist_ax, cdf_ax) = plt.subplots(1, 2, figsize=(12, 4))
+    for label, samples_s in series_s.items():
+        ms = np.asarray(samples_s) * 1e3
+        if ms.size:
+            hist_ax.hist(ms, bins=40, alpha=0.6, label=label)
+            _cdf(cdf_ax, ms, label)
+    hist_ax.set_xlabel("solve time [ms]")
+    hist_ax.set_ylabel("cycles")
+    cdf_ax.set_xlabel("solve time [ms]")
+    cdf_ax.set_ylabel("fraction of cycles")
+    for ax in (hist_ax, cdf_ax):
+        ax.legend(fontsize="small")
+        ax.grid(True, alpha=0.3)
+    fig.suptitle("Solve-time distribution")
+    return _save(fig, path)
+
+
+def estimator_error(sim_time_s: np.ndarray, error: np.ndarray, bound_3sigma: np.ndarray, path: Path) -> Path:
+    """Estimate minus truth per component, inside the estimator's own +-3 sigma."""
+    fig, axes = plt.subplots(2, 3, figsize=(13, 6), sharex=True)
+    t_h = np.asarray(sim_time_s) / 3600.0
+    names = ("x [m]", "y [m]", "z [m]", "vx [m/s]", "vy [m/s]", "vz [m/s]")
+    for i, ax in enumerate(axes.flat):
+        ax.plot(t_h, error[:, i], linewidth=0.8, label="error")
+        if not np.all(np.isnan(bound_3sigma[:, i])):
+            ax.fill_between(t_h, -bound_3sigma[:, i], bound_3sigma[:, i], color="tab:gray", alpha=0.3, label="±3σ")
+        ax.set_ylabel(names[i])
+    for ax in axes[1]:
+        ax.set_xlabel("time [h]")
+    axes[0, 0].legend(fontsize="small")
+    fig.suptitle("Estimator error (estimate - truth) with its 3-sigma bounds")
+    return _save(fig, path)
+
+
+def bus_load(window_start_s: np.ndarray, load: np.ndarray, fault_windows: list[tuple[str, float, float]],
+             path: Path) -> Path:
+    """CAN bus load per window, with the scenario's fault windows shaded and named."""
+    fig, ax = plt.subplots(figsize=(11, 4))
+    ax.step(window_start_s, np.asarray(load) * 100, where="post", label="bus load")
+    end_s = float(window_start_s[-1]) if len(window_start_s) else 1.0
+    for i, (name, start_s, stop_s) in enumerate(fault_windows):
+        ax.axvspan(start_s, min(stop_s, end_s), color=f"C{i + 1}", alpha=0.25, label=f"fault: {name}")
+    ax.set_xlabel("time since first frame [s]")
+    ax.set_ylabel("bus load [%]")
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize="small")
+    ax.set_title("CAN bus load and fault timeline")
+    return _save(fig, path)

@@ -1,0 +1,181 @@
+"""Reports from a synthetic run directory whose stamps, misses and errors are known exactly."""
+from __future__ import annotations
+
+import json
+
+import msgspec
+import numpy as np
+import pytest
+
+from bench.bus import keys
+from bench.bus.schemas import (
+    STAGES,
+    DeadlineEvent,
+    ProcessStats,
+    ThrustCommand,
+    TranslationEstimate,
+    TruthState,
+    encode,
+    header,
+)
+from bench.cli import main as bench_main
+from bench.recorder import COUNTS_FILE, OFFSETS_FILE, RECORDING_FILE, Recording
+from bench.report.build import write_report
+from bench.report.compare import write_comparison
+from bench.report.latency import END_TO_END, correct_clock_offsets, latency, percentiles_ms
+from bench.report.rundata import load_run
+from bench.scenario import parse_scenario
+
+RUN_ID = "synthetic"
+N = 40
+BUDGET_S = 0.005
+SLOW_CYCLES = {7, 19, 31}           # controller cycles of 60 ms: misses
+TRANSPORT_LOST = {12}               # controller on time, command still not at the plant in time
+rng = np.random.default_rng(3)
+
+# Hop durations in ns per step (random but fixed by the seed).
+HOP_NS = {
+    "estimator_received": rng.integers(200_000, 3_000_000, N),
+    "estimated": rng.integers(20_000, 100_000, N),
+    "controller_received": rng.integers(100_000, 1_000_000, N),
+    "commanded": np.where(np.isin(np.arange(N), list(SLOW_CYCLES)), 60_000_000, rng.integers(50_000, 2_000_000, N)),
+    "plant_received": rng.integers(100_000, 5_000_000, N),
+    "applied": rng.integers(5_000, 30_000, N),
+}
+
+
+def stamps_of(k: int) -> dict[str, int]:
+    stamps = {"sensed": 10**12 + k * 100_000_000}
+    previous = stamps["sensed"]
+    for stage in STAGES[1:]:
+        if stage in HOP_NS:
+            previous += int(HOP_NS[stage][k])
+            stamps[stage] = previous
+    return stamps
+
+
+def scenario_dict(estimator_mode: str = "smoother") -> dict:
+    return {"name": "synthetic", "run": {"mode": "real-time", "steps": N},
+            "estimator": {"mode": estimator_mode},
+            "controller": {"deadline": {"budget_s": BUDGET_S, "fallback": "hold"}}}
+
+
+def make_run(run_dir, estimator_mode: str = "smoother"):
+    """A run directory as the launcher, the plant and the recorder would leave it."""
+    run_dir.mkdir(parents=True)
+    scenario = parse_scenario(scenario_dict(estimator_mode))
+    (run_dir / "scenario.json").write_bytes(msgspec.json.encode(scenario))
+    params = scenario.params()
+    state = np.cumsum(rng.normal(0, 100, (N + 1, 6)), axis=0)
+    thrust = rng.uniform(-0.5, 0.5, (N, 3))
+    trajectory = {"t_s": np.arange(N + 1) * params.time_step_s, "state_m_mps": state, "thrust_n": thrust}
+    plant_stamps = {stage: np.full(N, -1, dtype=np.int64) for stage in STAGES}
+    recording = Recording(run_dir / RECORDING_FILE, RUN_ID)
+    t_ns = 0
+    for k in range(N):
+        stamps = stamps_of(k)
+        hdr = header(RUN_ID, k, k * params.time_step_s, sensed=stamps["sensed"])
+        recording.write(keys.TRUTH, encode(TruthState(hdr, state[k].tolist(), [0.0] * 3)), t_ns := t_ns + 1)
+        est_hdr = header(RUN_ID, k, k * params.time_step_s, **{s: stamps[s] for s in ("sensed", "estimator_received", "estimated")})
+        error = np.array([3.0, -2.0, 1.0, 0.01, 0.02, -0.01]) * (1 + k % 3)
+        recording.write(keys.ESTIMATE_TRANSLATION, encode(TranslationEstimate(
+            est_hdr, (state[k] + error).tolist(), np.diag([100.0] * 3 + [0.01] * 3).ravel().tolist())), t_ns := t_ns + 1)
+        cmd_hdr = header(RUN_ID, k, k * params.time_step_s, **{s: stamps[s] for s in STAGES[:5]})
+        slow = k in SLOW_CYCLES
+        recording.write(keys.COMMAND_THRUST, encode(ThrustCommand(
+            cmd_hdr, thrust[k].tolist(), True, "solved", 0.001 * (1 + k % 4), 5, "hold" if slow else None)), t_ns := t_ns + 1)
+        if slow:
+            recording.write(keys.EVENT_DEADLINE, encode(DeadlineEvent(cmd_hdr, "controller", 0.06, BUDGET_S, True, 1, "hold")), t_ns := t_ns + 1)
+        if not (slow or k in TRANSPORT_LOST):
+            for stage, value in stamps.items():
+                plant_stamps[stage][k] = value
+    recording.write("status/stats/plant", encode(ProcessStats(header(RUN_ID, 0, 0.0), "plant", {keys.TRUTH: N}, {})), t_ns + 1)
+    recording.write(keys.COMMAND_THRUST, b"garbage", t_ns + 2)
+    recording.close()
+    (run_dir / COUNTS_FILE).write_text(json.dumps(recording.counts()))
+    (run_dir / OFFSETS_FILE).write_text(json.dumps({"recorder": {"host": "a", "offset_ns": 0, "uncertainty_ns": 10}}))
+    trajectory.update({f"stamp_{s}_ns": v for s, v in plant_stamps.items()})
+    np.savez(run_dir / "trajectory.npz", **trajectory)
+    return run_dir
+
+
+def expected_hop_ms(start: str, end: str, steps) -> np.ndarray:
+    return np.array([(stamps_of(k)[end] - stamps_of(k)[start]) / 1e6 for k in steps])
+
+
+def test_latency_per_hop_matches_the_stamps(tmp_path):
+    run = load_run(make_run(tmp_path / "run"))
+    result = latency(run)
+    all_steps = range(N)
+    applied_steps = [k for k in all_steps if k not in SLOW_CYCLES | TRANSPORT_LOST]
+    expected = {
+        "plant → estimator": expected_hop_ms("sensed", "estimator_received", all_steps),
+        "controller compute": expected_hop_ms("controller_received", "commanded", all_steps),
+        "controller → plant": expected_hop_ms("commanded", "plant_received", applied_steps),
+        END_TO_END.name: expected_hop_ms("sensed", "applied", applied_steps),
+    }
+    for hop, values_ms in expected.items():
+        got = result.summary[hop]
+        assert got["n"] == len(values_ms)
+        for p in (50, 90, 99):
+            assert got[f"p{p}_ms"] == pytest.approx(np.percentile(values_ms, p), rel=1e-12)
+        assert got["max_ms"] == pytest.approx(values_ms.max())
+    assert "CAN → board" not in result.summary     # no CAN stamps, no CAN hop
+
+
+def test_clock_offsets_are_removed_only_for_other_hosts():
+    stamps = {0: {"sensed": 1_000, "estimator_received": 5_000, "commanded": 9_000}}
+    offsets = {"recorder": {"host": "a", "offset_ns": 0}, "plant": {"host": "a", "offset_ns": 400},
+               "estimator": {"host": "b", "offset_ns": 3_000}}
+    corrected = correct_clock_offsets(stamps, offsets)[0]
+    assert corrected == {"sensed": 1_000, "estimator_received": 2_000, "commanded": 9_000}
+
+
+def test_percentiles_of_nothing_say_so():
+    assert percentiles_ms(np.array([])) == {"n": 0}
+
+
+def test_report_files_tables_and_metrics(tmp_path):
+    run_dir = make_run(tmp_path / "run")
+    assert bench_main(["report", str(run_dir)]) == 0
+    md = (run_dir / "report.md").read_text()
+    page = (run_dir / "report.html").read_text()
+    for name in ("trajectory", "latency_cdf", "latency_hist", "cycle_time", "solve_time", "estimator_error"):
+        png = run_dir / "plots" / f"{name}.png"
+        assert png.stat().st_size > 10_000, name
+        assert f"plots/{name}.png" in md and f"plots/{name}.png" in page
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    deadlines = metrics["deadlines"]
+    assert deadlines["controller_misses"] == len(SLOW_CYCLES)
+    assert deadlines["fallbacks_applied"] == {"hold": len(SLOW_CYCLES)}
+    assert deadlines["plant_missed_steps"] == len(SLOW_CYCLES | TRANSPORT_LOST)
+    assert deadlines["plant_misses_controller_slow"] == len(SLOW_CYCLES)
+    assert deadlines["plant_misses_transport_slow"] == len(TRANSPORT_LOST)
+    assert deadlines["worst_cycle_time_s"] == pytest.approx(0.06)
+    assert metrics["recording"] == {"recorded": 3 * N + len(SLOW_CYCLES) + 1, "malformed": 1, "missing": 0}
+    assert metrics["estimator_error"]["fraction_within_3sigma"] == 1.0   # |error| <= 9 m, 3 sigma = 30 m
+    assert metrics["estimator_error"]["rms_error"]["x"] == pytest.approx(np.sqrt(np.mean((3.0 * (1 + np.arange(N) % 3)) ** 2)))
+    assert metrics["latency_ms"][END_TO_END.name]["n"] == N - len(SLOW_CYCLES | TRANSPORT_LOST)
+    assert "final_position_error_m" in metrics and "| truth | 40 | 40 | 0 | 0 |" in md
+
+
+def test_truth_estimator_has_no_estimator_section(tmp_path):
+    run_dir = make_run(tmp_path / "run", estimator_mode="truth")
+    write_report(run_dir)
+    assert "## Estimator" not in (run_dir / "report.md").read_text()
+    assert json.loads((run_dir / "metrics.json").read_text())["estimator_error"] is None
+
+
+def test_compare_puts_runs_side_by_side(tmp_path):
+    a, b = make_run(tmp_path / "a"), make_run(tmp_path / "b", estimator_mode="truth")
+    md, page = write_comparison([a, b], tmp_path / "cmp")
+    text = md.read_text()
+    assert "| controller deadline misses | 3 | 3 |" in text
+    assert "| estimator | smoother | truth |" in text
+    for name in ("trajectories", "latency_cdf", "solve_time"):
+        assert (tmp_path / "cmp" / "plots" / f"{name}.png").stat().st_size > 10_000
+
+
+def test_report_of_a_directory_that_is_not_a_run_is_a_clear_error(tmp_path, capsys):
+    assert bench_main(["report", str(tmp_path)]) == 2
+    assert "not a run directory" in capsys.readouterr().err
