@@ -13,6 +13,7 @@ COMMAND_MODULES = [
     "bench.launcher",          # run, node, scenarios
     "bench.bus.can.vcan",      # vcan up/down
     "bench.report.cli",        # report, compare
+    "bench.bus.can.cli",       # faults
 ]
 
 

@@ -33,6 +33,8 @@ NODES: dict[str, str] = {
     "estimator": "bench.estimator.node",
     "controller": "bench.controller.node",
     "recorder": "bench.recorder",
+    "mtq": "bench.bus.can.nodes",       # magnetorquer board
+    "canbus": "bench.bus.can.nodes",    # CAN bus model and fault injector
 }
 
 

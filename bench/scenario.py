@@ -13,6 +13,7 @@ from typing import Annotated, Literal
 
 import msgspec
 
+from bench.bus.can.config import CanConfig
 from bench.controller.config import ControllerConfig
 from bench.estimator.config import EstimatorConfig
 from bench.plant.config import PlantConfig
@@ -43,6 +44,7 @@ class Scenario(msgspec.Struct, forbid_unknown_fields=True):
     plant: PlantConfig = msgspec.field(default_factory=PlantConfig)
     estimator: EstimatorConfig = msgspec.field(default_factory=EstimatorConfig)
     controller: ControllerConfig = msgspec.field(default_factory=ControllerConfig)
+    can: CanConfig | None = None
 
     def params(self) -> RendezvousParams:
         """The seed's params struct for this scenario (reference numbers, scenario overrides)."""

@@ -136,3 +136,16 @@ def decode(payload: bytes, kind: type[M]) -> M:
 def json_schema(kind: type[Message]) -> dict:
     """JSON Schema of a message type, for the MCAP recording (Foxglove reads it)."""
     return msgspec.json.schema(kind)
+
+
+class MtqApplied(Message, tag="mtq_applied"):
+    """Dipole the magnetorquer board applies (board -> plant, which turns it into torque m x B).
+
+    Header stamps: board_received (command frame decoded), applied (coil targets set). The CAN
+    command carries no sample index, so `alive_counter` joins this to the driver's command.
+    """
+    dipole_am2: Vec3                 # coil driver target after quantisation and saturation
+    coil_current_a: Vec3             # coil currents now (they lag the target by the coil L/R)
+    safe_state: bool                 # coils off: no valid command within the command timeout
+    actuation_paused: bool = False   # coils off for a magnetometer sampling window
+    alive_counter: NonNegInt = 0

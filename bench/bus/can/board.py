@@ -66,6 +66,7 @@ class MagnetorquerBoard:
         self.rejected: Counter = Counter()     # by E2E status name or "wrong_length"
         self.accepted = 0
         self.sent: Counter = Counter()
+        self.received: Counter = Counter()     # every frame heard, by name (frame accounting)
         self._tx_counter: Counter = Counter()  # alive counters of the board's own protected frames
         self._started_s: float | None = None
         self._last_update_s: float | None = None
@@ -109,6 +110,7 @@ class MagnetorquerBoard:
     def handle(self, msg: can.Message, now_s: float) -> None:
         """One frame from the bus. Anything but a valid command is counted and ignored."""
         received_ns = time.monotonic_ns()
+        self.received[self.protocol.name_of(msg.arbitration_id) or ("error_frame" if msg.is_error_frame else "other")] += 1
         if msg.arbitration_id == self.protocol.frame_ids[p.CMD] and len(msg.data) != 8 and not msg.is_error_frame:
             self._reject("wrong_length", None, p.EMCY_PDO_LENGTH, 0)
         frame = self.protocol.decode(msg)

@@ -1,0 +1,88 @@
+"""How long a classical CAN frame occupies the bus, bit for bit (ISO 11898-1).
+
+vcan and the Zenoh transport deliver frames instantly; a real bus does not. The time a frame
+takes depends on its identifier and data through bit stuffing: after five equal bits the
+transmitter inserts one of the opposite value, from the start-of-frame bit to the end of the
+CRC. The stuffed count is therefore computed on the frame's actual bits, including its CRC-15.
+"""
+from __future__ import annotations
+
+from functools import lru_cache
+
+import can
+
+CRC15_POLY = 0x4599
+# Unstuffed tail: CRC delimiter, ACK slot, ACK delimiter, 7 end-of-frame bits, 3 intermission.
+TAIL_BITS = 1 + 1 + 1 + 7 + 3
+# An error frame: 6-bit error flag (others may echo it, up to 6 more), 8-bit delimiter,
+# intermission. The frame it destroys is assumed to have run up to its CRC.
+ERROR_FRAME_BITS = 6 + 6 + 8 + 3
+BUS_OFF_RECOVERY_BITS = 128 * 11
+DEFAULT_BITRATE_BPS = 1_000_000
+
+
+def crc15(bits: list[int]) -> int:
+    crc = 0
+    for bit in bits:
+        feedback = bit ^ ((crc >> 14) & 1)
+        crc = (crc << 1) & 0x7FFF
+        if feedback:
+            crc ^= CRC15_POLY
+    return crc
+
+
+def _field(value: int, width: int) -> list[int]:
+    return [(value >> (width - 1 - i)) & 1 for i in range(width)]
+
+
+def frame_bits_unstuffed(arbitration_id: int, data: bytes, *, extended: bool = False, remote: bool = False) -> list[int]:
+    """The bits from start of frame to the end of the CRC, before stuffing (dominant = 0)."""
+    dlc = len(data)
+    if extended:
+        head = [0] + _field(arbitration_id >> 18, 11) + [1, 1] + _field(arbitration_id & 0x3FFFF, 18) \
+            + [int(remote), 0, 0]
+    else:
+        head = [0] + _field(arbitration_id, 11) + [int(remote), 0, 0]
+    body = head + _field(dlc, 4)
+    if not remote:
+        for byte in data:
+            body += _field(byte, 8)
+    return body + _field(crc15(body), 15)
+
+
+def stuff(bits: list[int]) -> list[int]:
+    """Insert a complementary bit after every run of five equal bits."""
+    out: list[int] = []
+    run_value, run_length = None, 0
+    for bit in bits:
+        out.append(bit)
+        if bit == run_value:
+            run_length += 1
+        else:
+            run_value, run_length = bit, 1
+        if run_length == 5:
+            out.append(1 - bit)
+            run_value, run_length = 1 - bit, 1
+    return out
+
+
+@lru_cache(maxsize=4096)
+def _frame_bits(arbitration_id: int, data: bytes, extended: bool, remote: bool) -> int:
+    return len(stuff(frame_bits_unstuffed(arbitration_id, data, extended=extended, remote=remote))) + TAIL_BITS
+
+
+def frame_bits(msg: can.Message) -> int:
+    """Bits on the wire for this frame, stuff bits and intermission included."""
+    data = bytes(msg.data) if not msg.is_remote_frame else bytes(msg.dlc)
+    return _frame_bits(msg.arbitration_id, data, msg.is_extended_id, msg.is_remote_frame)
+
+
+def worst_case_bits(dlc: int, extended: bool = False) -> int:
+    """Upper bound of the textbook formula (Davis et al. 2007): stuffable bits g + 8 dlc, at most
+    one stuff bit per four after the first."""
+    g = 54 if extended else 34
+    return g + 8 * dlc + TAIL_BITS + (g + 8 * dlc - 1) // 4
+
+
+def duration_ns(bits: int, bitrate_bps: int) -> int:
+    return round(bits * 1e9 / bitrate_bps)

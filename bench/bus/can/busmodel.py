@@ -1,0 +1,321 @@
+"""The CAN bus between the flight side and the board, with the time and arbitration vcan lacks.
+
+Nodes submit frames; each node's controller keeps them in a transmit queue (FIFO, bounded like a
+controller's buffers). Whenever the bus is free, the ready queue heads compete and the lowest
+identifier wins (a babbling node of the fault injector competes too). A frame occupies the bus
+for its exact bit count at the bitrate, and is delivered to the nodes that listen for it when
+its last bit has passed. The fault injector acts on submission (drop, delay, alter, inject) and
+on each transmission attempt (error frames, which drive the transmitter's error counter through
+error-passive to bus-off and recovery).
+
+The model runs on a clock it is given: `submit(source, msg, t_ns)` and `run_until(t_ns)`. The
+canbus node feeds it wall-clock times; the unit tests feed it exact ones, deterministically.
+Everything that happens to a frame goes to `capture` (a python-can Listener, e.g. the candump
+Logger) on a channel naming what happened: "bus" (on the wire), "dropped", "replaced" (the
+original of an altered frame).
+"""
+from __future__ import annotations
+
+import queue
+import statistics
+import time
+from collections import Counter, deque
+from dataclasses import dataclass, field
+from typing import Callable
+
+import can
+
+from bench.bus.can import bittiming, errors
+from bench.bus.can import protocol as p
+from bench.bus.can.injector import SOURCE_INJECTOR, FaultInjector, Flood, Transmission
+
+FLIGHT = "flight"
+BOARD = "board"
+NODES = (FLIGHT, BOARD)
+LISTENERS = {FLIGHT: (BOARD,), BOARD: (FLIGHT,)}   # who hears a node's frames (not itself)
+SOURCE_ORDER = (FLIGHT, BOARD, SOURCE_INJECTOR)    # tie-break between equal identifiers
+LOAD_WINDOW_NS = 100_000_000
+CHANNEL_BUS, CHANNEL_DROPPED, CHANNEL_REPLACED = "bus", "dropped", "replaced"
+
+
+@dataclass(frozen=True)
+class Delivery:
+    msg: can.Message            # stamped with the wall time its last bit passed
+    destinations: tuple[str, ...]
+
+
+@dataclass
+class _InFlight:
+    tx: Transmission | None     # None: a babbler frame
+    msg: can.Message
+    start_ns: int
+    end_ns: int
+    destroyed_by: object | None = None
+
+
+@dataclass
+class BusStats:
+    busy_ns: int = 0
+    frames: Counter = field(default_factory=Counter)          # by frame name or hex id
+    dropped: Counter = field(default_factory=Counter)         # by reason
+    error_frames: int = 0
+    bus_off: Counter = field(default_factory=Counter)         # by node
+    tec_max: Counter = field(default_factory=Counter)
+    command_latency_ns: dict = field(default_factory=lambda: {"without_flood": [], "with_flood": []})
+    load_windows: Counter = field(default_factory=Counter)    # window index -> busy ns
+
+
+class BusModel:
+    def __init__(self, injector: FaultInjector, protocol: p.Protocol, t0_ns: int, *,
+                 bitrate_bps: int = bittiming.DEFAULT_BITRATE_BPS, tx_queue_frames: int = 8,
+                 capture: Callable[[can.Message], None] | None = None,
+                 to_wall_s: Callable[[int], float] = lambda t_ns: t_ns / 1e9):
+        self.injector = injector
+        self.protocol = protocol
+        self.t0_ns = t0_ns
+        self.bitrate_bps = bitrate_bps
+        self.tx_queue_frames = tx_queue_frames
+        self.capture = capture or (lambda msg: None)
+        self.to_wall_s = to_wall_s
+        self.queues: dict[str, deque[Transmission]] = {s: deque() for s in SOURCE_ORDER}
+        self.tec = {node: errors.TransmitErrorCounter() for node in NODES}
+        self.recover_at_ns: dict[str, int] = {}
+        self.in_flight: _InFlight | None = None
+        self.bus_free_ns = t0_ns
+        self.now_ns = t0_ns
+        self.stats = BusStats()
+        self._cmd_id = protocol.frame_ids[p.CMD]
+
+    # --- input ----------------------------------------------------------------------------
+    def submit(self, source: str, msg: can.Message, t_ns: int) -> None:
+        """A node asks to send a frame at t_ns (its controller queues it)."""
+        tx = Transmission(msg, source, t_ns, t_ns, LISTENERS[source])
+        outcome = self.injector.on_submit(tx)
+        for dropped, reason in outcome.dropped:
+            self._log(dropped, CHANNEL_DROPPED, t_ns)
+            self.stats.dropped[reason] += 1
+        for original in outcome.replaced:
+            self._log(original, CHANNEL_REPLACED, t_ns)
+        for queued in outcome.queued:
+            queue = self.queues[queued.source]
+            if queued.source in NODES and len(queue) >= self.tx_queue_frames:
+                self._log(queued.msg, CHANNEL_DROPPED, t_ns)
+                self.stats.dropped["tx_overflow"] += 1
+                continue
+            queue.append(queued)
+
+    # --- time -----------------------------------------------------------------------------
+    def run_until(self, t_ns: int) -> list[Delivery]:
+        """Advance the bus to t_ns; the frames whose last bit passed by then, in order."""
+        deliveries: list[Delivery] = []
+        while True:
+            if self.in_flight is not None:
+                if self.in_flight.end_ns > t_ns:
+                    break
+                deliveries += self._complete(self.in_flight)
+                self.in_flight = None
+                continue
+            deliveries += self._restart_recovered(t_ns)
+            start_ns = self._next_start_ns()
+            if start_ns is None or start_ns > t_ns:
+                break
+            self._arbitrate(start_ns)
+        self.now_ns = max(self.now_ns, t_ns)
+        return deliveries
+
+    def next_event_ns(self) -> int | None:
+        """When run_until next has something to do (None: nothing pending)."""
+        times = [self.in_flight.end_ns] if self.in_flight else []
+        times += list(self.recover_at_ns.values())
+        start = self._next_start_ns()
+        if start is not None:
+            times.append(start)
+        return min(times) if times else None
+
+    def _ready_heads(self) -> list[Transmission]:
+        return [q[0] for s, q in self.queues.items() if q and s not in self.recover_at_ns]
+
+    def _next_start_ns(self) -> int | None:
+        readies = [tx.ready_ns for tx in self._ready_heads()]
+        babbler = self.injector.babbler()
+        if babbler is not None:
+            readies.append(babbler[1])
+        if not readies:
+            return None
+        return max(self.bus_free_ns, min(readies))
+
+    def _arbitrate(self, start_ns: int) -> None:
+        contenders = [(tx.msg.arbitration_id, SOURCE_ORDER.index(tx.source), tx) for tx in self._ready_heads()
+                      if tx.ready_ns <= start_ns]
+        babbler = self.injector.babbler()
+        if babbler is not None and babbler[1] <= start_ns:
+            flood = babbler[0]
+            contenders.append((flood.msg.arbitration_id, -1, flood))
+        _, _, winner = min(contenders, key=lambda c: (c[0], c[1]))
+        if isinstance(winner, Flood):
+            if winner.affected == 0:
+                self.injector.record(start_ns, winner.label, "injected", winner.msg)  # first of many
+            winner.sent(start_ns)
+            msg, tx = winner.msg, None
+        else:
+            msg, tx = winner.msg, winner
+        bits = bittiming.frame_bits(msg)
+        destroyed_by = self.injector.destroys(tx, start_ns) if tx is not None and tx.source in NODES else None
+        if destroyed_by is not None:
+            bits = bits - bittiming.TAIL_BITS + bittiming.ERROR_FRAME_BITS
+        end_ns = start_ns + bittiming.duration_ns(bits, self.bitrate_bps)
+        self.in_flight = _InFlight(tx, msg, start_ns, end_ns, destroyed_by)
+        self.bus_free_ns = end_ns
+        self._account_busy(start_ns, end_ns)
+
+    def _complete(self, flight: _InFlight) -> list[Delivery]:
+        tx = flight.tx
+        if flight.destroyed_by is not None:
+            return self._transmission_error(flight)
+        if tx is not None:
+            self.queues[tx.source].popleft()
+            if tx.source in NODES:
+                self.tec[tx.source].on_success()
+        stamped = _stamped(flight.msg, self.to_wall_s(flight.end_ns), CHANNEL_BUS)
+        self.capture(stamped)
+        self.stats.frames[self.protocol.name_of(flight.msg.arbitration_id) or hex(flight.msg.arbitration_id)] += 1
+        if tx is None:
+            return []   # no node's acceptance filter takes the babbler's identifier
+        if tx.source == FLIGHT and flight.msg.arbitration_id == self._cmd_id:
+            key = "with_flood" if self.injector.flood_active(tx.submitted_ns) else "without_flood"
+            self.stats.command_latency_ns[key].append(flight.end_ns - tx.submitted_ns)
+        return [Delivery(stamped, tx.destinations)]
+
+    def _transmission_error(self, flight: _InFlight) -> list[Delivery]:
+        """The frame was destroyed: error counter up; retry, or bus-off and drop it."""
+        tx = flight.tx
+        counter = self.tec[tx.source]
+        state = counter.on_error()
+        self.stats.error_frames += 1
+        self.stats.tec_max[tx.source] = max(self.stats.tec_max[tx.source], counter.tec)
+        if state is errors.ErrorState.BUS_OFF:
+            self.queues[tx.source].popleft()
+            self._log(tx.msg, CHANNEL_DROPPED, flight.end_ns)
+            self.stats.dropped["bus_off"] += 1
+            self.stats.bus_off[tx.source] += 1
+            recovery_ns = max(bittiming.duration_ns(bittiming.BUS_OFF_RECOVERY_BITS, self.bitrate_bps),
+                              round(flight.destroyed_by.spec.param("restart_delay_s") * 1e9))
+            self.recover_at_ns[tx.source] = flight.end_ns + recovery_ns
+        report = errors.error_frame(state, counter.tec, timestamp_s=self.to_wall_s(flight.end_ns))
+        report.channel = CHANNEL_BUS
+        self.capture(report)
+        return [Delivery(report, (tx.source,))]   # the controller reports its own errors
+
+    def _restart_recovered(self, t_ns: int) -> list[Delivery]:
+        out = []
+        for node, at_ns in list(self.recover_at_ns.items()):
+            if at_ns <= t_ns:
+                del self.recover_at_ns[node]
+                self.tec[node].restart()
+                report = errors.error_frame(errors.ErrorState.ACTIVE, 0, restarted=True,
+                                            timestamp_s=self.to_wall_s(at_ns))
+                report.channel = CHANNEL_BUS
+                self.capture(report)
+                self.bus_free_ns = max(self.bus_free_ns, at_ns)
+                out.append(Delivery(report, (node,)))
+        return out
+
+    # --- accounting -----------------------------------------------------------------------
+    def _account_busy(self, start_ns: int, end_ns: int) -> None:
+        self.stats.busy_ns += end_ns - start_ns
+        t = start_ns
+        while t < end_ns:  # split across load windows
+            window = (t - self.t0_ns) // LOAD_WINDOW_NS
+            window_end = self.t0_ns + (window + 1) * LOAD_WINDOW_NS
+            self.stats.load_windows[window] += min(end_ns, window_end) - t
+            t = window_end
+
+    def _log(self, msg: can.Message, channel: str, t_ns: int) -> None:
+        self.capture(_stamped(msg, self.to_wall_s(t_ns), channel))
+
+    def report(self) -> dict:
+        """Bus load, frames, drops, errors and command latency with and without a babbler."""
+        elapsed_ns = max(1, self.now_ns - self.t0_ns)
+        latency = {key: _percentiles_us(values) for key, values in self.stats.command_latency_ns.items()}
+        return {
+            "bitrate_bps": self.bitrate_bps,
+            "elapsed_s": elapsed_ns / 1e9,
+            "bus_load_pct": 100.0 * self.stats.busy_ns / elapsed_ns,
+            "peak_load_pct": 100.0 * max(self.stats.load_windows.values(), default=0) / LOAD_WINDOW_NS,
+            "load_timeline_pct": [[w * LOAD_WINDOW_NS / 1e9, 100.0 * busy / LOAD_WINDOW_NS]
+                                  for w, busy in sorted(self.stats.load_windows.items())],
+            "frames": dict(self.stats.frames),
+            "dropped": dict(self.stats.dropped),
+            "error_frames": self.stats.error_frames,
+            "bus_off": dict(self.stats.bus_off),
+            "tec_max": dict(self.stats.tec_max),
+            "command_latency_us": latency,
+            "faults": self.injector.summary(),
+        }
+
+
+def _stamped(msg: can.Message, timestamp_s: float, channel: str) -> can.Message:
+    return can.Message(timestamp=timestamp_s, arbitration_id=msg.arbitration_id, is_extended_id=msg.is_extended_id,
+                       is_remote_frame=msg.is_remote_frame, is_error_frame=msg.is_error_frame, dlc=msg.dlc,
+                       data=bytes(msg.data), channel=channel, is_rx=False)
+
+
+def _percentiles_us(values_ns: list[int]) -> dict:
+    if not values_ns:
+        return {"n": 0}
+    ordered = sorted(values_ns)
+    p99 = ordered[min(len(ordered) - 1, round(0.99 * (len(ordered) - 1)))]
+    return {"n": len(ordered), "median": statistics.median(ordered) / 1e3, "p99": p99 / 1e3, "max": ordered[-1] / 1e3}
+
+
+class RealTimeBridge:
+    """Runs a BusModel on the wall clock between two python-can buses (flight side, board side).
+
+    Each bus gets a python-can Notifier whose thread stamps arrivals with the monotonic clock; the
+    loop feeds them to the model and sends each delivery on the listening side's bus. Deliveries
+    leave at most `granularity_s` after the model says their last bit passed.
+    """
+
+    def __init__(self, model: BusModel, buses: dict[str, can.BusABC], granularity_s: float = 0.0005):
+        self.model = model
+        self.buses = buses
+        self.granularity_s = granularity_s
+        self.send_failures = 0
+        self._inbox: queue.SimpleQueue = queue.SimpleQueue()
+        self._notifiers = [can.Notifier(bus, [_Inbox(side, self._inbox)], timeout=0.05) for side, bus in buses.items()]
+
+    def run(self, stop) -> None:
+        try:
+            while not stop.is_set():
+                now_ns = time.monotonic_ns()
+                next_ns = self.model.next_event_ns()
+                wait_s = 0.01 if next_ns is None else min(0.01, max(self.granularity_s, (next_ns - now_ns) / 1e9))
+                try:
+                    item = self._inbox.get(timeout=wait_s)
+                    while True:
+                        side, msg, t_ns = item
+                        self.model.submit(side, msg, t_ns)
+                        item = self._inbox.get_nowait()
+                except queue.Empty:
+                    pass
+                self._deliver(self.model.run_until(time.monotonic_ns()))
+        finally:
+            for notifier in self._notifiers:
+                notifier.stop()
+
+    def _deliver(self, deliveries: list[Delivery]) -> None:
+        for delivery in deliveries:
+            for side in delivery.destinations:
+                try:
+                    self.buses[side].send(delivery.msg)
+                except (can.CanError, ValueError):  # counted; the bridge must keep running
+                    self.send_failures += 1
+
+
+class _Inbox(can.Listener):
+    def __init__(self, side: str, inbox):
+        self.side = side
+        self.inbox = inbox
+
+    def on_message_received(self, msg: can.Message) -> None:
+        self.inbox.put((self.side, msg, time.monotonic_ns()))

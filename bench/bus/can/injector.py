@@ -1,0 +1,300 @@
+"""What each fault of faults.py does to the frames in the bus model.
+
+The bus model hands every frame a node submits to `FaultInjector.on_submit`, asks `babbler` for
+the flood's frames when the bus is free, and asks `destroys` before each transmission attempt.
+Each fault acts only inside its window, on its target frames, on every `every`-th of them, until
+it has affected `count` frames; every action is logged (InjectionRecord) so that a test can
+account for every frame and measure detection latency from the moment of injection.
+"""
+from __future__ import annotations
+
+import random
+from dataclasses import dataclass, field
+
+import can
+
+from bench.bus.can import protocol as p
+from bench.bus.can.faults import FaultSpec
+
+SOURCE_INJECTOR = "injector"
+
+
+@dataclass
+class Transmission:
+    """A frame waiting for the bus: who sent it, when, and which nodes will hear it."""
+    msg: can.Message
+    source: str
+    submitted_ns: int
+    ready_ns: int
+    destinations: tuple[str, ...]
+    fault: str | None = None     # the fault that injected or altered it
+
+
+@dataclass(frozen=True)
+class InjectionRecord:
+    t_ns: int
+    fault: str                   # "<index>:<name>" of the fault in the scenario
+    action: str                  # dropped, delayed, injected, replaced, destroyed
+    frame_id: int
+    data: str                    # hex of the frame as it now is (the original for "dropped")
+    original: str = ""           # hex of the original for "replaced"
+
+
+@dataclass
+class SubmitOutcome:
+    queued: list[Transmission] = field(default_factory=list)
+    dropped: list[tuple[can.Message, str]] = field(default_factory=list)   # (frame, reason)
+    replaced: list[can.Message] = field(default_factory=list)              # originals of altered frames
+
+
+def _copy(msg: can.Message, data: bytes | None = None) -> can.Message:
+    return can.Message(arbitration_id=msg.arbitration_id, is_extended_id=msg.is_extended_id,
+                       is_remote_frame=msg.is_remote_frame, dlc=msg.dlc,
+                       data=bytes(msg.data) if data is None else data)
+
+
+def _with_counter(msg: can.Message, counter: int) -> bytes:
+    data = bytearray(msg.data)
+    data[1] = (data[1] & 0xF0) | (counter % p.COUNTER_MODULO)
+    return bytes(data)
+
+
+class ActiveFault:
+    """One fault of the scenario while the bus model runs."""
+
+    def __init__(self, spec: FaultSpec, index: int, protocol: p.Protocol, t0_ns: int, seed: int):
+        self.spec = spec
+        self.label = f"{index}:{spec.name}"
+        self.protocol = protocol
+        self.start_ns, self.end_ns = spec.window_ns(t0_ns)
+        self.frame_ids = {protocol.frame_ids[name] for name in spec.target_frames()}
+        self.rng = random.Random(seed * 1000 + index)
+        self.matched = 0
+        self.affected = 0
+
+    def active(self, t_ns: int) -> bool:
+        in_window = self.start_ns <= t_ns and (self.end_ns is None or t_ns < self.end_ns)
+        return in_window and not (self.spec.count and self.affected >= self.spec.count)
+
+    def takes(self, msg: can.Message, t_ns: int) -> bool:
+        """Whether this fault acts on this frame (and count it if so)."""
+        if msg.arbitration_id not in self.frame_ids or msg.is_error_frame or not self.active(t_ns):
+            return False
+        self.matched += 1
+        if (self.matched - 1) % self.spec.every:
+            return False
+        self.affected += 1
+        return True
+
+    def apply(self, tx: Transmission, outcome: SubmitOutcome, injector: "FaultInjector") -> bool:
+        """Act on a frame this fault took; False if the frame is gone (dropped)."""
+        raise NotImplementedError
+
+
+class Drop(ActiveFault):
+    def apply(self, tx, outcome, injector):
+        injector.drop(tx, outcome, self.label)
+        return False
+
+
+class Delay(ActiveFault):
+    def apply(self, tx, outcome, injector):
+        tx.ready_ns += round(self.spec.param("delay_s") * 1e9)
+        injector.record(tx.submitted_ns, self.label, "delayed", tx.msg)
+        return True
+
+
+class Duplicate(ActiveFault):
+    def apply(self, tx, outcome, injector):
+        for _ in range(int(self.spec.param("copies"))):
+            injector.inject(tx.msg, tx.ready_ns, outcome, self.label)
+        return True
+
+
+class Replay(ActiveFault):
+    recorded: can.Message | None = None
+    recorded_ns = 0
+
+    def apply(self, tx, outcome, injector):
+        if self.recorded is None:
+            self.recorded, self.recorded_ns = _copy(tx.msg), tx.submitted_ns
+            self.affected -= 1   # recording is not an injection
+            return True
+        if tx.submitted_ns - self.recorded_ns >= self.spec.param("after_s") * 1e9:
+            injector.inject(self.recorded, tx.ready_ns, outcome, self.label)
+        else:
+            self.affected -= 1
+        return True
+
+
+class Corrupt(ActiveFault):
+    def apply(self, tx, outcome, injector):
+        data = bytearray(tx.msg.data)
+        # Data bits only: a flipped counter bit selects another data id, which can mask the
+        # corruption (E2E profile 2's known weakness, shown in test_can_protocol).
+        candidates = [b for b in range(8 * len(data)) if b not in p.COUNTER_BITS]
+        for bit in self.rng.sample(candidates, int(self.spec.param("bits"))):
+            data[bit // 8] ^= 1 << (bit % 8)
+        altered = _copy(tx.msg, bytes(data))
+        if self.spec.param("recompute_crc") and self.protocol.name_of(altered.arbitration_id):
+            altered = self.protocol.reprotect(altered)
+        injector.replace(tx, altered, outcome, self.label)
+        return True
+
+
+class Spoof(ActiveFault):
+    def apply(self, tx, outcome, injector):
+        frame = self.protocol.decode(tx.msg)
+        counter = (frame.counter + 1) if frame is not None and frame.counter is not None else 0
+        dipole = [self.spec.param("dipole_am2")] * 3
+        forged = self.protocol.command(dipole, counter)
+        if not self.spec.param("knows_data_id"):
+            forged = self.protocol.reprotect(forged, data_ids=(int(self.spec.param("data_id")),) * p.COUNTER_MODULO)
+        injector.inject(forged, tx.ready_ns, outcome, self.label)
+        return True
+
+
+class CounterFreeze(ActiveFault):
+    frozen: int | None = None
+
+    def apply(self, tx, outcome, injector):
+        current = tx.msg.data[1] & 0x0F
+        if self.frozen is None:
+            self.frozen = current
+        altered = self.protocol.reprotect(_copy(tx.msg, _with_counter(tx.msg, self.frozen)))
+        if bytes(altered.data) != bytes(tx.msg.data):
+            injector.replace(tx, altered, outcome, self.label)
+        return True
+
+
+class CounterOffset(ActiveFault):
+    def apply(self, tx, outcome, injector):
+        counter = (tx.msg.data[1] & 0x0F) + int(self.spec.param("offset"))
+        injector.replace(tx, self.protocol.reprotect(_copy(tx.msg, _with_counter(tx.msg, counter))), outcome, self.label)
+        return True
+
+
+class BoardDeath(Drop):
+    pass
+
+
+class StuckActuator(ActiveFault):
+    """The board's telemetry keeps its values from the fault's start; the board itself is fine."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.frozen: dict[int, bytes] = {}
+
+    def apply(self, tx, outcome, injector):
+        frame_id = tx.msg.arbitration_id
+        if frame_id not in self.frozen:
+            self.frozen[frame_id] = bytes(tx.msg.data)
+            return True
+        frozen = self.frozen[frame_id]
+        if not self.spec.param("freeze_counter"):
+            # The board's E2E layer protects whatever its application hands it.
+            frozen = bytes(self.protocol.reprotect(_copy(tx.msg, _with_counter(_copy(tx.msg, frozen),
+                                                                               tx.msg.data[1] & 0x0F))).data)
+        if frozen != bytes(tx.msg.data):
+            injector.replace(tx, _copy(tx.msg, frozen), outcome, self.label)
+        return True
+
+
+class Flood(ActiveFault):
+    """A babbling node: not triggered by frames, it wants the bus all through its window."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.frame_ids = set()
+        self.next_ns = self.start_ns
+        self.msg = can.Message(arbitration_id=int(self.spec.param("frame_id")), is_extended_id=False,
+                               data=bytes(int(self.spec.param("dlc"))))
+
+    def frame_ready_ns(self) -> int | None:
+        """When the babbler next wants the bus (None: no more in its window)."""
+        ready = max(self.next_ns, self.start_ns)
+        if self.end_ns is not None and ready >= self.end_ns:
+            return None
+        if self.spec.count and self.affected >= self.spec.count:
+            return None
+        return ready
+
+    def sent(self, start_ns: int) -> None:
+        self.affected += 1
+        self.next_ns = start_ns + round(self.spec.param("period_s") * 1e9)
+
+
+class ErrorFrames(ActiveFault):
+    """Destroys transmission attempts; acts in the bus model's arbitration, not on submit."""
+
+
+KINDS: dict[str, type[ActiveFault]] = {
+    "drop": Drop, "delay": Delay, "duplicate": Duplicate, "replay": Replay, "corrupt": Corrupt,
+    "spoof": Spoof, "counter_freeze": CounterFreeze, "counter_offset": CounterOffset, "flood": Flood,
+    "board_death": BoardDeath, "stuck_actuator": StuckActuator, "error_frames": ErrorFrames,
+}
+
+
+class FaultInjector:
+    def __init__(self, specs: list[FaultSpec], protocol: p.Protocol, t0_ns: int, seed: int = 1):
+        self.protocol = protocol
+        self.faults = [KINDS[s.name](s, i, protocol, t0_ns, seed) for i, s in enumerate(specs)]
+        self.floods = [f for f in self.faults if isinstance(f, Flood)]
+        self.error_faults = [f for f in self.faults if isinstance(f, ErrorFrames)]
+        self.frame_faults = [f for f in self.faults if not isinstance(f, (Flood, ErrorFrames))]
+        self.records: list[InjectionRecord] = []
+
+    # --- called by the bus model ----------------------------------------------------------
+    def on_submit(self, tx: Transmission) -> SubmitOutcome:
+        outcome = SubmitOutcome()
+        for fault in self.frame_faults:
+            if fault.takes(tx.msg, tx.submitted_ns) and not fault.apply(tx, outcome, self):
+                return outcome
+        outcome.queued.insert(0, tx)
+        return outcome
+
+    def babbler(self) -> tuple[Flood, int] | None:
+        """The flood that wants the bus soonest, and when."""
+        ready = [(f.frame_ready_ns(), i, f) for i, f in enumerate(self.floods)]
+        ready = [(t, i, f) for t, i, f in ready if t is not None]
+        if not ready:
+            return None
+        t_ns, _, flood = min(ready)
+        return flood, t_ns
+
+    def destroys(self, tx: Transmission, t_ns: int) -> ErrorFrames | None:
+        for fault in self.error_faults:
+            if fault.takes(tx.msg, t_ns):
+                self.record(t_ns, fault.label, "destroyed", tx.msg)
+                return fault
+        return None
+
+    def flood_active(self, t_ns: int) -> bool:
+        return any(f.start_ns <= t_ns and (f.end_ns is None or t_ns < f.end_ns) for f in self.floods)
+
+    # --- used by the faults ---------------------------------------------------------------
+    def record(self, t_ns: int, label: str, action: str, msg: can.Message, original: can.Message | None = None) -> None:
+        self.records.append(InjectionRecord(t_ns, label, action, msg.arbitration_id, bytes(msg.data).hex(),
+                                            bytes(original.data).hex() if original is not None else ""))
+
+    def drop(self, tx: Transmission, outcome: SubmitOutcome, label: str) -> None:
+        outcome.dropped.append((tx.msg, label))
+        self.record(tx.submitted_ns, label, "dropped", tx.msg)
+
+    def inject(self, msg: can.Message, ready_ns: int, outcome: SubmitOutcome, label: str) -> None:
+        t_ns = ready_ns
+        outcome.queued.append(Transmission(_copy(msg), SOURCE_INJECTOR, t_ns, t_ns, ("flight", "board"), label))
+        self.record(t_ns, label, "injected", msg)
+
+    def replace(self, tx: Transmission, altered: can.Message, outcome: SubmitOutcome, label: str) -> None:
+        outcome.replaced.append(tx.msg)
+        self.record(tx.submitted_ns, label, "replaced", altered, original=tx.msg)
+        tx.msg, tx.fault = altered, label
+
+    def summary(self) -> list[dict]:
+        out = []
+        for fault in self.faults:
+            mine = [r for r in self.records if r.fault == fault.label]
+            out.append({"fault": fault.label, "affected": fault.affected,
+                        "first_ns": mine[0].t_ns if mine else None, "last_ns": mine[-1].t_ns if mine else None})
+        return out

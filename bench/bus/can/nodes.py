@@ -1,0 +1,127 @@
+"""Process entry points of the actuator bus: node "mtq" (the board) and node "canbus" (bus model).
+
+Each opens its CAN buses on the scenario's transport and writes what a test or a report needs
+into <run_dir>/can/ when it stops: the board its counts and every command it applied, the bus
+model its report, the injector's log and the candump capture.
+"""
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import can
+
+from bench.bus import keys
+from bench.bus.can import protocol as p
+from bench.bus.can.board import AppliedCommand, MagnetorquerBoard
+from bench.bus.can.busmodel import BOARD, FLIGHT, BusModel, RealTimeBridge
+from bench.bus.can.config import CanConfig
+from bench.bus.can.injector import FaultInjector
+from bench.bus.can.transport import open_can_bus
+from bench.bus.schemas import MtqApplied, header
+
+PEER_WAIT_S = 10.0
+CAPTURE_NAME = "bus.log"
+REPORT_NAME = "busmodel.json"
+INJECTIONS_NAME = "injections.jsonl"
+BOARD_NAME = "board.json"
+
+
+def can_dir(run_dir: Path) -> Path:
+    path = Path(run_dir) / "can"
+    path.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+def open_node_bus(ctx, config: CanConfig, channel: str) -> can.BusABC:
+    """A CAN bus for this node; over Zenoh it shares the node's own session (one per process)."""
+    if config.transport == "zenoh":
+        return can.Bus(interface="zenoh", channel=channel, run_id=ctx.run_id, session=ctx.session, ignore_config=True)
+    return open_can_bus(config.transport, channel, run_id=ctx.run_id)
+
+
+def _wait_for_bus_peer(bus: can.BusABC, what: str, ctx) -> None:
+    # Zenoh delivers only to buses it already knows: wait for the other end before sending.
+    if hasattr(bus, "wait_for_peers") and not bus.wait_for_peers(1, PEER_WAIT_S):
+        ctx.log.warning("no peer on the %s CAN channel after %.0f s; sending anyway", what, PEER_WAIT_S)
+
+
+def _can_config(ctx) -> CanConfig | None:
+    config = getattr(ctx.scenario, "can", None)
+    if config is None:
+        ctx.log.error("scenario %r has no [can] section", ctx.scenario.name)
+    return config
+
+
+# --- node "mtq" ---------------------------------------------------------------------------------
+def run_board(ctx) -> int:
+    config = _can_config(ctx)
+    if config is None:
+        return 2
+    bus = open_node_bus(ctx, config, config.board_channel)
+    applied: list[dict] = []
+
+    def on_applied(command: AppliedCommand) -> None:
+        applied.append({"counter": command.alive_counter, "dipole_am2": command.dipole_am2.tolist(),
+                        "applied_ns": command.applied_ns})
+        message = MtqApplied(
+            header=header(ctx.run_id, len(applied), 0.0, board_received=command.received_ns, applied=command.applied_ns),
+            dipole_am2=command.dipole_am2.tolist(), coil_current_a=board.state.coil_current_a.tolist(),
+            safe_state=board.state.safe_state, actuation_paused=board.state.actuation_paused,
+            alive_counter=command.alive_counter)
+        ctx.publish(keys.ACTUATOR_MTQ, message)
+
+    board = MagnetorquerBoard(bus, config.board, p.Protocol(config.node_id), on_applied=on_applied)
+    try:
+        _wait_for_bus_peer(bus, config.board_channel, ctx)
+        board.run(ctx.stop)
+    finally:
+        bus.shutdown()
+        summary = {"sent": dict(board.sent), "received": dict(board.received), "accepted": board.accepted,
+                   "rejected": dict(board.rejected), "bad_frames": dict(board.protocol.bad.counts),
+                   "applied": applied}
+        (can_dir(ctx.run_dir) / BOARD_NAME).write_text(json.dumps(summary))
+        ctx.log.info("board: sent %s, accepted %d, rejected %s", dict(board.sent), board.accepted, dict(board.rejected))
+    return 0
+
+
+# --- node "canbus" ------------------------------------------------------------------------------
+def run_bus_model(ctx) -> int:
+    config = _can_config(ctx)
+    if config is None:
+        return 2
+    out = can_dir(ctx.run_dir)
+    buses = {FLIGHT: open_node_bus(ctx, config, config.flight_channel),
+             BOARD: open_node_bus(ctx, config, config.board_channel)}
+    logger = can.Logger(str(out / CAPTURE_NAME)) if config.capture else None
+    protocol = p.Protocol(config.node_id)
+    t0_ns = time.monotonic_ns()
+    wall_offset_s = time.time() - t0_ns / 1e9
+    injector = FaultInjector(config.faults, protocol, t0_ns, seed=ctx.scenario.run.seed)
+    model = BusModel(injector, protocol, t0_ns, bitrate_bps=config.bitrate_bps, tx_queue_frames=config.tx_queue_frames,
+                     capture=logger.on_message_received if logger else None,
+                     to_wall_s=lambda t_ns: t_ns / 1e9 + wall_offset_s)
+    bridge = RealTimeBridge(model, buses)
+    ctx.declare_ready()   # the launcher and tests start the other CAN nodes after this
+    try:
+        bridge.run(ctx.stop)
+    finally:
+        for bus in buses.values():
+            bus.shutdown()
+        if logger is not None:
+            logger.stop()
+        report = model.report()
+        report["send_failures"] = bridge.send_failures
+        report["t0_ns"] = t0_ns
+        (out / REPORT_NAME).write_text(json.dumps(report, indent=1))
+        with open(out / INJECTIONS_NAME, "w") as f:
+            for record in injector.records:
+                f.write(json.dumps(record.__dict__) + "\n")
+        ctx.log.info("bus load %.1f %%, frames %s, dropped %s", report["bus_load_pct"], report["frames"], report["dropped"])
+    return 0
+
+
+def run(ctx) -> int:
+    """Entry point named in bench.node_runtime.NODES for both nodes; the node's name picks one."""
+    return {"mtq": run_board, "canbus": run_bus_model}[ctx.name](ctx)
