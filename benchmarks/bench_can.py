@@ -46,6 +46,7 @@ CHANNEL = "vcan0"
 COMMANDS = 500
 PERIOD_S = 0.004
 FRAMES = 20_000
+ROUNDS = 3
 THROUGHPUT_ID = 0x321
 DONE_ID = 0x7FE
 PEER_WAIT_S = 10.0
@@ -191,23 +192,42 @@ def in_one_process(role: str, count: int, own_side) -> tuple[dict, object]:
     return result, ours
 
 
-def measure(transport: str, commands: int, frames: int) -> dict:
+def measure_once(transport: str, commands: int, frames: int) -> dict:
     run = in_one_process if transport == "virtual" else (lambda *a: across_processes(transport, *a))
     board, sent = run("board", commands, driver_side)
     applied = board["applied"]
     pairs = [(s, a) for s, a in zip(sent, applied) if s[0] == a[0]]
-    latency_us = np.array([(a[1] - s[1]) / 1e3 for s, a in pairs])
     sink, source = run("sink", frames, source_side)
     span_s = ((sink["last_ns"] or 0) - (sink["first_ns"] or 0)) / 1e9
     return {
-        "transport": transport,
+        "latency_us": [(a[1] - s[1]) / 1e3 for s, a in pairs],
         "commands_sent": len(sent), "commands_applied": len(applied), "commands_unpaired": len(sent) - len(pairs),
-        "latency_median_us": float(np.median(latency_us)) if latency_us.size else None,
-        "latency_p99_us": float(np.percentile(latency_us, 99)) if latency_us.size else None,
         "frames_sent": frames, "frames_received": sink["received"],
-        "frames_per_s": (sink["received"] - 1) / span_s if span_s > 0 else None,
+        "frames_per_s": (sink["received"] - 1) / span_s if span_s > 0 else float("nan"),
         "send_retries": source["retries"],
     }
+
+
+def measure(transports: list[str], commands: int, frames: int, rounds: int) -> list[dict]:
+    """Each transport `rounds` times, interleaved, so that load from elsewhere on a shared machine
+    falls on every transport alike. Latency percentiles over all samples; frames/s the median round."""
+    runs: dict[str, list[dict]] = {t: [] for t in transports}
+    for _ in range(rounds):
+        for transport in transports:
+            runs[transport].append(measure_once(transport, commands, frames))
+    results = []
+    for transport, each in runs.items():
+        latency_us = np.array([x for r in each for x in r["latency_us"]])
+        total = {k: sum(r[k] for r in each) for k in
+                 ("commands_sent", "commands_applied", "commands_unpaired", "frames_sent", "frames_received")}
+        results.append({
+            "transport": transport, **total,
+            "latency_median_us": float(np.median(latency_us)) if latency_us.size else None,
+            "latency_p99_us": float(np.percentile(latency_us, 99)) if latency_us.size else None,
+            "frames_per_s": float(np.median([r["frames_per_s"] for r in each])),
+            "frames_per_s_rounds": [round(r["frames_per_s"]) for r in each],
+        })
+    return results
 
 
 # --- report ----------------------------------------------------------------------------------
@@ -224,6 +244,7 @@ def table(results: list[dict], title: str) -> str:
             f" {lat_ratio:>9.2f} {r['frames_per_s'] or float('nan'):>10.0f} {fps_ratio:>9.2f}"
             f" {r['frames_sent'] - r['frames_received']:>6}  {r['commands_applied']}/{r['commands_sent']}"
             + (f" ({r['commands_unpaired']} unpaired)" if r["commands_unpaired"] else "")
+            + f"  frames/s per round {r['frames_per_s_rounds']}"
         )
     return "\n".join(lines)
 
@@ -233,7 +254,7 @@ def run_in_uml(args: argparse.Namespace) -> str:
         return "inside user-mode Linux: not measured (user-mode-linux is not installed)"
     command = ["bash", str(RUN_IN_UML), "--timeout", str(UML_TIMEOUT_S), "--mem", "512M", "--",
                sys.executable, __file__, "--no-uml", "--transports", args.uml_transports,
-               "--commands", str(args.commands), "--frames", str(args.frames), "--title",
+               "--commands", str(args.commands), "--frames", str(args.frames), "--rounds", str(args.rounds), "--title",
                "inside user-mode Linux (kernel vcan; guest syscalls trap to UML: compare within this table)"]
     proc = subprocess.run(command, capture_output=True, text=True, cwd=REPO, timeout=UML_TIMEOUT_S + 30)
     if proc.returncode != 0:
@@ -246,6 +267,7 @@ def main() -> int:
     parser.add_argument("--transports", default="zenoh,virtual")
     parser.add_argument("--commands", type=int, default=COMMANDS)
     parser.add_argument("--frames", type=int, default=FRAMES)
+    parser.add_argument("--rounds", type=int, default=ROUNDS)
     parser.add_argument("--no-uml", action="store_true", help="do not also measure inside user-mode Linux")
     parser.add_argument("--uml-transports", default="socketcan,virtual",
                         help="zenoh can be added, but on UML's one emulated CPU its runtime threads fall "
@@ -262,9 +284,9 @@ def main() -> int:
         return child(args.role, args.transport, args.run_id, args.endpoint, args.count)
 
     transports = args.transports.split(",")
-    title = (f"{args.title}: default transport {default_transport()}; {args.commands} commands every "
-             f"{PERIOD_S * 1e3:.0f} ms driver->board; {args.frames} frames back to back")
-    print(table([measure(t, args.commands, args.frames) for t in transports], title), flush=True)
+    title = (f"{args.title}: default transport {default_transport()}; {args.rounds} rounds of {args.commands} "
+             f"commands every {PERIOD_S * 1e3:.0f} ms driver->board and {args.frames} frames back to back")
+    print(table(measure(transports, args.commands, args.frames, args.rounds), title), flush=True)
     if not args.no_uml:
         print()
         print(run_in_uml(args))
