@@ -8,7 +8,7 @@ that Q is full rank and every motion factor constrains all six states.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cached_property, lru_cache
 
 import numpy as np
 from scipy.linalg import expm, expm_frechet
@@ -23,6 +23,11 @@ class DiscreteModel:
     transition: np.ndarray      # (6, 6)
     input_matrix: np.ndarray    # (6, 3), thrust in N
     process_cov: np.ndarray     # (6, 6), SI
+
+    @cached_property
+    def process_whitening(self) -> np.ndarray:
+        """W with W' W = Q^-1: motion factors are whitened with it (computed once per model)."""
+        return np.linalg.inv(np.linalg.cholesky(self.process_cov))
 
 
 def van_loan_process_cov(a_c: np.ndarray, noise_input: np.ndarray, psd: float, interval_s: float) -> np.ndarray:

@@ -169,7 +169,7 @@ class TranslationSmoother:
             return factors.cwh_motion_factor_unknown_mean_motion(
                 previous, key, MEAN_MOTION_KEY, thrust, n_steps, self.model, self.believed_mean_motion_radps)
         m = self.model.discrete(self.believed_mean_motion_radps, n_steps)
-        return factors.cwh_motion_factor(previous, key, thrust, m.transition, m.input_matrix, m.process_cov)
+        return factors.cwh_motion_factor(previous, key, thrust, m)
 
     def _step_factors(self, seq: int, thrust: np.ndarray, measurement: "_Measurement | None"):
         n_steps = seq - self._last.seq

@@ -1,0 +1,130 @@
+"""Per-update time of the estimators: median and p99, against a baseline measured in the same run.
+
+Baseline: the reference Kalman filter (numpy predict + correct) on the same translational data,
+so a slow machine or a busy neighbour shows up in both columns and the ratio stays meaningful.
+Run: .venv/bin/python benchmarks/bench_estimator.py
+Targets (issue 4, this 2-core machine): translational p99 < 0.5 ms, attitude p99 < 1 ms.
+"""
+from __future__ import annotations
+
+import os
+
+# One BLAS thread, as each bench process should run: on this 2-core machine shared with other
+# processes, OpenBLAS's worker threads turn a 9x9 scipy expm or 3x3 triangular solve from
+# microseconds into ~10 ms (measured). Must be set before numpy/scipy load their BLAS.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import time  # noqa: E402
+
+import numpy as np  # noqa: E402
+from scipy.spatial.transform import Rotation  # noqa: E402
+
+from bench.estimator import kalman  # noqa: E402
+from bench.estimator.attitude import AttitudeSmoother  # noqa: E402
+from bench.estimator.config import AttitudeSmootherConfig, TranslationSmootherConfig  # noqa: E402
+from bench.estimator.factors import range_bearing  # noqa: E402
+from bench.estimator.motion_model import CwhMotionModel  # noqa: E402
+from bench.estimator.translation import TranslationSmoother  # noqa: E402
+from bench.plant.attitude import AttitudeSensorSpec, AttitudeSimulation  # noqa: E402
+from bench.plant.cwh import RendezvousParams  # noqa: E402
+
+PARAMS = RendezvousParams.from_reference()
+STEPS = 288          # the reference rendezvous: 2 days of 600 s steps
+REPEATS = 5
+WARMUP = 5           # first updates of each run (smoother creation, caches) are not counted
+NOISE_M = 10.0
+
+
+def translation_data(seed: int = 1):
+    """An open-loop CWH trajectory from A with random thrust, and its noisy fixes."""
+    rng = np.random.default_rng(seed)
+    a, b = PARAMS.discrete_si()
+    x, xs, thrusts = PARAMS.initial_state_m_mps("A"), [], []
+    for _ in range(STEPS):
+        xs.append(x)
+        u = rng.uniform(-0.2, 0.2, 3)
+        thrusts.append(u)
+        x = a @ x + b @ u
+    xs = np.array(xs)
+    return xs, xs[:, :3] + rng.normal(0.0, NOISE_M, (STEPS, 3)), np.array(thrusts)
+
+
+def time_kalman(fixes, thrusts) -> np.ndarray:
+    config = TranslationSmootherConfig()
+    m = CwhMotionModel(PARAMS.mass_kg, PARAMS.time_step_s, config.process_noise_psd_m2ps3).discrete(PARAMS.mean_motion)
+    r = np.eye(3) * NOISE_M**2
+    out = []
+    for _ in range(REPEATS):
+        belief = kalman.initial_belief_from_position(fixes[0], NOISE_M, config.initial_velocity_std_mps)
+        for k in range(1, STEPS):
+            t0 = time.perf_counter_ns()
+            belief = kalman.predict(belief, m.transition, m.input_matrix, thrusts[k - 1], m.process_cov)
+            belief = kalman.correct(belief, fixes[k], kalman.POSITION_MATRIX, r)
+            out.append(time.perf_counter_ns() - t0)
+    return np.array(out) * 1e-6
+
+
+def time_translation(config: TranslationSmootherConfig, truth, fixes, thrusts) -> np.ndarray:
+    out = []
+    for _ in range(REPEATS):
+        smoother = TranslationSmoother(config, PARAMS)
+        for k in range(STEPS):
+            u = thrusts[k - 1] if k else np.zeros(3)
+            t0 = time.perf_counter_ns()
+            if config.sensor == "relpos":
+                smoother.update(k, 600.0 * k, fixes[k], u, NOISE_M)
+            else:
+                smoother.update(k, 600.0 * k, None, u, range_bearing=range_bearing(truth[k, :3]))
+            if k >= WARMUP:
+                out.append(time.perf_counter_ns() - t0)
+        assert smoother.failed_updates == 0
+    return np.array(out) * 1e-6
+
+
+def time_attitude(seconds: float = 300.0) -> tuple[np.ndarray, np.ndarray]:
+    spec = AttitudeSensorSpec()
+    sim = AttitudeSimulation(np.diag([0.03, 0.04, 0.02]), Rotation.random(random_state=2).as_quat(scalar_first=True),
+                             [0.01, -0.02, 0.015], spec, seed=2)
+    samples = [sim.step() for _ in range(int(seconds * spec.gyro_rate_hz))]
+    keyframe_ns, gyro_ns = [], []
+    for _ in range(REPEATS):
+        smoother, keyframe = AttitudeSmoother(AttitudeSmootherConfig()), 0
+        for s in samples:
+            t0 = time.perf_counter_ns()
+            smoother.add_gyro(s.gyro_radps, sim.dt_s)
+            gyro_ns.append(time.perf_counter_ns() - t0)
+            if s.magnetometer_t is None and s.star_tracker_wxyz is None:
+                continue
+            keyframe += 1
+            t0 = time.perf_counter_ns()
+            smoother.update(keyframe, s.time_s, s.magnetometer_t, s.field_inertial_t, s.star_tracker_wxyz)
+            if keyframe > WARMUP:
+                keyframe_ns.append(time.perf_counter_ns() - t0)
+        assert smoother.failed_updates == 0
+    return np.array(keyframe_ns) * 1e-6, np.array(gyro_ns) * 1e-6
+
+
+def main() -> None:
+    truth, fixes, thrusts = translation_data()
+    baseline = time_kalman(fixes, thrusts)
+    rows = [
+        ("Kalman filter (numpy, baseline)", baseline),
+        ("translation smoother, lag 20", time_translation(TranslationSmootherConfig(), truth, fixes, thrusts)),
+        ("translation + mean motion, lag 20", time_translation(
+            TranslationSmootherConfig(estimate_mean_motion=True, believed_radius_error=0.01), truth, fixes, thrusts)),
+        ("translation, range/bearing, lag 20", time_translation(
+            TranslationSmootherConfig(sensor="range_bearing"), truth, fixes, thrusts)),
+    ]
+    keyframes, gyro = time_attitude()
+    rows += [("attitude smoother keyframe, lag 20 s", keyframes), ("attitude gyro sample (preintegrate)", gyro)]
+
+    base_median, base_p99 = np.median(baseline), np.percentile(baseline, 99)
+    print(f"estimator per-update time, {os.cpu_count()} cores, load average {os.getloadavg()[0]:.2f}")
+    print(f"{'':40s} {'n':>6s} {'median ms':>10s} {'p99 ms':>9s} {'median/KF':>10s} {'p99/KF':>8s}")
+    for name, t in rows:
+        med, p99 = np.median(t), np.percentile(t, 99)
+        print(f"{name:40s} {t.size:6d} {med:10.3f} {p99:9.3f} {med / base_median:10.1f} {p99 / base_p99:8.1f}")
+
+
+if __name__ == "__main__":
+    main()
