@@ -2,7 +2,7 @@
 
 Every stage stamps `time.monotonic_ns()` into the header of the sample it handles, and headers flow
 downstream, so the command for step k carries every stamp from sensing on. Per step k the stamps of
-all recorded messages of that step are merged (the most downstream message first), then the plant's
+the loop's recorded messages of that step are merged (the most downstream message first), then the plant's
 own record of what it applied (trajectory.npz `stamp_<stage>_ns`) fills what no message carried
 (plant_received, applied). A hop is the difference of two stamps of the same step.
 
@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from bench.bus import keys
 from bench.bus.schemas import STAGES
 from bench.report.rundata import RunData
 
@@ -53,20 +54,27 @@ HOPS = (
     Hop("board → plant", "board_received", "plant_received"),
     Hop("plant apply", "plant_received", "applied"),
 )
+# The magnetorquer board's own chain: its MtqApplied header carries board_received and applied
+# under the board's counter, not the plant's step index, so it is kept apart from the loop's steps.
+BOARD_APPLY = Hop("board decode → coils set (CAN)", "board_received", "applied")
 END_TO_END = Hop("end to end (sensed → applied)", "sensed", "applied")
 SENSE_TO_COMMAND = Hop("sensed → commanded", "sensed", "commanded")
 PERCENTILES = (50, 90, 99)
 
 
-def stamps_from_messages(run: RunData) -> dict[int, dict[str, int]]:
-    """Per step, the union of the stamps of every recorded message of that step.
+# Topics whose headers carry the plant's step index k as seq: the translation loop.
+LOOP_TOPICS = (keys.TRUTH, keys.SENSE_RELPOS, keys.ESTIMATE_TRANSLATION, keys.COMMAND_THRUST)
+
+
+def stamps_from_messages(run: RunData, topics=LOOP_TOPICS) -> dict[int, dict[str, int]]:
+    """Per step, the union of the stamps of every recorded message of that step on `topics`.
 
     The message with the most stamps (the furthest downstream) wins a conflict: it is the chain
     that reached the actuator. Messages without stamps (status, stats) contribute nothing.
     """
     by_seq: dict[int, list[dict[str, int]]] = {}
     for message in run.messages:
-        if message.stamps_ns:
+        if message.topic in topics and message.stamps_ns:
             by_seq.setdefault(message.seq, []).append(message.stamps_ns)
     merged = {}
     for seq, stamp_sets in by_seq.items():
@@ -156,4 +164,8 @@ def latency(run: RunData) -> LatencyResult:
         _, values = hop_samples_s(stamps, hop)
         if values.size:
             hops[hop.name] = values
+    board = correct_clock_offsets(stamps_from_messages(run, (keys.ACTUATOR_MTQ,)), run.clock_offsets)
+    _, values = hop_samples_s(board, BOARD_APPLY)
+    if values.size:
+        hops[BOARD_APPLY.name] = values
     return LatencyResult(hops, {name: percentiles_ms(v) for name, v in hops.items()})

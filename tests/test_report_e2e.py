@@ -1,0 +1,145 @@
+"""End to end through `bench run`: the report's numbers against the recording read back
+independently, exact miss counting under injected stress, and the real report in Chromium."""
+from __future__ import annotations
+
+import json
+import textwrap
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+
+from bench.bus import keys
+from bench.bus.schemas import STAGES
+from bench.controller.deadline import StressConfig
+from conftest import run_bench_cli
+
+REALTIME_STEPS = 40          # 4 s of real time at the default 10 steps per wall second
+STRESS_STEPS = 30
+STRESS_EVERY = 5
+# 60 ms of busy loop against a 20 ms budget: every stressed cycle is far over, every other cycle
+# (about 0.1 ms here) far under, so the count is exact; 60 ms still fits the 100 ms step period.
+STRESS_BUDGET_S = 0.020
+STRESS_EXTRA_S = 0.060
+
+
+def bench_run(tmp_path, *args: str):
+    result = run_bench_cli("run", *args, "--runs-dir", str(tmp_path), "--no-progress", timeout_s=150)
+    assert result.returncode == 0, result.stdout[-2000:] + result.stderr[-2000:]
+    return result
+
+
+def thrust_headers_from_mcap(path) -> dict[int, dict]:
+    """seq -> stamps of the thrust command, straight from the MCAP file (no bench code)."""
+    out = {}
+    with open(path, "rb") as f:
+        for _schema, channel, message in make_reader(f).iter_messages():
+            if channel.topic == keys.COMMAND_THRUST:
+                hdr = json.loads(message.data)["header"]
+                out[hdr["seq"]] = hdr["stamps_ns"]
+    return out
+
+
+@pytest.fixture(scope="module")
+def realtime_run(tmp_path_factory):
+    runs = tmp_path_factory.mktemp("runs")
+    bench_run(runs, "--mode", "real-time", "--steps", str(REALTIME_STEPS), "--run-id", "rt")
+    run_dir = runs / "rt"
+    report = run_bench_cli("report", str(run_dir), timeout_s=120)
+    assert report.returncode == 0, report.stderr
+    return run_dir
+
+
+def test_realtime_latency_percentiles_agree_with_the_recording(realtime_run):
+    metrics = json.loads((realtime_run / "metrics.json").read_text())["latency_ms"]
+    headers = thrust_headers_from_mcap(realtime_run / "recording.mcap")
+    assert sorted(headers) == list(range(REALTIME_STEPS))
+    hops = {
+        "plant → estimator": ("sensed", "estimator_received"),
+        "estimator compute": ("estimator_received", "estimated"),
+        "estimator → controller": ("estimated", "controller_received"),
+        "controller compute": ("controller_received", "commanded"),
+        "sensed → commanded": ("sensed", "commanded"),
+    }
+    for hop, (start, end) in hops.items():
+        independent_ms = np.array([(h[end] - h[start]) / 1e6 for h in headers.values()])
+        for p in (50, 90, 99):
+            assert metrics[hop][f"p{p}_ms"] == pytest.approx(np.percentile(independent_ms, p), abs=1e-6), hop
+    # The plant's record of what it applied carries the same upstream stamps as the recording.
+    with np.load(realtime_run / "trajectory.npz") as npz:
+        applied = npz["stamp_applied_ns"]
+        for k, stamps in headers.items():
+            if applied[k] >= 0:
+                assert {s: int(npz[f"stamp_{s}_ns"][k]) for s in stamps} == stamps
+        ok = applied >= 0
+        e2e_ms = (applied[ok] - npz["stamp_sensed_ns"][ok]) / 1e6
+    assert metrics["end to end (sensed → applied)"]["p50_ms"] == pytest.approx(np.percentile(e2e_ms, 50), abs=1e-6)
+
+
+def test_realtime_recording_misses_nothing(realtime_run):
+    counts = json.loads((realtime_run / "recorder_counts.json").read_text())["topics"]
+    for topic in (keys.TRUTH, keys.ESTIMATE_TRANSLATION, keys.COMMAND_THRUST, keys.STATUS_STEP):
+        assert counts[topic]["published"] == counts[topic]["recorded"] == REALTIME_STEPS, topic
+        assert counts[topic]["missing"] == 0 and counts[topic]["malformed"] == 0
+    assert "| command/thrust | 40 | 40 | 0 | 0 |" in (realtime_run / "report.md").read_text()
+
+
+def stress_scenario(tmp_path) -> str:
+    path = tmp_path / "stress.toml"
+    path.write_text(textwrap.dedent(f"""
+        name = "rendezvous_stress"
+        [run]
+        mode = "real-time"
+        steps = {STRESS_STEPS}
+        [controller.deadline]
+        budget_s = {STRESS_BUDGET_S}
+        fallback = "hold"
+        [controller.deadline.stress]
+        process = "controller"
+        extra_cycle_time_s = {STRESS_EXTRA_S}
+        every_nth_cycle = {STRESS_EVERY}
+    """))
+    return str(path)
+
+
+def test_stressed_controller_misses_are_counted_exactly_and_the_fallback_holds(tmp_path):
+    bench_run(tmp_path, stress_scenario(tmp_path), "--run-id", "stress")
+    run_dir = tmp_path / "stress"
+    stress = StressConfig(extra_cycle_time_s=STRESS_EXTRA_S, every_nth_cycle=STRESS_EVERY)
+    expected = [k for k in range(STRESS_STEPS) if stress.is_stressed(k)]
+    assert len(expected) == STRESS_STEPS // STRESS_EVERY
+
+    events, commands = [], {}
+    with open(run_dir / "recording.mcap", "rb") as f:
+        for _schema, channel, message in make_reader(f).iter_messages():
+            body = json.loads(message.data)
+            if channel.topic == keys.EVENT_DEADLINE and body["process"] == "controller" and body["missed"]:
+                events.append(body)
+            if channel.topic == keys.COMMAND_THRUST:
+                commands[body["header"]["seq"]] = body
+    assert sorted(e["header"]["seq"] for e in events) == expected
+    assert all(e["cycle_time_s"] > STRESS_EXTRA_S and e["fallback"] == "hold" for e in events)
+    assert [k for k, c in sorted(commands.items()) if c["fallback"]] == expected
+    for k in expected:      # hold: the command sent is the previous one
+        assert commands[k]["thrust_n"] == commands[k - 1]["thrust_n"]
+
+    summary = json.loads((run_dir / "deadline_controller.json").read_text())
+    assert summary["misses"] == summary["stress_injected_cycles"] == len(expected)
+    assert run_bench_cli("report", str(run_dir), timeout_s=120).returncode == 0
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    assert metrics["deadlines"]["controller_misses"] == len(expected)
+    assert metrics["deadlines"]["fallbacks_applied"] == {"hold": len(expected)}
+    # The loop kept running and stayed inside the state and thrust constraints.
+    assert metrics["steps"] == STRESS_STEPS
+    checks = metrics["constraint_checks"]
+    assert checks["position_xz"] and checks["position_y"] and checks["thrust"]
+
+
+def test_real_report_renders_in_chromium(realtime_run, tmp_path):
+    from test_report_render import CHROMIUM, chromium, colourful_fraction
+
+    if CHROMIUM is None:
+        pytest.skip("chromium not installed (tools/install-system-deps.sh)")
+    shot = tmp_path / "shot.png"
+    chromium(tmp_path, "--window-size=1300,2600", f"--screenshot={shot}", (realtime_run / "report.html").as_uri())
+    assert colourful_fraction(shot) > 0.002
