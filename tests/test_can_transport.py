@@ -215,3 +215,20 @@ def test_open_can_bus_per_transport(run_id):
     if not kernel_has_can():
         with pytest.raises(TransportUnavailable, match="zenoh"):
             open_can_bus("socketcan", "vcan0", run_id=run_id)
+
+
+def test_buses_sharing_a_node_session(run_id, endpoint):
+    session = open_session(SessionOptions(listen=(endpoint,)))
+    try:
+        a = can.Bus(interface="zenoh", channel="vcan0", run_id=run_id, session=session, ignore_config=True)
+        b = can.Bus(interface="zenoh", channel="vcan0", run_id=run_id, session=session, ignore_config=True)
+        assert a.wait_for_peers(1, PEER_S)
+        a.send(frame(0x50, b"\x05"))
+        assert b.recv(RECV_S).arbitration_id == 0x50
+        assert a.recv(0.2) is None
+        a.shutdown()
+        b.shutdown()
+        # The session belongs to the node: still usable after its buses are gone.
+        assert not session.is_closed()
+    finally:
+        session.close()

@@ -168,10 +168,7 @@ class ZenohCanBus(BusABC):
     def _on_sample(self, sample: zenoh.Sample) -> None:
         try:
             msg, sender, sequence = zenoh_wire.decode(sample.payload.to_bytes(), self._channel)
-        except zenoh_wire.MalformedFrame as exc:
-            self._count_malformed(exc)
-            return
-        except Exception as exc:  # anything else must not escape into Zenoh's thread either
+        except Exception as exc:  # MalformedFrame, or anything else: nothing may escape into Zenoh's thread
             self._count_malformed(exc)
             return
         if sender == self._sender_id:
