@@ -185,3 +185,34 @@ def test_compare_puts_runs_side_by_side(tmp_path):
 def test_report_of_a_directory_that_is_not_a_run_is_a_clear_error(tmp_path, capsys):
     assert bench_main(["report", str(tmp_path)]) == 2
     assert "not a run directory" in capsys.readouterr().err
+
+
+def test_can_bus_load_and_fault_timeline(tmp_path):
+    """100 frames 10 ms apart at 1 Mbit/s: each 100 ms window holds 10 frames' bits."""
+    import can
+
+    from bench.bus.can.bittiming import frame_bits
+
+    run_dir = make_run(tmp_path / "run")
+    data = parse_scenario({**scenario_dict(), "can": {"faults": [{"name": "drop", "start_s": 0.2, "duration_s": 0.3}]}})
+    (run_dir / "scenario.json").write_bytes(msgspec.json.encode(data))
+    frame = can.Message(arbitration_id=0x101, data=bytes(range(8)), is_extended_id=False)
+    writer = can.Logger(str(run_dir / "can.log"))
+    for i in range(100):
+        writer.on_message_received(can.Message(timestamp=1000.0 + 0.01 * i + 0.001, arbitration_id=0x101,
+                                               data=bytes(range(8)), is_extended_id=False, channel="bus"))
+    writer.stop()
+    (run_dir / "can").mkdir()
+    (run_dir / "can" / "busmodel.json").write_text(json.dumps({"t0_ns": 5_000_000_000}))
+    (run_dir / "can" / "injections.jsonl").write_text("\n".join(
+        json.dumps({"t_ns": 5_000_000_000 + t_ms * 1_000_000, "fault": "0:drop", "action": "dropped",
+                    "frame_id": 0x101, "data": "00"}) for t_ms in (210, 250, 490)))
+    write_report(run_dir)
+    bus = json.loads((run_dir / "metrics.json").read_text())["can_bus"]
+    assert bus["frames"] == 100
+    assert bus["mean_load"] == pytest.approx(10 * frame_bits(frame) / (1e6 * 0.1))
+    assert bus["peak_load"] == pytest.approx(bus["mean_load"])      # every window alike
+    assert bus["faults"] == [{"name": "drop", "start_s": 0.2, "end_s": 0.5}]
+    assert bus["injections"] == {"0:drop dropped": 3}
+    assert (run_dir / "plots" / "bus_load.png").stat().st_size > 10_000
+    assert "## CAN bus" in (run_dir / "report.md").read_text()

@@ -139,9 +139,11 @@ def can_section(run: RunData, plot_dir: Path) -> tuple[Section | None, dict | No
     rows = [["frames", fmt(m["frames"])], ["bitrate [bit/s]", fmt(m["bitrate_bps"])],
             ["mean load [%]", fmt(m["mean_load"] * 100)], ["peak load [%]", fmt(m["peak_load"] * 100)]]
     rows += [[f"fault {f['name']}", f"{fmt(f['start_s'])} s to {fmt(f['end_s'])} s"] for f in m["faults"]]
+    rows += [[f"injected {what}", fmt(n)] for what, n in sorted(m["injections"].items())]
     section = Section("CAN bus", ["From can.log (candump format)."], [Table(["bus", "value"], rows)])
     if load.load.size:
-        path = plots.bus_load(load.window_start_s, load.load, load.fault_windows, plot_dir / "bus_load.png")
+        path = plots.bus_load(load.window_start_s, load.load, load.fault_windows, load.injections,
+                              plot_dir / "bus_load.png")
         section.figures.append(Figure(Path(PLOTS_DIR) / path.name, "Bus load and fault timeline"))
     return section, m
 

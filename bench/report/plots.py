@@ -162,14 +162,17 @@ def estimator_error(sim_time_s: np.ndarray, error: np.ndarray, bound_3sigma: np.
 
 
 def bus_load(window_start_s: np.ndarray, load: np.ndarray, fault_windows: list[tuple[str, float, float]],
-             path: Path) -> Path:
-    """CAN bus load per window, with the scenario's fault windows shaded and named."""
+             injections: list[tuple[float, str, str]], path: Path) -> Path:
+    """CAN bus load per window, the scenario's fault windows shaded, the injector's actions marked."""
     fig, ax = plt.subplots(figsize=(11, 4))
     ax.step(window_start_s, np.asarray(load) * 100, where="post", label="bus load")
     end_s = float(window_start_s[-1]) if len(window_start_s) else 1.0
     for i, (name, start_s, stop_s) in enumerate(fault_windows):
         ax.axvspan(start_s, min(stop_s, end_s), color=f"C{i + 1}", alpha=0.25, label=f"fault: {name}")
-    ax.set_xlabel("time since first frame [s]")
+    for i, action in enumerate(sorted({a for _, _, a in injections})):
+        t_s = [t for t, _, a in injections if a == action]
+        ax.plot(t_s, np.zeros(len(t_s)), "|", color=f"C{i + 5}", markersize=14, label=f"injected: {action} ({len(t_s)})")
+    ax.set_xlabel("time [s] (load: since first frame; faults: since bus model start)")
     ax.set_ylabel("bus load [%]")
     ax.grid(True, alpha=0.3)
     ax.legend(fontsize="small")
