@@ -10,9 +10,10 @@ error-passive to bus-off and recovery).
 
 The model runs on a clock it is given: `submit(source, msg, t_ns)` and `run_until(t_ns)`. The
 canbus node feeds it wall-clock times; the unit tests feed it exact ones, deterministically.
-Everything that happens to a frame goes to `capture` (a python-can Listener, e.g. the candump
-Logger) on a channel naming what happened: "bus" (on the wire), "dropped", "replaced" (the
-original of an altered frame).
+Everything that happens to a frame goes to `capture` (a callable taking a can.Message, e.g. a
+candump Logger's on_message_received) on a channel naming what happened: "bus" (on the wire),
+"dropped", "replaced" (the original of an altered frame). Fault times count from the first
+command frame (see FaultInjector.arm).
 """
 from __future__ import annotations
 
@@ -77,7 +78,8 @@ class BusModel:
         self.tx_queue_frames = tx_queue_frames
         self.capture = capture or (lambda msg: None)
         self.to_wall_s = to_wall_s
-        self.queues: dict[str, deque[Transmission]] = {s: deque() for s in SOURCE_ORDER}
+        self.queues: dict[str, deque[Transmission]] = {s: deque() for s in NODES}   # controllers' FIFOs
+        self._held: list[Transmission] = []    # the injector's frames and frames it holds back, by time
         self.tec = {node: errors.TransmitErrorCounter() for node in NODES}
         self.recover_at_ns: dict[str, int] = {}
         self.in_flight: _InFlight | None = None
@@ -89,6 +91,8 @@ class BusModel:
     # --- input ----------------------------------------------------------------------------
     def submit(self, source: str, msg: can.Message, t_ns: int) -> None:
         """A node asks to send a frame at t_ns (its controller queues it)."""
+        if self.injector.t0_ns is None and source == FLIGHT and msg.arbitration_id == self._cmd_id:
+            self.injector.arm(t_ns)
         tx = Transmission(msg, source, t_ns, t_ns, LISTENERS[source])
         outcome = self.injector.on_submit(tx)
         for dropped, reason in outcome.dropped:
@@ -97,8 +101,12 @@ class BusModel:
         for original in outcome.replaced:
             self._log(original, CHANNEL_REPLACED, t_ns)
         for queued in outcome.queued:
+            if queued.held or queued.source == SOURCE_INJECTOR:
+                self._held.append(queued)
+                self._held.sort(key=lambda h: h.ready_ns)   # stable: equal times keep their order
+                continue
             queue = self.queues[queued.source]
-            if queued.source in NODES and len(queue) >= self.tx_queue_frames:
+            if len(queue) >= self.tx_queue_frames:
                 self._log(queued.msg, CHANNEL_DROPPED, t_ns)
                 self.stats.dropped["tx_overflow"] += 1
                 continue
@@ -133,7 +141,8 @@ class BusModel:
         return min(times) if times else None
 
     def _ready_heads(self) -> list[Transmission]:
-        return [q[0] for s, q in self.queues.items() if q and s not in self.recover_at_ns]
+        heads = [q[0] for s, q in self.queues.items() if q and s not in self.recover_at_ns]
+        return heads + self._held[:1]
 
     def _next_start_ns(self) -> int | None:
         readies = [tx.ready_ns for tx in self._ready_heads()]
@@ -173,7 +182,7 @@ class BusModel:
         if flight.destroyed_by is not None:
             return self._transmission_error(flight)
         if tx is not None:
-            self.queues[tx.source].popleft()
+            self._dequeue(tx)
             if tx.source in NODES:
                 self.tec[tx.source].on_success()
         stamped = _stamped(flight.msg, self.to_wall_s(flight.end_ns), CHANNEL_BUS)
@@ -194,7 +203,7 @@ class BusModel:
         self.stats.error_frames += 1
         self.stats.tec_max[tx.source] = max(self.stats.tec_max[tx.source], counter.tec)
         if state is errors.ErrorState.BUS_OFF:
-            self.queues[tx.source].popleft()
+            self._dequeue(tx)
             self._log(tx.msg, CHANNEL_DROPPED, flight.end_ns)
             self.stats.dropped["bus_off"] += 1
             self.stats.bus_off[tx.source] += 1
@@ -219,6 +228,9 @@ class BusModel:
                 self.bus_free_ns = max(self.bus_free_ns, at_ns)
                 out.append(Delivery(report, (node,)))
         return out
+
+    def _dequeue(self, tx: Transmission) -> None:
+        (self._held if tx.held or tx.source == SOURCE_INJECTOR else self.queues[tx.source]).remove(tx)
 
     # --- accounting -----------------------------------------------------------------------
     def _account_busy(self, start_ns: int, end_ns: int) -> None:
@@ -250,6 +262,7 @@ class BusModel:
             "bus_off": dict(self.stats.bus_off),
             "tec_max": dict(self.stats.tec_max),
             "command_latency_us": latency,
+            "faults_t0_ns": self.injector.t0_ns,
             "faults": self.injector.summary(),
         }
 

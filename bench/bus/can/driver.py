@@ -99,6 +99,7 @@ class MagnetorquerDriver:
         self.events: deque[FaultEvent] = deque(maxlen=MAX_EVENTS_KEPT)
         self.event_counts: Counter = Counter()
         self.sent_frames = 0
+        self.received: Counter = Counter()   # every frame heard, by name (frame accounting)
         self._counter = 0
         self._sent: deque[_Sent] = deque(maxlen=RECENT_COMMANDS)
         self._rx_e2e = {name: p.E2EReceiver(config.max_delta_counter) for name in (p.TLM_DIPOLE, p.TLM_COIL)}
@@ -143,6 +144,7 @@ class MagnetorquerDriver:
 
     def handle(self, msg: can.Message) -> None:
         now_s = self.clock()
+        self.received[self.protocol.name_of(msg.arbitration_id) or ("error_frame" if msg.is_error_frame else "other")] += 1
         if msg.is_error_frame:
             self._on_error_frame(msg)
             return

@@ -19,7 +19,7 @@ from bench.bus.can.faults import FaultSpec
 SOURCE_INJECTOR = "injector"
 
 
-@dataclass
+@dataclass(eq=False)   # queues remove by identity: two copies of a frame are two transmissions
 class Transmission:
     """A frame waiting for the bus: who sent it, when, and which nodes will hear it."""
     msg: can.Message
@@ -28,6 +28,7 @@ class Transmission:
     ready_ns: int
     destinations: tuple[str, ...]
     fault: str | None = None     # the fault that injected or altered it
+    held: bool = False           # held back on the bus (by the injector), not in its sender's queue
 
 
 @dataclass(frozen=True)
@@ -62,18 +63,26 @@ def _with_counter(msg: can.Message, counter: int) -> bytes:
 class ActiveFault:
     """One fault of the scenario while the bus model runs."""
 
-    def __init__(self, spec: FaultSpec, index: int, protocol: p.Protocol, t0_ns: int, seed: int):
+    def __init__(self, spec: FaultSpec, index: int, protocol: p.Protocol, seed: int):
         self.spec = spec
         self.label = f"{index}:{spec.name}"
         self.protocol = protocol
-        self.start_ns, self.end_ns = spec.window_ns(t0_ns)
+        self.start_ns: int | None = None   # set by arm(): nothing happens before
+        self.end_ns: int | None = None
         self.frame_ids = {protocol.frame_ids[name] for name in spec.target_frames()}
-        self.rng = random.Random(seed * 1000 + index)
+        # One stream per fault: from the run's seed, the fault's place and its own seed parameter.
+        self.rng = random.Random(f"{seed}:{index}:{spec.params.get('seed', 0)}")
         self.matched = 0
         self.affected = 0
 
+    def arm(self, t0_ns: int) -> None:
+        self.start_ns, self.end_ns = self.spec.window_ns(t0_ns)
+
+    def in_window(self, t_ns: int) -> bool:
+        return self.start_ns is not None and self.start_ns <= t_ns and (self.end_ns is None or t_ns < self.end_ns)
+
     def active(self, t_ns: int) -> bool:
-        in_window = self.start_ns <= t_ns and (self.end_ns is None or t_ns < self.end_ns)
+        in_window = self.in_window(t_ns)
         return in_window and not (self.spec.count and self.affected >= self.spec.count)
 
     def takes(self, msg: can.Message, t_ns: int) -> bool:
@@ -100,6 +109,7 @@ class Drop(ActiveFault):
 class Delay(ActiveFault):
     def apply(self, tx, outcome, injector):
         tx.ready_ns += round(self.spec.param("delay_s") * 1e9)
+        tx.held = True   # later frames of the same sender overtake it, as behind a slow gateway
         injector.record(tx.submitted_ns, self.label, "delayed", tx.msg)
         return True
 
@@ -128,13 +138,21 @@ class Replay(ActiveFault):
 
 
 class Corrupt(ActiveFault):
-    def apply(self, tx, outcome, injector):
-        data = bytearray(tx.msg.data)
+    """The same bits, drawn once from the seed, flipped in every frame it takes (a stuck wire or
+    a bad memory cell rather than noise: every affected frame is wrong the same way)."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
         # Data bits only: a flipped counter bit selects another data id, which can mask the
         # corruption (E2E profile 2's known weakness, shown in test_can_protocol).
-        candidates = [b for b in range(8 * len(data)) if b not in p.COUNTER_BITS]
-        for bit in self.rng.sample(candidates, int(self.spec.param("bits"))):
-            data[bit // 8] ^= 1 << (bit % 8)
+        candidates = [b for b in range(64) if b not in p.COUNTER_BITS]
+        self.bits = sorted(self.rng.sample(candidates, int(self.spec.param("bits"))))
+
+    def apply(self, tx, outcome, injector):
+        data = bytearray(tx.msg.data)
+        for bit in self.bits:
+            if bit < 8 * len(data):
+                data[bit // 8] ^= 1 << (bit % 8)
         altered = _copy(tx.msg, bytes(data))
         if self.spec.param("recompute_crc") and self.protocol.name_of(altered.arbitration_id):
             altered = self.protocol.reprotect(altered)
@@ -206,12 +224,14 @@ class Flood(ActiveFault):
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
         self.frame_ids = set()
-        self.next_ns = self.start_ns
+        self.next_ns = 0
         self.msg = can.Message(arbitration_id=int(self.spec.param("frame_id")), is_extended_id=False,
                                data=bytes(int(self.spec.param("dlc"))))
 
     def frame_ready_ns(self) -> int | None:
         """When the babbler next wants the bus (None: no more in its window)."""
+        if self.start_ns is None:
+            return None
         ready = max(self.next_ns, self.start_ns)
         if self.end_ns is not None and ready >= self.end_ns:
             return None
@@ -236,15 +256,24 @@ KINDS: dict[str, type[ActiveFault]] = {
 
 
 class FaultInjector:
-    def __init__(self, specs: list[FaultSpec], protocol: p.Protocol, t0_ns: int, seed: int = 1):
+    """Fault times count from `arm(t0_ns)`: the bus model arms it with the first command frame,
+    so that a scenario's start_s means "after commanding started", whenever the nodes came up."""
+
+    def __init__(self, specs: list[FaultSpec], protocol: p.Protocol, seed: int = 1):
         self.protocol = protocol
-        self.faults = [KINDS[s.name](s, i, protocol, t0_ns, seed) for i, s in enumerate(specs)]
+        self.t0_ns: int | None = None
+        self.faults = [KINDS[s.name](s, i, protocol, seed) for i, s in enumerate(specs)]
         self.floods = [f for f in self.faults if isinstance(f, Flood)]
         self.error_faults = [f for f in self.faults if isinstance(f, ErrorFrames)]
         self.frame_faults = [f for f in self.faults if not isinstance(f, (Flood, ErrorFrames))]
         self.records: list[InjectionRecord] = []
 
     # --- called by the bus model ----------------------------------------------------------
+    def arm(self, t0_ns: int) -> None:
+        self.t0_ns = t0_ns
+        for fault in self.faults:
+            fault.arm(t0_ns)
+
     def on_submit(self, tx: Transmission) -> SubmitOutcome:
         outcome = SubmitOutcome()
         for fault in self.frame_faults:
@@ -270,7 +299,7 @@ class FaultInjector:
         return None
 
     def flood_active(self, t_ns: int) -> bool:
-        return any(f.start_ns <= t_ns and (f.end_ns is None or t_ns < f.end_ns) for f in self.floods)
+        return any(f.in_window(t_ns) for f in self.floods)
 
     # --- used by the faults ---------------------------------------------------------------
     def record(self, t_ns: int, label: str, action: str, msg: can.Message, original: can.Message | None = None) -> None:

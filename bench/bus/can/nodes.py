@@ -15,14 +15,15 @@ import can
 from bench.bus import keys
 from bench.bus.can import protocol as p
 from bench.bus.can.board import AppliedCommand, MagnetorquerBoard
-from bench.bus.can.busmodel import BOARD, FLIGHT, BusModel, RealTimeBridge
+from bench.bus.can.busmodel import BOARD, CHANNEL_BUS, FLIGHT, BusModel, RealTimeBridge
 from bench.bus.can.config import CanConfig
 from bench.bus.can.injector import FaultInjector
 from bench.bus.can.transport import open_can_bus
 from bench.bus.schemas import MtqApplied, header
 
 PEER_WAIT_S = 10.0
-CAPTURE_NAME = "bus.log"
+CAPTURE_NAME = "can.log"             # in the run directory: what a sniffer on the bus would see
+ACCOUNTING_NAME = "dropped.log"      # in can/: frames dropped, and originals of altered frames
 REPORT_NAME = "busmodel.json"
 INJECTIONS_NAME = "injections.jsonl"
 BOARD_NAME = "board.json"
@@ -87,6 +88,21 @@ def run_board(ctx) -> int:
 
 
 # --- node "canbus" ------------------------------------------------------------------------------
+class Capture:
+    """candump .log files (python-can Logger): the wire in one, drops and altered originals in the other."""
+
+    def __init__(self, bus_path: Path, accounting_path: Path):
+        self.bus = can.Logger(str(bus_path))
+        self.accounting = can.Logger(str(accounting_path))
+
+    def __call__(self, msg: can.Message) -> None:
+        (self.bus if msg.channel == CHANNEL_BUS else self.accounting).on_message_received(msg)
+
+    def stop(self) -> None:
+        self.bus.stop()
+        self.accounting.stop()
+
+
 def run_bus_model(ctx) -> int:
     config = _can_config(ctx)
     if config is None:
@@ -94,23 +110,22 @@ def run_bus_model(ctx) -> int:
     out = can_dir(ctx.run_dir)
     buses = {FLIGHT: open_node_bus(ctx, config, config.flight_channel),
              BOARD: open_node_bus(ctx, config, config.board_channel)}
-    logger = can.Logger(str(out / CAPTURE_NAME)) if config.capture else None
+    capture = Capture(Path(ctx.run_dir) / CAPTURE_NAME, out / ACCOUNTING_NAME) if config.capture else None
     protocol = p.Protocol(config.node_id)
     t0_ns = time.monotonic_ns()
     wall_offset_s = time.time() - t0_ns / 1e9
-    injector = FaultInjector(config.faults, protocol, t0_ns, seed=ctx.scenario.run.seed)
+    injector = FaultInjector(config.faults, protocol, seed=ctx.scenario.run.seed)
     model = BusModel(injector, protocol, t0_ns, bitrate_bps=config.bitrate_bps, tx_queue_frames=config.tx_queue_frames,
-                     capture=logger.on_message_received if logger else None,
-                     to_wall_s=lambda t_ns: t_ns / 1e9 + wall_offset_s)
+                     capture=capture, to_wall_s=lambda t_ns: t_ns / 1e9 + wall_offset_s)
     bridge = RealTimeBridge(model, buses)
-    ctx.declare_ready()   # the launcher and tests start the other CAN nodes after this
+    ctx.declare_ready([])   # the launcher and tests start the other CAN nodes after this
     try:
         bridge.run(ctx.stop)
     finally:
         for bus in buses.values():
             bus.shutdown()
-        if logger is not None:
-            logger.stop()
+        if capture is not None:
+            capture.stop()
         report = model.report()
         report["send_failures"] = bridge.send_failures
         report["t0_ns"] = t0_ns

@@ -1,0 +1,217 @@
+"""The actuator bus as separate processes, for tests and benchmarks: bus model, board, driver.
+
+`CanBench` opens the hub Zenoh session (through bench.bus.session), starts `bench node canbus`
+and `bench node mtq` as their own OS processes on a scenario, and runs the flight-side driver in
+the calling process on the scripted dipole profile. When it stops it collects what each process
+wrote (board.json, busmodel.json, injections.jsonl, the captures) into a `CanRunResult` that
+accounts for every frame.
+"""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import can
+
+from bench.bus import keys
+from bench.bus.can import protocol as p
+from bench.bus.can.config import CanConfig
+from bench.bus.can.driver import FaultEvent, MagnetorquerDriver
+from bench.bus.can.nodes import ACCOUNTING_NAME, BOARD_NAME, CAPTURE_NAME, INJECTIONS_NAME, REPORT_NAME
+from bench.bus.can.transport import open_can_bus
+from bench.bus.session import SessionOptions, free_loopback_port, loopback_endpoint, open_session
+
+STARTUP_TIMEOUT_S = 30.0
+EXIT_TIMEOUT_S = 10.0
+
+
+@dataclass
+class CanRunResult:
+    board: dict
+    report: dict
+    injections: list[dict]
+    wire: Counter                        # frames on the bus, by name
+    dropped: Counter                     # frames dropped by the injector or the bus, by name
+    events: list[FaultEvent]
+    driver_sent: int
+    driver_received: Counter
+    commanded: list[list[float]]         # every dipole the driver commanded
+    run_dir: Path
+    command_start_ns: int = 0
+    last_command_ns: int = 0
+
+    def injected(self, frame: str | None = None, action: str = "injected") -> list[dict]:
+        ids = None if frame is None else {p.Protocol().frame_ids[frame]}
+        return [r for r in self.injections if r["action"] == action and (ids is None or r["frame_id"] in ids)]
+
+    def first_injection_ns(self, action: str | None = None) -> int | None:
+        times = [r["t_ns"] for r in self.injections if action is None or r["action"] == action]
+        return min(times) if times else None
+
+    def first_event(self, kind: str, after_ns: int = 0, detail: str = "") -> FaultEvent | None:
+        return next((e for e in self.events if e.kind == kind and e.detected_ns >= after_ns and detail in e.detail), None)
+
+    def kinds(self) -> Counter:
+        return Counter(e.kind for e in self.events)
+
+
+@dataclass
+class CanBench:
+    scenario_path: Path
+    run_dir: Path
+    run_id: str
+    python: str = sys.executable
+    procs: dict = field(default_factory=dict)
+    events: list = field(default_factory=list)
+    commanded: list = field(default_factory=list)
+
+    def __post_init__(self):
+        from bench.scenario import load_scenario
+
+        self.scenario = load_scenario(self.scenario_path)
+        self.config: CanConfig = self.scenario.can
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        self.hub = loopback_endpoint(free_loopback_port())
+        self.session = open_session(SessionOptions(listen=(self.hub,)))
+
+    # --- processes ------------------------------------------------------------------------
+    def _spawn(self, name: str) -> None:
+        log = open(self.run_dir / f"{name}.log", "w")
+        cmd = [self.python, "-m", "bench.cli", "node", name, "--run-id", self.run_id, "--scenario",
+               str(self.scenario_path), "--connect", self.hub, "--run-dir", str(self.run_dir)]
+        self.procs[name] = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env={**os.environ})
+
+    def _wait_token(self, kind: str, name: str) -> None:
+        deadline = time.monotonic() + STARTUP_TIMEOUT_S
+        while time.monotonic() < deadline:
+            for reply in self.session.liveliness().get(keys.key(self.run_id, f"{kind}/{name}"), timeout=0.5):
+                if reply.ok is not None:
+                    return
+            self._check_alive()
+            time.sleep(0.05)
+        raise TimeoutError(f"node {name} not {kind} after {STARTUP_TIMEOUT_S} s (see {self.run_dir}/{name}.log)")
+
+    def _check_alive(self) -> None:
+        for name, proc in self.procs.items():
+            if proc.poll() is not None:
+                raise RuntimeError(f"node {name} exited with {proc.returncode}: "
+                                   f"{(self.run_dir / f'{name}.log').read_text()[-2000:]}")
+
+    def start(self) -> "CanBench":
+        self._spawn("canbus")
+        self._wait_token("ready", "canbus")
+        self._spawn("mtq")
+        self.bus = open_can_bus(self.config.transport, self.config.flight_channel, run_id=self.run_id,
+                                session_options=SessionOptions(connect=(self.hub,)))
+        if hasattr(self.bus, "wait_for_peers"):
+            self.bus.wait_for_peers(1, STARTUP_TIMEOUT_S)
+        self.driver = MagnetorquerDriver(self.bus, self.config.driver, self.config.board, p.Protocol(self.config.node_id))
+        deadline = time.monotonic() + STARTUP_TIMEOUT_S
+        while not self.driver.health().alive:   # the board's first heartbeat
+            self.driver.poll(timeout_s=0.05)
+            self._check_alive()
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"no heartbeat from the board after {STARTUP_TIMEOUT_S} s")
+        self.driver.events.clear()
+        self.driver.event_counts.clear()
+        self.command_start_s = None
+        return self
+
+    # --- the flight side ------------------------------------------------------------------
+    def drive(self, duration_s: float, commanding: bool = True) -> None:
+        """Command the scripted profile every command period (or stay silent) and poll."""
+        period_s = self.config.driver.command_period_s
+        now = time.monotonic()
+        end = now + duration_s
+        next_command = now
+        while now < end:
+            if commanding and now >= next_command:
+                if self.command_start_s is None:
+                    self.command_start_s, self.command_start_ns = now, time.monotonic_ns()
+                dipole = self.config.dipole_at(now - self.command_start_s)
+                self.driver.command(dipole)
+                self.last_command_ns = time.monotonic_ns()
+                self.commanded.append(dipole)
+                next_command += period_s
+                if next_command < now:   # late wake-up: skip, do not burst
+                    next_command = now + period_s
+            wait = (min(next_command, end) if commanding else end) - time.monotonic()
+            self.events += self.driver.poll(timeout_s=max(0.0, min(wait, 0.01)))
+            now = time.monotonic()
+
+    # --- stopping and collecting ----------------------------------------------------------
+    def stop(self) -> CanRunResult:
+        """Board first (so its last frames reach the bus model), then the bus model."""
+        try:
+            events = list(self.events)   # what happens while the nodes shut down is not the run's
+            self._terminate("mtq")
+            self.drive(0.2, commanding=False)
+            self._terminate("canbus")
+            self.driver.poll(timeout_s=0.05)   # frames still queued for us, for the accounting
+            self.events = events
+            return self._collect()
+        finally:
+            self.close()
+
+    def _terminate(self, name: str) -> None:
+        proc = self.procs.get(name)
+        if proc is None or proc.poll() is not None:
+            return
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(timeout=EXIT_TIMEOUT_S)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+    def close(self) -> None:
+        for name in list(self.procs):
+            proc = self.procs[name]
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+        if getattr(self, "bus", None) is not None:
+            self.bus.shutdown()
+            self.bus = None
+        self.session.close()
+
+    def _collect(self) -> CanRunResult:
+        can_dir = self.run_dir / "can"
+        protocol = p.Protocol(self.config.node_id)
+
+        def names(path: Path, channel: str | None = None) -> Counter:
+            if not path.is_file():
+                return Counter()
+            return Counter(protocol.name_of(m.arbitration_id) or ("error_frame" if m.is_error_frame
+                                                                 else hex(m.arbitration_id))
+                           for m in can.LogReader(str(path)) if channel is None or m.channel == channel)
+
+        injections = [json.loads(line) for line in (can_dir / INJECTIONS_NAME).read_text().splitlines() if line]
+        return CanRunResult(
+            board=json.loads((can_dir / BOARD_NAME).read_text()),
+            report=json.loads((can_dir / REPORT_NAME).read_text()),
+            injections=injections,
+            wire=names(self.run_dir / CAPTURE_NAME),
+            dropped=names(can_dir / ACCOUNTING_NAME, channel="dropped"),
+            events=list(self.events),
+            driver_sent=self.driver.sent_frames,
+            driver_received=Counter(self.driver.received),
+            commanded=list(self.commanded),
+            run_dir=self.run_dir,
+            command_start_ns=getattr(self, "command_start_ns", 0),
+            last_command_ns=getattr(self, "last_command_ns", 0),
+        )
+
+
+def write_scenario(path: Path, can_section: dict, name: str = "can-faults", seed: int = 1) -> Path:
+    """A scenario file (JSON, which load_scenario reads like TOML) with only a [can] section."""
+    path = path.with_suffix(".json")
+    path.write_text(json.dumps({"name": name, "run": {"seed": seed}, "can": can_section}, indent=1))
+    return path

@@ -1,0 +1,200 @@
+"""Bus model and fault injector on exact, simulated times: deterministic, no processes."""
+from __future__ import annotations
+
+import itertools
+import random
+
+import can
+import pytest
+
+from bench.bus.can import bittiming, errors
+from bench.bus.can import protocol as p
+from bench.bus.can.busmodel import BOARD, FLIGHT, BusModel
+from bench.bus.can.driver import MagnetorquerDriver
+from bench.bus.can.config import BoardConfig, DriverConfig
+from bench.bus.can.faults import FaultSpec
+from bench.bus.can.injector import FaultInjector
+
+T0 = 10**12
+MS = 1_000_000
+CMD_PERIOD_NS = 20 * MS
+PROTO = p.Protocol()
+
+
+def frame(arbitration_id: int, data: bytes = bytes(8)) -> can.Message:
+    return can.Message(arbitration_id=arbitration_id, is_extended_id=False, data=data)
+
+
+# --- bit timing ---------------------------------------------------------------------------------
+def test_stuffing_never_leaves_six_equal_bits_and_stays_within_the_textbook_bound():
+    rng = random.Random(3)
+    for _ in range(500):
+        msg = frame(rng.randrange(0x800), bytes(rng.randrange(256) for _ in range(rng.randrange(9))))
+        raw = bittiming.frame_bits_unstuffed(msg.arbitration_id, bytes(msg.data))
+        stuffed = bittiming.stuff(raw)
+        assert all(len(set(stuffed[i:i + 6])) == 2 for i in range(len(stuffed) - 5))
+        n_data = len(msg.data)
+        assert 47 + 8 * n_data <= bittiming.frame_bits(msg) <= bittiming.worst_case_bits(n_data)
+
+
+def test_frame_durations_at_one_megabit():
+    # 8 zero bytes at identifier 0: 111 bits plus 16 stuff bits (counted by hand from the
+    # dominant runs), 127 us at 1 Mbit/s.
+    assert bittiming.frame_bits(frame(0x000)) == 127
+    assert bittiming.duration_ns(bittiming.frame_bits(frame(0x000)), 1_000_000) == 127_000
+    assert bittiming.duration_ns(bittiming.frame_bits(frame(0x000)), 500_000) == 254_000
+
+
+# --- arbitration and delivery -------------------------------------------------------------------
+def model(*faults: FaultSpec, capture=None, tx_queue_frames: int = 8) -> BusModel:
+    return BusModel(FaultInjector(list(faults), PROTO, seed=1), PROTO, T0, tx_queue_frames=tx_queue_frames,
+                    capture=capture)
+
+
+def test_lower_identifier_wins_and_frames_leave_after_their_last_bit():
+    bus = model()
+    telemetry = PROTO.encode(p.TLM_DIPOLE, {}, counter=0)        # 0x190
+    command = PROTO.command([0.1, 0, 0], counter=0)                # 0x210
+    bus.submit(FLIGHT, command, T0)
+    bus.submit(BOARD, telemetry, T0)
+    deliveries = bus.run_until(T0 + MS)
+    assert [d.msg.arbitration_id for d in deliveries] == [0x190, 0x210]
+    assert [d.destinations for d in deliveries] == [(FLIGHT,), (BOARD,)]
+    first_end = T0 + bittiming.duration_ns(bittiming.frame_bits(telemetry), 1_000_000)
+    second_end = first_end + bittiming.duration_ns(bittiming.frame_bits(command), 1_000_000)
+    assert deliveries[1].msg.timestamp == pytest.approx(second_end / 1e9)
+    assert bus.run_until(T0 + 2 * MS) == []
+
+
+def commanding(bus: BusModel, duration_ns: int, start_ns: int = T0, telemetry: bool = False):
+    """The flight side commanding every 20 ms (and the board answering every 50 ms)."""
+    deliveries = []
+    t = start_ns
+    counter = itertools.count()
+    tlm = itertools.count()
+    while t < start_ns + duration_ns:
+        if (t - start_ns) % CMD_PERIOD_NS == 0:
+            bus.submit(FLIGHT, PROTO.command([0.1, 0, 0], counter=next(counter)), t)
+        if telemetry and (t - start_ns) % (50 * MS) == 0:
+            bus.submit(BOARD, PROTO.encode(p.TLM_DIPOLE, {}, counter=next(tlm)), t)
+        deliveries += bus.run_until(t + 10 * MS)
+        t += 10 * MS
+    return deliveries + bus.run_until(t + 10 * MS)
+
+
+def test_a_babbling_node_at_higher_priority_starves_the_commands():
+    quiet = model()
+    commanding(quiet, 1000 * MS)
+    babbled = model(FaultSpec("flood", start_s=0.3, duration_s=0.4))
+    commanding(babbled, 1000 * MS)
+    calm, flooded = quiet.report(), babbled.report()
+    assert calm["command_latency_us"]["without_flood"]["p99"] < 200      # one frame time
+    assert flooded["peak_load_pct"] == pytest.approx(100.0, abs=0.5)
+    assert flooded["dropped"]["tx_overflow"] > 0                          # controller buffers overflow
+    assert flooded["command_latency_us"]["with_flood"]["median"] > 100 * calm["command_latency_us"]["without_flood"]["p99"]
+    assert flooded["bus_load_pct"] > 30 > calm["bus_load_pct"]
+
+
+def test_a_slower_babbler_delays_commands_without_dropping_them():
+    bus = model(FaultSpec("flood", start_s=0.0, duration_s=1.0, params={"period_s": 0.0002}))
+    commanding(bus, 1000 * MS)
+    report = bus.report()
+    assert "tx_overflow" not in report["dropped"]
+    assert 50 < report["bus_load_pct"] < 70      # 127 us in every 200 us
+    assert report["command_latency_us"]["with_flood"]["max"] < 400
+
+
+# --- the faults, frame by frame -----------------------------------------------------------------
+def run_commands(*faults: FaultSpec, duration_ms: int = 200):
+    captured = []
+    bus = model(*faults, capture=captured.append)
+    deliveries = commanding(bus, duration_ms * MS, telemetry=True)
+    return bus, deliveries, captured
+
+
+def delivered(deliveries, destination, arbitration_id=0x210):
+    return [d.msg for d in deliveries if destination in d.destinations and d.msg.arbitration_id == arbitration_id]
+
+
+def test_every_submitted_frame_is_on_the_wire_dropped_or_replaced():
+    faults = [FaultSpec("drop", start_s=0.02, count=2), FaultSpec("corrupt", start_s=0.05, count=2),
+              FaultSpec("duplicate", start_s=0.1, count=1), FaultSpec("delay", start_s=0.12, count=1)]
+    bus, deliveries, captured = run_commands(*faults)
+    by_channel = {c: [m for m in captured if m.channel == c] for c in ("bus", "dropped", "replaced")}
+    submitted = 10 + 4          # 10 commands, 4 telemetry frames
+    injected = sum(1 for r in bus.injector.records if r.action == "injected")
+    assert len(by_channel["bus"]) - injected + len(by_channel["dropped"]) == submitted
+    assert len(by_channel["dropped"]) == 2 and len(by_channel["replaced"]) == 2 and injected == 1
+
+
+def test_drop_delay_and_duplicate():
+    bus, deliveries, _ = run_commands(FaultSpec("drop", start_s=0.05, count=3))
+    assert len(delivered(deliveries, BOARD)) == 7
+    bus, deliveries, _ = run_commands(FaultSpec("delay", start_s=0.05, count=1, params={"delay_s": 0.03}))
+    counters = [m.data[1] & 0xF for m in delivered(deliveries, BOARD)]
+    assert counters[:7] == [0, 1, 2, 4, 3, 5, 6]       # 30 ms late: the next frame overtakes it
+    bus, deliveries, _ = run_commands(FaultSpec("duplicate", start_s=0.05, count=2, every=3, params={"copies": 2}))
+    assert len(delivered(deliveries, BOARD)) == 14
+    assert len(delivered(deliveries, FLIGHT)) == 4            # the copies are heard by the driver too
+
+
+def test_corruption_without_recomputed_crc_never_passes_and_with_it_always_does():
+    for recompute in (False, True):
+        bus, deliveries, _ = run_commands(FaultSpec("corrupt", start_s=0.0, params={"recompute_crc": recompute, "bits": 3}))
+        frames = [PROTO.decode(m) for m in delivered(deliveries, BOARD)]
+        assert all(f.crc_ok == recompute for f in frames)
+
+
+def test_spoofed_commands_fail_e2e_unless_the_spoofer_knows_the_data_ids():
+    for knows in (False, True):
+        bus, deliveries, _ = run_commands(FaultSpec("spoof", start_s=0.05, count=2, every=4,
+                                                    params={"knows_data_id": knows, "dipole_am2": 0.15}))
+        spoofed = [f for f in map(PROTO.decode, delivered(deliveries, BOARD)) if f.signals["DipoleY"] == pytest.approx(0.15)]
+        assert len(spoofed) == 2 and all(f.crc_ok == knows for f in spoofed)
+
+
+def test_counter_freeze_and_offset_keep_a_valid_crc():
+    bus, deliveries, _ = run_commands(FaultSpec("counter_freeze", start_s=0.05, duration_s=0.05))
+    frames = [PROTO.decode(m) for m in delivered(deliveries, BOARD)]
+    assert [f.counter for f in frames][:7] == [0, 1, 2, 3, 3, 5, 6] and all(f.crc_ok for f in frames)
+    bus, deliveries, _ = run_commands(FaultSpec("counter_offset", start_s=0.05, count=2, params={"offset": 5}))
+    assert [PROTO.decode(m).counter for m in delivered(deliveries, BOARD)][:7] == [0, 1, 2, 8, 9, 5, 6]
+
+
+def test_replay_sends_an_old_frame_again():
+    bus, deliveries, _ = run_commands(FaultSpec("replay", start_s=0.0, count=2, every=5, params={"after_s": 0.05}),
+                                      duration_ms=400)
+    to_driver = delivered(deliveries, FLIGHT)
+    assert len(to_driver) == 2 and all(PROTO.decode(m).counter == 0 for m in to_driver)
+
+
+def test_board_death_and_stuck_actuator_act_on_the_board_side():
+    bus, deliveries, _ = run_commands(FaultSpec("board_death", start_s=0.05, duration_s=0.1))
+    assert len(delivered(deliveries, FLIGHT, 0x190)) == 2          # of 4 telemetry frames
+    for freeze in (False, True):
+        bus, deliveries, _ = run_commands(FaultSpec("stuck_actuator", start_s=0.0, duration_s=1.0,
+                                                    params={"freeze_counter": freeze}))
+        frames = [PROTO.decode(m) for m in delivered(deliveries, FLIGHT, 0x190)]
+        assert all(f.crc_ok for f in frames)
+        assert len({f.counter for f in frames}) == (1 if freeze else 4)
+
+
+def test_error_frames_drive_the_transmitter_to_bus_off_and_back():
+    bus = model(FaultSpec("error_frames", start_s=0.0, count=32, params={"restart_delay_s": 0.05}))
+    deliveries = commanding(bus, 200 * MS)
+    reports = [errors.read_error_frame(d.msg) for d in deliveries if d.msg.is_error_frame]
+    states = [state for state, restarted in reports if not restarted]
+    assert states.index(errors.ErrorState.WARNING) == 11                # TEC 96 after 12 errors
+    assert states.index(errors.ErrorState.PASSIVE) == 15                # TEC 128 after 16
+    assert states[-1] == errors.ErrorState.BUS_OFF and len(states) == 32
+    assert reports[-1] == (errors.ErrorState.ACTIVE, True)              # restarted
+    report = bus.report()
+    assert report["bus_off"] == {"flight": 1} and report["dropped"]["bus_off"] == 1
+    # The driver reads the same error frames into events.
+    driver = MagnetorquerDriver(can.Bus(interface="virtual", channel="busmodel-errors"), DriverConfig(),
+                                BoardConfig(), PROTO)
+    for d in deliveries:
+        if d.msg.is_error_frame:
+            driver.handle(d.msg)
+    assert [e.kind for e in driver.events] == ["error_warning", "error_passive", "bus_off", "bus_restarted"]
+    driver.bus.shutdown()
