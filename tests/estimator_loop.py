@@ -5,12 +5,13 @@ shows what the smoother does to the rendezvous of seed 003 (LQR from initial con
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
 from bench.controller.lqr import LQR
 from bench.estimator.config import TranslationSmootherConfig
+from bench.estimator.motion_model import params_with_mean_motion
 from bench.estimator.translation import TranslationSmoother
 from bench.plant.cwh import RendezvousParams
 
@@ -36,10 +37,6 @@ class LoopResult:
         return float(np.linalg.norm(final[:3])), float(np.linalg.norm(final[3:]))
 
 
-def radius_for_mean_motion(params: RendezvousParams, mean_motion_radps: float) -> float:
-    return float((params.gravitational_parameter_m3ps2 / mean_motion_radps**2) ** (1.0 / 3.0))
-
-
 def lqr_for(params: RendezvousParams) -> LQR:
     scaled = params.scaled
     return LQR(np.diag(Q_DIAG), np.eye(3), scaled.A, scaled.B)
@@ -62,7 +59,7 @@ def run_closed_loop(true_params: RendezvousParams, config: TranslationSmootherCo
         fix = x[:3] + rng.normal(0.0, noise_std_m, 3)
         r = smoother.update(k, k * true_params.time_step_s, fix, u, noise_std_m)
         if r.mean_motion_radps is not None and abs(r.mean_motion_radps / gain_n - 1.0) > GAIN_REFRESH_REL:
-            model_params = replace(true_params, target_radius_m=radius_for_mean_motion(true_params, r.mean_motion_radps))
+            model_params = params_with_mean_motion(true_params, r.mean_motion_radps)
             controller, gain_n = lqr_for(model_params), r.mean_motion_radps
             gain_updates += 1
         u_cmd, _ = controller.eval(model_params.scaled.to_scaled(r.state_m_mps))

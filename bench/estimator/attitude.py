@@ -68,6 +68,8 @@ class AttitudeSmoother:
         self.failed_updates = 0
         self._gyro_params = gtsam.PreintegratedRotationParams()
         self._gyro_params.setGyroscopeCovariance(np.eye(3) * config.gyro_noise_density_radps_per_rthz**2)
+        self._magnetometer_noise = gtsam.noiseModel.Isotropic.Sigma(3, config.magnetometer_noise_std_t)
+        self._star_tracker_noise = gtsam.noiseModel.Isotropic.Sigma(3, config.star_tracker_noise_std_rad)
         self._smoother: gtsam.IncrementalFixedLagSmoother | None = None
         self._last: _GoodEstimate | None = None
         self._preintegrated: gtsam.PreintegratedAhrsMeasurements | None = None
@@ -131,18 +133,18 @@ class AttitudeSmoother:
             strength = float(np.linalg.norm(model))
             if strength == 0.0:
                 raise ValueError("field_inertial_t is zero: no direction to compare with")
-            noise = gtsam.noiseModel.Isotropic.Sigma(3, self.config.magnetometer_noise_std_t)
-            out.append(gtsam.MagFactor1(attitude_key(seq), measured, strength, gtsam.Unit3(model), np.zeros(3), noise))
+            out.append(gtsam.MagFactor1(attitude_key(seq), measured, strength, gtsam.Unit3(model), np.zeros(3),
+                                        self._magnetometer_noise))
         if star_tracker_wxyz is not None:
-            noise = gtsam.noiseModel.Isotropic.Sigma(3, self.config.star_tracker_noise_std_rad)
-            out.append(gtsam.PriorFactorRot3(attitude_key(seq), _rotation("star_tracker_wxyz", star_tracker_wxyz), noise))
+            out.append(gtsam.PriorFactorRot3(attitude_key(seq), _rotation("star_tracker_wxyz", star_tracker_wxyz),
+                                             self._star_tracker_noise))
         return out
 
     def _bias_walk_factor(self, previous: int, seq: int):
-        dt_s = self._preintegrated.deltaTij()
-        variance = self.config.gyro_bias_random_walk_radps2_per_rthz**2 * dt_s
+        # Isotropic: the whitening is 1 / (sigma_bw sqrt(dt)), no factorisation needed.
+        std_radps = self.config.gyro_bias_random_walk_radps2_per_rthz * np.sqrt(self._preintegrated.deltaTij())
         return factors.linear_factor([(bias_key(previous), -np.eye(3)), (bias_key(seq), np.eye(3))],
-                                     np.zeros(3), np.eye(3) * variance)
+                                     np.zeros(3), whiten=np.eye(3) / std_radps)
 
     def _first_prior(self, seq: int, star_tracker_wxyz) -> list:
         # The star-tracker fix (a measurement factor) fixes R_0; the bias needs its prior.
