@@ -53,6 +53,18 @@ def classify(payload: bytes, run_id: str) -> Message | None:
     return message
 
 
+def root_object_schema(kind: type[Message]) -> dict:
+    """The message's JSON schema with its object at the root ($defs kept for nested types).
+
+    msgspec puts everything under $defs behind a root $ref; viewers that take the root's
+    "properties" for the field list (Foxglove's JSON-schema channels) want the object itself.
+    """
+    schema = json_schema(kind)
+    defs = schema.get("$defs", {})
+    root = schema.get("$ref", "").rpartition("/")[2]
+    return {**defs[root], "$defs": defs} if root in defs else schema
+
+
 def topic_of(key_expr: str, run_id: str) -> str:
     """`bench/<run_id>/sense/relpos` -> `sense/relpos`."""
     prefix = keys.key(run_id, "")
@@ -104,7 +116,7 @@ class Recording:
 
     def _schema(self, kind: type[Message]) -> int:
         if kind not in self._schemas:
-            data = json.dumps(json_schema(kind)).encode()
+            data = json.dumps(root_object_schema(kind)).encode()
             self._schemas[kind] = self._writer.register_schema(kind.__name__, "jsonschema", data)
         return self._schemas[kind]
 
