@@ -3,6 +3,7 @@ survives failed updates, rejects bad input, and keeps the seed 003 rendezvous wi
 conditions with the smoother in the loop (known and 1 %-wrong orbit radius)."""
 from __future__ import annotations
 
+import gtsam
 import numpy as np
 import pytest
 from scipy.stats import chi2
@@ -24,12 +25,13 @@ def _model(config: TranslationSmootherConfig):
     return CwhMotionModel(PARAMS.mass_kg, PARAMS.time_step_s, config.process_noise_psd_m2ps3).discrete(PARAMS.mean_motion)
 
 
-@pytest.mark.parametrize("lag_steps", [200, 4])
-def test_newest_estimate_equals_kalman_filter(lag_steps):
+@pytest.mark.parametrize("lag_steps, every", [(200, 1), (4, 1), (10, 3)])
+def test_newest_estimate_equals_kalman_filter(lag_steps, every):
     # Linear Gaussian model: with the whole history in the window (200 > 60 steps) the smoother is
     # the batch least-squares solution, whose newest state is the Kalman filter's; a short window
-    # must give the same, because marginalising a linear model is exact.
-    config = TranslationSmootherConfig(lag_steps=lag_steps)
+    # must give the same, because marginalising a linear model is exact. every=3: a fix is used
+    # every third step only, the filter predicts through the others.
+    config = TranslationSmootherConfig(lag_steps=lag_steps, measurement_every_steps=every)
     smoother, m = TranslationSmoother(config, PARAMS), _model(config)
     rng = np.random.default_rng(11)
     x, thrust, kf = PARAMS.initial_state_m_mps("A"), np.zeros(3), None
@@ -40,7 +42,8 @@ def test_newest_estimate_equals_kalman_filter(lag_steps):
             kf = kalman.initial_belief_from_position(fix, NOISE_M, config.initial_velocity_std_mps)
         else:
             kf = kalman.predict(kf, m.transition, m.input_matrix, thrust, m.process_cov)
-            kf = kalman.correct(kf, fix, kalman.POSITION_MATRIX, np.eye(3) * NOISE_M**2)
+            if k % every == 0:
+                kf = kalman.correct(kf, fix, kalman.POSITION_MATRIX, np.eye(3) * NOISE_M**2)
         sigma = np.sqrt(np.diag(kf.covariance))
         # Equal to rounding: a micro-sigma, or the last digits of a 400 km position.
         assert np.all(np.abs(result.state_m_mps - kf.mean) <= 1e-6 * sigma + 1e-12 * np.abs(kf.mean))
@@ -133,6 +136,30 @@ def test_failed_update_restarts_from_last_good_estimate(caplog):
     assert "failed" in caplog.text
 
 
+def test_smoother_keeps_publishing_while_gtsam_keeps_failing(monkeypatch):
+    # Update and restart both fail for five steps: the smoother publishes its prediction, counts
+    # every failure, and recovers with a working gtsam.
+    config = TranslationSmootherConfig()
+    smoother, m = TranslationSmoother(config, PARAMS), _model(config)
+    real_class = gtsam.IncrementalFixedLagSmoother
+    rng = np.random.default_rng(9)
+    x = PARAMS.initial_state_m_mps("A")
+    for k in range(40):
+        if k == 20:
+            smoother._smoother = _FailingSmoother(smoother._smoother)
+            monkeypatch.setattr(gtsam, "IncrementalFixedLagSmoother", lambda *a: _FailingSmoother(real_class(*a)))
+        if k == 25:
+            monkeypatch.setattr(gtsam, "IncrementalFixedLagSmoother", real_class)
+        r = smoother.update(k, 600.0 * k, x[:3] + rng.normal(0.0, NOISE_M, 3), np.zeros(3))
+        assert r.reinitialised == (20 <= k <= 25)
+        err = x - r.state_m_mps
+        assert err @ np.linalg.solve(r.covariance, err) < chi2.ppf(0.9999, 6)
+        x = m.transition @ x
+    assert r.failed_updates == 1 + 5 + 0    # the update at 20, the restarts at 20..24; 25 succeeds
+    # Predictions only from 20 to 24: the position uncertainty grew, then the fixes shrank it again.
+    assert np.trace(r.covariance[:3, :3]) < 3 * 15.0**2
+
+
 def test_no_estimate_before_the_first_fix_then_gaps_are_bridged():
     smoother = TranslationSmoother(TranslationSmootherConfig(), PARAMS)
     assert smoother.update(0, 0.0, None, np.zeros(3)) is None
@@ -200,6 +227,7 @@ def test_one_percent_radius_error_breaks_the_rendezvous_unless_mean_motion_is_es
     smoother_params = TranslationSmoother(joint, PARAMS)
     result = run_closed_loop(PARAMS, joint, NOISE_M, seed=1)
     assert _meets_terminal_conditions(result), result.terminal_errors()
+    assert result.failed_updates == 0
     believed_error = abs(smoother_params.believed_mean_motion_radps / PARAMS.mean_motion - 1.0)
     final_error = abs(result.mean_motion_radps[-1] / PARAMS.mean_motion - 1.0)
     assert believed_error > 0.014 and final_error < 1e-3
