@@ -1,0 +1,209 @@
+"""Each fault against the running board and bus model (separate processes) on the Zenoh transport.
+
+The driver runs here, commanding the scripted profile every 20 ms; the board sends heartbeat every
+100 ms and telemetry every 50 ms and times out after 100 ms without a valid command. Each fault
+starts 1 s after commanding starts. Every test asserts:
+- the driver detects the fault within a bound stated in the test, measured from the injector's
+  log (same monotonic clock across processes on this host) to the driver's event;
+- every frame a node sent is on the wire or in the drop capture, and every frame on the wire
+  reached the nodes that listen for it;
+- no command outside what the driver commanded was ever applied (except where E2E cannot know:
+  corruption before protection, stated in that test);
+- the board goes to its safe state when the commands stop at the end.
+"""
+from __future__ import annotations
+
+import itertools
+import os
+from collections import Counter
+
+import pytest
+
+from bench.bus.can import protocol as p
+from bench.bus.can.harness import CanBench, CanRunResult, write_scenario
+
+HEARTBEAT_PERIOD_S = 0.1
+TELEMETRY_PERIOD_S = 0.05
+COMMAND_PERIOD_S = 0.02
+COMMAND_TIMEOUT_S = 0.1
+FAULT_START_S = 1.0
+DRIVE_S = 2.0
+SILENCE_S = 0.4          # commands stop: the board must go safe within this
+_runs = itertools.count()
+
+pytestmark = pytest.mark.timeout(60)
+
+
+def run_fault(tmp_path, *faults: dict, drive_s: float = DRIVE_S) -> CanRunResult:
+    scenario = write_scenario(tmp_path / "scenario", {"transport": "zenoh", "faults": list(faults)})
+    bench = CanBench(scenario, tmp_path / "run", f"canfault-{os.getpid()}-{next(_runs)}")
+    try:
+        bench.start()
+        bench.drive(drive_s)
+        bench.drive(SILENCE_S, commanding=False)
+    except BaseException:
+        bench.close()
+        raise
+    return bench.stop()
+
+
+def latency_s(result: CanRunResult, kind: str, since_ns: int, detail: str = "") -> float:
+    event = result.first_event(kind, after_ns=since_ns, detail=detail)
+    assert event is not None, f"no {kind} {detail} detected; events: {result.kinds()}"
+    return (event.detected_ns - since_ns) / 1e9
+
+
+def window_start_ns(result: CanRunResult, start_s: float = FAULT_START_S) -> int:
+    return result.report["faults_t0_ns"] + round(start_s * 1e9)
+
+
+def check_accounting(r: CanRunResult) -> None:
+    injected = Counter(p.Protocol().name_of(i["frame_id"]) for i in r.injections if i["action"] == "injected")
+    assert r.driver_sent == r.wire[p.CMD] - injected[p.CMD] + r.dropped[p.CMD], "commands unaccounted for"
+    for name in p.BOARD_FRAMES:
+        assert r.board["sent"].get(name, 0) == r.wire[name] - injected[name] + r.dropped[name], name
+    assert r.board["received"].get(p.CMD, 0) == r.wire[p.CMD], "a command on the wire did not reach the board"
+    to_driver = sum(r.wire[n] for n in p.BOARD_FRAMES) + injected[p.CMD] + r.wire["error_frame"]
+    assert sum(r.driver_received.values()) == to_driver, "a frame on the wire did not reach the driver"
+
+
+def check_only_commanded_applied(r: CanRunResult) -> None:
+    commanded = {tuple(round(x, 4) for x in d) for d in r.commanded}
+    applied = {tuple(round(x, 4) for x in a["dipole_am2"]) for a in r.board["applied"]}
+    assert applied <= commanded, f"applied but never commanded: {applied - commanded}"
+
+
+def check_safe_when_commands_stop(r: CanRunResult) -> None:
+    assert latency_s(r, "board_command_timeout", r.last_command_ns) <= COMMAND_TIMEOUT_S + 2 * TELEMETRY_PERIOD_S + 0.1
+
+
+def check_all(r: CanRunResult, only_commanded: bool = True) -> None:
+    check_accounting(r)
+    if only_commanded:
+        check_only_commanded_applied(r)
+    check_safe_when_commands_stop(r)
+
+
+def before_silence(r: CanRunResult) -> list:
+    return [e for e in r.events if e.detected_ns <= r.last_command_ns]
+
+
+# ------------------------------------------------------------------------------------------------
+def test_no_fault_no_event_and_every_frame_delivered(tmp_path):
+    r = run_fault(tmp_path)
+    assert before_silence(r) == [], "false alarm on a clean bus"
+    assert r.board["accepted"] == r.driver_sent and r.board["rejected"] == {}
+    check_all(r)
+
+
+def test_dropped_commands_put_the_board_in_safe_state(tmp_path):
+    r = run_fault(tmp_path, {"name": "drop", "start_s": FAULT_START_S, "count": 10})
+    first_drop = r.first_injection_ns("dropped")
+    # 10 commands (200 ms) missing: the board times out after 100 ms, says so in its next frames.
+    assert latency_s(r, "board_command_timeout", first_drop) <= 3 * COMMAND_TIMEOUT_S
+    assert r.dropped[p.CMD] == 10
+    check_all(r)
+
+
+def test_a_delayed_command_arriving_late_is_rejected(tmp_path):
+    r = run_fault(tmp_path, {"name": "delay", "start_s": FAULT_START_S, "count": 1, "params": {"delay_s": 0.2}})
+    # Stale by 10 counter steps when it arrives: out of sequence.
+    assert latency_s(r, "command_rejected", r.first_injection_ns("delayed"), "WRONG_SEQUENCE") <= 0.2 + 0.1
+    check_all(r)
+
+
+def test_duplicated_commands_are_rejected_as_repeated(tmp_path):
+    r = run_fault(tmp_path, {"name": "duplicate", "start_s": FAULT_START_S, "count": 5, "every": 10})
+    assert r.board["rejected"] == {"REPEATED": 5}
+    assert latency_s(r, "command_rejected", r.first_injection_ns("injected"), "REPEATED") <= 5 * COMMAND_PERIOD_S
+    assert r.kinds()["spoofed_command"] == 5        # the copy was not sent by this driver
+    check_all(r)
+
+
+def test_replayed_commands_are_seen_as_foreign(tmp_path):
+    r = run_fault(tmp_path, {"name": "replay", "start_s": FAULT_START_S, "count": 3, "every": 10,
+                             "params": {"after_s": 0.3}})
+    assert len(r.injected(p.CMD)) == 3
+    assert latency_s(r, "spoofed_command", r.first_injection_ns("injected")) <= 5 * COMMAND_PERIOD_S
+    assert r.kinds()["spoofed_command"] == 3
+    check_all(r)   # a replayed command is an old genuine one: never a value nobody commanded
+
+
+def test_corrupted_commands_fail_the_crc_and_are_never_applied(tmp_path):
+    r = run_fault(tmp_path, {"name": "corrupt", "start_s": FAULT_START_S, "count": 5, "every": 10,
+                             "params": {"bits": 3}})
+    assert r.board["rejected"] == {"WRONG_CRC": 5}
+    assert latency_s(r, "command_rejected", r.first_injection_ns("replaced"), "WRONG_CRC") <= 5 * COMMAND_PERIOD_S
+    check_all(r)
+
+
+def test_corruption_before_protection_is_applied_but_caught_by_plausibility(tmp_path):
+    # A valid CRC over wrong data (seed 1 flips the sign bit of DipoleX): E2E cannot see it, the
+    # board applies it, and the driver notices the applied dipole is not what it commanded.
+    r = run_fault(tmp_path, {"name": "corrupt", "start_s": FAULT_START_S, "duration_s": 0.5,
+                             "params": {"bits": 3, "recompute_crc": True, "seed": 1}})
+    assert r.board["rejected"] == {}
+    bound_s = 0.06 + 0.15 + 2 * TELEMETRY_PERIOD_S + 0.1   # settle + mismatch time + telemetry
+    assert latency_s(r, "actuator_mismatch", r.first_injection_ns("replaced")) <= bound_s
+    check_all(r, only_commanded=False)
+
+
+def test_spoofed_commands_are_rejected_and_reported(tmp_path):
+    r = run_fault(tmp_path, {"name": "spoof", "start_s": FAULT_START_S, "count": 3, "every": 10,
+                             "params": {"dipole_am2": 0.15}})
+    assert r.board["rejected"] == {"WRONG_CRC": 3}
+    assert latency_s(r, "spoofed_command", r.first_injection_ns("injected")) <= 5 * COMMAND_PERIOD_S
+    assert latency_s(r, "command_rejected", r.first_injection_ns("injected"), "WRONG_CRC") <= 5 * COMMAND_PERIOD_S
+    check_all(r)
+
+
+def test_frozen_counter_is_rejected_and_the_board_goes_safe(tmp_path):
+    r = run_fault(tmp_path, {"name": "counter_freeze", "start_s": FAULT_START_S, "duration_s": 0.4})
+    start = r.first_injection_ns("replaced")
+    assert latency_s(r, "command_rejected", start, "REPEATED") <= 5 * COMMAND_PERIOD_S
+    assert latency_s(r, "board_command_timeout", start) <= 3 * COMMAND_TIMEOUT_S
+    check_all(r)
+
+
+def test_offset_counter_is_out_of_sequence(tmp_path):
+    r = run_fault(tmp_path, {"name": "counter_offset", "start_s": FAULT_START_S, "duration_s": 0.4,
+                             "params": {"offset": 5}})
+    assert latency_s(r, "command_rejected", r.first_injection_ns("replaced"), "WRONG_SEQUENCE") <= 5 * COMMAND_PERIOD_S
+    check_all(r)
+
+
+def test_babbling_node_starves_the_bus_and_the_board_is_lost(tmp_path):
+    r = run_fault(tmp_path, {"name": "flood", "start_s": FAULT_START_S, "duration_s": 0.5})
+    assert latency_s(r, "heartbeat_timeout", window_start_ns(r)) <= 3 * HEARTBEAT_PERIOD_S
+    report = r.report
+    assert report["peak_load_pct"] > 99
+    calm, flooded = report["command_latency_us"]["without_flood"], report["command_latency_us"]["with_flood"]
+    assert report["dropped"].get("tx_overflow", 0) > 0 or flooded["median"] > 100 * calm["median"]
+    check_all(r)
+
+
+def test_board_death_is_detected_within_three_heartbeat_periods(tmp_path):
+    r = run_fault(tmp_path, {"name": "board_death", "start_s": FAULT_START_S, "duration_s": 0.6})
+    assert latency_s(r, "heartbeat_timeout", window_start_ns(r)) <= 3 * HEARTBEAT_PERIOD_S
+    assert latency_s(r, "heartbeat_resumed", window_start_ns(r, FAULT_START_S + 0.6)) <= 2 * HEARTBEAT_PERIOD_S
+    check_all(r)
+
+
+def test_stuck_actuator_is_caught_by_plausibility(tmp_path):
+    r = run_fault(tmp_path, {"name": "stuck_actuator", "start_s": FAULT_START_S, "duration_s": 0.8})
+    # The profile changes every 0.3 s; then settle 0.06 s, 0.15 s of mismatch, telemetry 0.05 s.
+    assert latency_s(r, "actuator_mismatch", window_start_ns(r)) <= 0.3 + 0.06 + 0.15 + 2 * TELEMETRY_PERIOD_S + 0.1
+    check_all(r)
+
+
+def test_error_frames_take_the_driver_bus_off_and_back(tmp_path):
+    r = run_fault(tmp_path, {"name": "error_frames", "start_s": FAULT_START_S, "count": 32,
+                             "params": {"restart_delay_s": 0.2}})
+    start = r.first_injection_ns("destroyed")
+    passive = latency_s(r, "error_passive", start)
+    bus_off = latency_s(r, "bus_off", start)
+    assert passive < bus_off <= 5 * COMMAND_PERIOD_S
+    assert 0.2 <= latency_s(r, "bus_restarted", start) <= 0.2 + 5 * COMMAND_PERIOD_S
+    assert latency_s(r, "board_command_timeout", start) <= 0.2 + 3 * COMMAND_TIMEOUT_S
+    assert r.report["bus_off"] == {"flight": 1}
+    check_all(r)
