@@ -34,8 +34,12 @@ _runs = itertools.count()
 pytestmark = pytest.mark.timeout(60)
 
 
-def run_fault(tmp_path, *faults: dict, drive_s: float = DRIVE_S) -> CanRunResult:
-    scenario = write_scenario(tmp_path / "scenario", {"transport": "zenoh", "faults": list(faults)})
+ZENOH = {"transport": "zenoh"}
+SOCKETCAN = {"transport": "socketcan", "flight_channel": "vcan0", "board_channel": "vcan1"}
+
+
+def run_fault(tmp_path, *faults: dict, drive_s: float = DRIVE_S, transport: dict = ZENOH) -> CanRunResult:
+    scenario = write_scenario(tmp_path / "scenario", {**transport, "faults": list(faults)})
     bench = CanBench(scenario, tmp_path / "run", f"canfault-{os.getpid()}-{next(_runs)}")
     try:
         bench.start()

@@ -1,0 +1,41 @@
+"""The SocketCAN subset of the fault suite on a kernel vcan inside user-mode Linux (tests/uml.py).
+
+One UML boot runs every test of tests/uml_guest_can/; each is reported here by name, so a guest
+test that fails, errors or silently stops being collected fails on the host.
+"""
+from __future__ import annotations
+
+import pytest
+
+import uml
+
+GUEST_DIR = "tests/uml_guest_can"
+BOOT_TIMEOUT_S = 240
+GUEST_TESTS = [
+    "test_socketcan_clean_bus",
+    "test_socketcan_dropped_commands",
+    "test_socketcan_corrupted_commands",
+    "test_socketcan_spoofed_commands",
+    "test_socketcan_board_death",
+    "test_socketcan_babbling_node",
+]
+
+pytestmark = pytest.mark.timeout(BOOT_TIMEOUT_S + 60)
+
+
+@pytest.fixture(scope="module")
+def guest(tmp_path_factory):
+    job = tmp_path_factory.mktemp("uml-can-faults")
+    try:
+        return uml.run_pytest([GUEST_DIR], job, timeout_s=BOOT_TIMEOUT_S)
+    except uml.UmlUnavailable as exc:
+        pytest.skip(str(exc))
+
+
+@pytest.mark.parametrize("name", GUEST_TESTS)
+def test_can_fault_on_kernel_vcan(guest, name):
+    result, outcomes = guest
+    assert outcomes.get(name) == "passed", (
+        f"guest test {name}: {outcomes.get(name, 'did not run')} (UML exit {result.returncode})\n"
+        f"{result.output[-4000:]}"
+    )
