@@ -68,14 +68,17 @@ def run(command: list[str], job_dir: Path, *, timeout_s: float = 60) -> UmlResul
     return UmlResult(proc.returncode, proc.stdout + proc.stderr, job_dir)
 
 
-def run_pytest(selection: list[str], job_dir: Path, *, timeout_s: float = 60) -> tuple[UmlResult, dict[str, str]]:
+def run_pytest(selection: list[str], job_dir: Path, *, timeout_s: float = 60,
+               per_test_timeout_s: float = 30) -> tuple[UmlResult, dict[str, str]]:
     """Run a pytest selection inside one UML boot; returns the result and {test name: outcome}.
 
     Guest tests live in files named guest_*.py so the host's pytest never collects them.
+    per_test_timeout_s bounds each guest test (a timeout marker on the test wins), so one hung
+    test fails alone and the boot still reports the others within timeout_s.
     """
     junit = job_dir / "junit.xml"
     command = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-o", "python_files=guest_*.py",
-               f"--junitxml={junit}", f"--basetemp={job_dir / 'tmp'}", "--timeout=30", *selection]
+               f"--junitxml={junit}", f"--basetemp={job_dir / 'tmp'}", f"--timeout={per_test_timeout_s:g}", *selection]
     result = run(command, job_dir, timeout_s=timeout_s)
     outcomes: dict[str, str] = {}
     if junit.exists():
