@@ -81,12 +81,12 @@ def cwh_motion_factor_unknown_mean_motion(
         x_now = values.atVector(key)
         delta = values.atVector(mean_motion_key)[0]
         mean_motion = believed_mean_motion_radps * (1.0 + delta)
-        m = model.discrete(mean_motion, n_steps)
-        residual = x_now - m.transition @ x_prev - m.input_matrix @ thrust_n
+        transition, input_matrix = model.transition_and_input(mean_motion, n_steps)
+        residual = x_now - transition @ x_prev - input_matrix @ thrust_n
         if jacobians is not None:
             d_transition, d_input = model.derivative(mean_motion, n_steps)
             d_residual_d_delta = -(d_transition @ x_prev + d_input @ thrust_n) * believed_mean_motion_radps
-            jacobians[0] = -whiten @ m.transition
+            jacobians[0] = -whiten @ transition
             jacobians[1] = whiten
             jacobians[2] = (whiten @ d_residual_d_delta).reshape(-1, 1)
         return whiten @ residual

@@ -33,6 +33,14 @@ log = logging.getLogger(__name__)
 
 MEAN_MOTION_KEY = gtsam.symbol("n", 0)
 
+# Nonlinear variants (joint mean motion, range/bearing): relinearise a state that moved by more
+# than 1 m or 1 mm/s, delta by more than 1e-7 (0.1 ppm of the mean motion). At 400 km range a
+# 1 m move changes the Jacobians by a few ppm, far below what 10 m of sensor noise resolves; a
+# tighter threshold relinearises every factor (a Python callback each) at every update.
+_STATE_RELINEARISE = np.array([1.0, 1.0, 1.0, 1e-3, 1e-3, 1e-3])
+_DELTA_RELINEARISE = np.array([1e-4])
+_MAX_EXTRA_GAUSS_NEWTON_STEPS = 3
+
 
 def state_key(seq: int) -> int:
     return gtsam.symbol("x", seq)
@@ -181,9 +189,14 @@ class TranslationSmoother:
         return graph, guess
 
     def _predict_last(self, seq: int, thrust: np.ndarray) -> Gaussian:
-        last = self._last
-        m = self.model.discrete(self._mean_motion(last.delta), seq - last.seq)
-        return predict(last.state, m.transition, m.input_matrix, thrust, m.process_cov)
+        last, n_steps = self._last, seq - self._last.seq
+        process_cov = self.model.discrete(self.believed_mean_motion_radps, n_steps).process_cov
+        if self.estimates_mean_motion:
+            transition, input_matrix = self.model.transition_and_input(self._mean_motion(last.delta), n_steps)
+        else:
+            m = self.model.discrete(self.believed_mean_motion_radps, n_steps)
+            transition, input_matrix = m.transition, m.input_matrix
+        return predict(last.state, transition, input_matrix, thrust, process_cov)
 
     def _mean_motion(self, delta: float) -> float:
         return self.believed_mean_motion_radps * (1.0 + delta)
@@ -240,8 +253,10 @@ class TranslationSmoother:
         gauss_newton.setWildfireThreshold(0.0)
         params.setOptimizationParams(gauss_newton)
         if self.is_nonlinear:
-            # Relinearise whenever anything moves: the window is short, the callbacks are cached.
-            params.setRelinearizeThreshold(1e-9)
+            thresholds = gtsam.ISAM2ThresholdMap()
+            thresholds.insert(("x", _STATE_RELINEARISE))
+            thresholds.insert(("n", _DELTA_RELINEARISE))
+            params.setRelinearizeThreshold(thresholds)
             params.relinearizeSkip = 1
         return params
 
@@ -258,12 +273,27 @@ class TranslationSmoother:
             stamps.insert((MEAN_MOTION_KEY, float(seq)))   # keep delta inside the window
         smoother.update(graph, guess, stamps)
         if self.is_nonlinear:
-            # One extra Gauss-Newton pass: iSAM2 takes a single step per update, and the first
-            # linearisation point (a prediction) can be kilometres off.
-            smoother.update()
+            # iSAM2 takes one Gauss-Newton step per update. While the newest keys' step is still
+            # above the relinearisation thresholds (their first linearisation point, a prediction,
+            # can be kilometres off early on), take more, up to a bound.
+            for _ in range(_MAX_EXTRA_GAUSS_NEWTON_STEPS):
+                if not self._newest_step_is_large(smoother, seq):
+                    break
+                smoother.update()
         good = self._read_estimate(smoother, seq)
         self._last = good
         return self._result(seq, sim_time_s, good, reinitialised)
+
+    def _newest_step_is_large(self, smoother, seq: int) -> bool:
+        """Would another Gauss-Newton step relinearise a variable whose linearisation matters?
+
+        The newest state enters its motion factor linearly, so only a range/bearing factor cares
+        where it is linearised; delta enters every motion factor nonlinearly.
+        """
+        delta = smoother.getDelta()
+        if self.config.sensor == "range_bearing" and np.any(np.abs(delta.at(state_key(seq))) > _STATE_RELINEARISE):
+            return True
+        return self.estimates_mean_motion and abs(delta.at(MEAN_MOTION_KEY)[0]) > _DELTA_RELINEARISE[0]
 
     def _read_estimate(self, smoother, seq: int) -> _GoodEstimate:
         key = state_key(seq)
