@@ -92,18 +92,24 @@ def _consistent(nees: np.ndarray, dof: int = 6) -> tuple[bool, float, float]:
 RUNS, STEPS = 50, 25
 
 
-@pytest.mark.parametrize("sensor", ["relpos", "range_bearing"])
-def test_nees_within_chi_square_bounds(sensor):
-    config = TranslationSmootherConfig(sensor=sensor, lag_steps=10)
+@pytest.mark.parametrize("case, config", [
+    ("relative position", TranslationSmootherConfig(lag_steps=10)),
+    ("range/bearing", TranslationSmootherConfig(lag_steps=10, sensor="range_bearing")),
+    # The truth's orbit radius is 1 % off the believed one; the mean motion is estimated jointly.
+    ("joint mean motion", TranslationSmootherConfig(lag_steps=10, believed_radius_error=0.01, estimate_mean_motion=True)),
+])
+def test_nees_within_chi_square_bounds(case, config):
     ok, inside, mean = _consistent(_nees_monte_carlo(config, NOISE_M, RUNS, STEPS))
-    assert ok, f"{sensor}: average NEES {mean:.2f}, {inside:.0%} of steps inside the 95 % bounds"
+    assert ok, f"{case}: average NEES {mean:.2f}, {inside:.0%} of steps inside the 95 % bounds"
 
 
-def test_nees_check_catches_an_overconfident_smoother():
-    # The smoother believes 3 m while the sensor has 10 m: the check must say inconsistent.
-    config = TranslationSmootherConfig(position_noise_std_m=3.0, lag_steps=10)
+@pytest.mark.parametrize("case, config", [
+    ("believes 3 m, sensor has 10 m", TranslationSmootherConfig(position_noise_std_m=3.0, lag_steps=10)),
+    ("orbit radius 1 % off, not estimated", TranslationSmootherConfig(believed_radius_error=0.01, lag_steps=10)),
+])
+def test_nees_check_catches_an_overconfident_smoother(case, config):
     ok, _, mean = _consistent(_nees_monte_carlo(config, NOISE_M, 20, STEPS))
-    assert not ok and mean > 6.0
+    assert not ok and mean > 6.0, case
 
 
 class _FailingSmoother:

@@ -157,9 +157,9 @@ class TranslationSmoother:
             std = self.config.position_noise_std_m if position_noise_std_m is None else position_noise_std_m
             if not (np.isfinite(std) and std > 0):
                 raise ValueError(f"position_noise_std_m must be positive and finite, got {std}")
-            cov = np.eye(3) * std**2
+            whiten = np.eye(3) / std     # isotropic: no factorisation needed
             return _Measurement(
-                lambda key: factors.linear_factor([(key, POSITION_MATRIX)], position, cov),
+                lambda key: factors.linear_factor([(key, POSITION_MATRIX)], position, whiten=whiten),
                 position,
             )
         rb = _vector("range_bearing", range_bearing, 3)
