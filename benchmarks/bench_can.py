@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import select
 import subprocess
 import sys
 import threading
@@ -161,7 +162,9 @@ def across_processes(transport: str, role: str, count: int, own_side) -> tuple[d
                    "--count", str(count)] + (["--endpoint", endpoint] if endpoint else [])
         peer = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         try:
-            if peer.stdout.readline().strip() != "ready":
+            # Bounded wait for "ready": a child that hangs while starting must not hang us.
+            started, _, _ = select.select([peer.stdout], [], [], PEER_WAIT_S + 20)
+            if not started or peer.stdout.readline().strip() != "ready":
                 raise RuntimeError(f"{role} process did not start: {peer.stderr.read()[-2000:]}")
             if transport == "zenoh" and not bus.wait_for_peers(1, PEER_WAIT_S):
                 raise RuntimeError("the zenoh peer never appeared")
