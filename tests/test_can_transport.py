@@ -11,7 +11,7 @@ import can
 import pytest
 
 from bench.bus.can import zenoh_wire
-from bench.bus.can.transport import TransportUnavailable, kernel_has_can, open_can_bus
+from bench.bus.can.transport import TransportUnavailable, default_transport, kernel_has_can, open_can_bus
 from bench.bus.can.zenoh_interface import ZenohCanBus, channel_key
 from bench.bus.session import SessionOptions, free_loopback_port, loopback_endpoint, open_session
 
@@ -213,6 +213,7 @@ def test_open_can_bus_per_transport(run_id):
     with pytest.raises(ValueError, match="not one of"):
         open_can_bus("carrier-pigeon", "vcan0", run_id=run_id)
     if not kernel_has_can():
+        assert default_transport() == "zenoh"
         with pytest.raises(TransportUnavailable, match="zenoh"):
             open_can_bus("socketcan", "vcan0", run_id=run_id)
 
