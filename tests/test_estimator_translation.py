@@ -12,9 +12,9 @@ from bench.estimator import kalman
 from bench.estimator.config import TranslationSmootherConfig
 from bench.estimator.factors import range_bearing
 from bench.estimator.motion_model import CwhMotionModel
-from bench.estimator.plots import plot_estimate_vs_truth
 from bench.estimator.translation import TranslationSmoother
 from bench.plant.cwh import RendezvousParams
+from bench.report.plots import estimator_error
 from estimator_loop import run_closed_loop
 
 PARAMS = RendezvousParams.from_reference()
@@ -213,16 +213,10 @@ def test_default_rendezvous_meets_terminal_conditions_with_smoother_in_the_loop(
     err = result.truth_m_mps[:-1] - result.estimate_m_mps
     sigma = np.sqrt(np.diagonal(result.covariance, axis1=1, axis2=2))
     assert np.mean(np.abs(err) <= 3 * sigma) > 0.97
-    # The report's figure of that run: estimate - truth against +-3 sigma.
+    # The report's figure of that run (bench.report draws it from recordings; here from the loop).
     time_s = PARAMS.time_step_s * np.arange(len(result.estimate_m_mps))
-    figure = plot_estimate_vs_truth(time_s, result.truth_m_mps[:-1], result.estimate_m_mps, result.covariance,
-                                    tmp_path / "translation_estimate.png")
+    figure = estimator_error(time_s, -err, 3 * sigma, tmp_path / "estimator_error.png")
     assert figure.stat().st_size > 10_000
-
-
-def test_estimate_figure_rejects_mismatched_arrays(tmp_path):
-    with pytest.raises(ValueError, match="shapes disagree"):
-        plot_estimate_vs_truth(np.arange(5), np.zeros((5, 6)), np.zeros((4, 6)), np.zeros((5, 6, 6)), tmp_path / "x.png")
 
 
 def test_one_percent_radius_error_breaks_the_rendezvous_unless_mean_motion_is_estimated():
