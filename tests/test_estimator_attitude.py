@@ -11,7 +11,8 @@ from scipy.stats import chi2
 from bench.estimator.attitude import AttitudeSmoother
 from bench.estimator.config import AttitudeSmootherConfig
 from bench.plant.attitude import (
-    EARTH_RADIUS_M, AttitudeSensorSpec, AttitudeSimulation, TiltedDipole, body_to_inertial, rk4_attitude_step,
+    EARTH_RADIUS_M, AttitudeSensorSpec, AttitudeSimulation, TiltedDipole, body_to_inertial, magnetorquer_torque_nm,
+    rk4_attitude_step,
 )
 
 INERTIA = np.diag([0.03, 0.04, 0.02])    # kg m^2, a 3U-class CubeSat as in seed 004
@@ -37,6 +38,17 @@ def test_dipole_field_is_twice_as_strong_over_the_magnetic_pole():
     assert np.linalg.norm(over_pole) == pytest.approx(2 * np.linalg.norm(equator))
     assert np.linalg.norm(equator) == pytest.approx(dipole.equatorial_field_t)
     assert equator[2] > 0     # field lines point north at the equator
+
+
+def test_magnetorquer_torque_is_perpendicular_to_the_field_and_changes_momentum():
+    sim = AttitudeSimulation(INERTIA, [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0], seed=2)
+    field = sim.field_body_t()
+    torque = magnetorquer_torque_nm(np.array([0.1, 0.0, 0.0]), field)
+    assert abs(torque @ field) < 1e-12 * np.linalg.norm(torque) * np.linalg.norm(field)
+    sim.step(torque)
+    # A 0.1 A m^2 dipole in a ~3e-5 T field for 0.1 s: angular momentum of order 1e-7 N m s.
+    momentum = INERTIA @ sim.omega_body_radps
+    assert np.linalg.norm(momentum - torque * sim.dt_s) < 1e-3 * np.linalg.norm(torque * sim.dt_s)
 
 
 def test_noiseless_gyro_integrates_to_the_true_attitude():

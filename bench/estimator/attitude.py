@@ -93,7 +93,14 @@ class AttitudeSmoother:
         if self._last is None:
             if star_tracker_wxyz is None:
                 return None
-            return self._start(seq, sim_time_s, self._first_prior(seq, star_tracker_wxyz), measurement_factors)
+            try:
+                return self._start(seq, sim_time_s, self._first_prior(seq, star_tracker_wxyz), measurement_factors)
+            except Exception as exc:
+                self.failed_updates += 1
+                log.warning("attitude smoother could not start at keyframe %d (%d failures so far): %s",
+                            seq, self.failed_updates, exc)
+                self._last = self._smoother = self._preintegrated = None
+                return None
         if seq <= self._last.seq:
             raise ValueError(f"seq must increase: got {seq} after {self._last.seq}")
         if self._preintegrated.deltaTij() <= 0.0:

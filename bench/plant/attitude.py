@@ -59,6 +59,11 @@ def rk4_attitude_step(q_wxyz: np.ndarray, omega_body_radps: np.ndarray, torque_b
     return q_next / np.linalg.norm(q_next), w_next
 
 
+def magnetorquer_torque_nm(dipole_body_am2: np.ndarray, field_body_t: np.ndarray) -> np.ndarray:
+    """tau = m x B (seed 004 section 7): no torque along the field, hence the under-actuation."""
+    return np.cross(dipole_body_am2, field_body_t)
+
+
 def body_to_inertial(q_wxyz: np.ndarray) -> Rotation:
     return Rotation.from_quat(q_wxyz, scalar_first=True)
 
@@ -180,6 +185,11 @@ class AttitudeSimulation:
 
     def truth(self) -> AttitudeTruth:
         return AttitudeTruth(self.time_s, self.q_wxyz.copy(), self.omega_body_radps.copy(), self.gyro_bias_radps.copy())
+
+    def field_body_t(self) -> np.ndarray:
+        """The true geomagnetic field in the body frame now (what a magnetorquer acts against)."""
+        field_inertial = self.geomagnetic.field_t(self.orbit.position_m(self.time_s), self.time_s)
+        return body_to_inertial(self.q_wxyz).inv().apply(field_inertial)
 
     def step(self, torque_body_nm: np.ndarray = np.zeros(3)) -> AttitudeSample:
         """Advance one gyro period; the gyro reports the mean rate over it, the others the end state.
