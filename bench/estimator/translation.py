@@ -252,7 +252,12 @@ class TranslationSmoother:
         # then the exact least-squares solution, equal to a Kalman filter's for the linear model.
         gauss_newton.setWildfireThreshold(0.0)
         params.setOptimizationParams(gauss_newton)
-        if self.is_nonlinear:
+        if not self.is_nonlinear:
+            # Every factor is linear and exact at any linearisation point: relinearising (iSAM2's
+            # default, every 10th update) re-eliminates the whole window for nothing, a periodic
+            # spike in the update time.
+            params.enableRelinearization = False
+        else:
             thresholds = gtsam.ISAM2ThresholdMap()
             thresholds.insert(("x", _STATE_RELINEARISE))
             thresholds.insert(("n", _DELTA_RELINEARISE))
