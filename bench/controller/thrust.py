@@ -11,16 +11,13 @@ from dataclasses import replace
 import numpy as np
 
 from bench.controller.factory import build_controller
+from bench.estimator.motion_model import params_with_mean_motion
 from bench.plant.cwh import RendezvousParams
 from bench.scenario import Scenario
 
 # Rebuild the controller when the estimated mean motion has moved this much (relative) since the
 # model it was built on: the gains vary smoothly with n, so a small dead band costs nothing.
 MODEL_REFRESH_REL = 1e-3
-
-
-def radius_for_mean_motion_m(params: RendezvousParams, mean_motion_radps: float) -> float:
-    return float((params.gravitational_parameter_m3ps2 / mean_motion_radps**2) ** (1.0 / 3.0))
 
 
 class ThrustLaw:
@@ -43,7 +40,7 @@ class ThrustLaw:
         """Rebuild on an estimated mean motion that moved past the dead band; True if rebuilt."""
         if mean_motion_radps is None or abs(mean_motion_radps / self.params.mean_motion - 1.0) <= MODEL_REFRESH_REL:
             return False
-        self._build(replace(self.params, target_radius_m=radius_for_mean_motion_m(self.params, mean_motion_radps)))
+        self._build(params_with_mean_motion(self.params, mean_motion_radps))
         self.model_updates += 1
         return True
 
