@@ -294,7 +294,9 @@ class RealTimeBridge:
         self.buses = buses
         self.granularity_s = granularity_s
         self.send_failures = 0
-        self._inbox: queue.SimpleQueue = queue.SimpleQueue()
+        # queue.Queue, not SimpleQueue: on CPython 3.11 a SimpleQueue.get(timeout) that a signal
+        # interrupts (SIGTERM: stop) was seen never to return, so the node could not stop.
+        self._inbox: queue.Queue = queue.Queue()
         self._notifiers = [can.Notifier(bus, [_Inbox(side, self._inbox)], timeout=0.05) for side, bus in buses.items()]
 
     def run(self, stop) -> None:

@@ -28,7 +28,7 @@ import numpy as np
 
 from bench.bus.can import errors
 from bench.bus.can import protocol as p
-from bench.bus.can.config import BoardConfig, DriverConfig
+from bench.bus.can.config import BoardConfig, CanConfig, DriverConfig
 
 MAX_EVENTS_KEPT = 10_000
 RECENT_COMMANDS = 64
@@ -99,6 +99,7 @@ class MagnetorquerDriver:
         self.events: deque[FaultEvent] = deque(maxlen=MAX_EVENTS_KEPT)
         self.event_counts: Counter = Counter()
         self.sent_frames = 0
+        self.last_sent_ns: int | None = None
         self.received: Counter = Counter()   # every frame heard, by name (frame accounting)
         self._counter = 0
         self._sent: deque[_Sent] = deque(maxlen=RECENT_COMMANDS)
@@ -112,11 +113,20 @@ class MagnetorquerDriver:
         self._start_s = clock()
         self._new_events: list[FaultEvent] = []
 
+    @classmethod
+    def from_config(cls, bus: can.BusABC, config: CanConfig, **clocks) -> "MagnetorquerDriver":
+        """The driver for a scenario's [can] section, on an open bus (its flight channel)."""
+        return cls(bus, config.driver, config.board, p.Protocol(config.node_id), **clocks)
+
     # --- commanding -----------------------------------------------------------------------
     def command(self, dipole_am2, mode: int = p.MODE_DIPOLE) -> int:
-        """Send one command; returns its alive counter. Raises can.CanError if the bus refuses it."""
+        """Send one command; returns its alive counter. Raises can.CanError if the bus refuses it.
+
+        `last_sent_ns` is then the monotonic time it went to the bus (the "can_sent" stamp).
+        """
         counter = self._counter
         msg = self.protocol.command(dipole_am2, counter, mode)
+        self.last_sent_ns = time.monotonic_ns()
         self.bus.send(msg)
         self._counter = (counter + 1) % p.COUNTER_MODULO
         self.sent_frames += 1

@@ -43,6 +43,7 @@ class CanRunResult:
     driver_sent: int
     driver_received: Counter
     commanded: list[list[float]]         # every dipole the driver commanded
+    sent: list[tuple[int, int]]          # (alive counter, monotonic ns it went to the bus) per command
     run_dir: Path
     command_start_ns: int = 0
     last_command_ns: int = 0
@@ -61,6 +62,17 @@ class CanRunResult:
     def kinds(self) -> Counter:
         return Counter(e.kind for e in self.events)
 
+    def command_latencies_ns(self) -> list[int]:
+        """Driver send to board applied, per command, pairing both in order by alive counter."""
+        applied = iter(self.board["applied"])
+        latencies = []
+        for counter, sent_ns in self.sent:
+            for entry in applied:
+                if entry["counter"] == counter:
+                    latencies.append(entry["applied_ns"] - sent_ns)
+                    break
+        return latencies
+
 
 @dataclass
 class CanBench:
@@ -71,6 +83,7 @@ class CanBench:
     procs: dict = field(default_factory=dict)
     events: list = field(default_factory=list)
     commanded: list = field(default_factory=list)
+    sent: list = field(default_factory=list)          # (alive counter, monotonic ns) per command
 
     def __post_init__(self):
         from bench.scenario import load_scenario
@@ -136,9 +149,10 @@ class CanBench:
                 if self.command_start_s is None:
                     self.command_start_s, self.command_start_ns = now, time.monotonic_ns()
                 dipole = self.config.dipole_at(now - self.command_start_s)
-                self.driver.command(dipole)
+                counter = self.driver.command(dipole)
                 self.last_command_ns = time.monotonic_ns()
                 self.commanded.append(dipole)
+                self.sent.append((counter, self.driver.last_sent_ns))
                 next_command += period_s
                 if next_command < now:   # late wake-up: skip, do not burst
                     next_command = now + period_s
@@ -170,6 +184,8 @@ class CanBench:
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait()
+            with open(self.run_dir / f"{name}.log", "a") as log:
+                log.write(f"\n[harness] no exit {EXIT_TIMEOUT_S} s after SIGTERM: killed\n")
 
     def close(self) -> None:
         for name in list(self.procs):
@@ -184,6 +200,10 @@ class CanBench:
 
     def _collect(self) -> CanRunResult:
         can_dir = self.run_dir / "can"
+        for name, path in (("mtq", can_dir / BOARD_NAME), ("canbus", can_dir / REPORT_NAME)):
+            if not path.is_file():
+                log = (self.run_dir / f"{name}.log").read_text(errors="replace")[-3000:]
+                raise RuntimeError(f"node {name} left no {path.name} (exit {self.procs[name].returncode}):\n{log}")
         protocol = p.Protocol(self.config.node_id)
 
         def names(path: Path, channel: str | None = None) -> Counter:
@@ -204,6 +224,7 @@ class CanBench:
             driver_sent=self.driver.sent_frames,
             driver_received=Counter(self.driver.received),
             commanded=list(self.commanded),
+            sent=list(self.sent),
             run_dir=self.run_dir,
             command_start_ns=getattr(self, "command_start_ns", 0),
             last_command_ns=getattr(self, "last_command_ns", 0),

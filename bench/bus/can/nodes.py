@@ -78,12 +78,12 @@ def run_board(ctx) -> int:
         _wait_for_bus_peer(bus, config.board_channel, ctx)
         board.run(ctx.stop)
     finally:
-        bus.shutdown()
         summary = {"sent": dict(board.sent), "received": dict(board.received), "accepted": board.accepted,
                    "rejected": dict(board.rejected), "bad_frames": dict(board.protocol.bad.counts),
                    "applied": applied}
         (can_dir(ctx.run_dir) / BOARD_NAME).write_text(json.dumps(summary))
         ctx.log.info("board: sent %s, accepted %d, rejected %s", dict(board.sent), board.accepted, dict(board.rejected))
+        bus.shutdown()
     return 0
 
 
@@ -122,8 +122,7 @@ def run_bus_model(ctx) -> int:
     try:
         bridge.run(ctx.stop)
     finally:
-        for bus in buses.values():
-            bus.shutdown()
+        # Results first: whatever happens while the buses close, the run's record is on disk.
         if capture is not None:
             capture.stop()
         report = model.report()
@@ -134,6 +133,8 @@ def run_bus_model(ctx) -> int:
             for record in injector.records:
                 f.write(json.dumps(record.__dict__) + "\n")
         ctx.log.info("bus load %.1f %%, frames %s, dropped %s", report["bus_load_pct"], report["frames"], report["dropped"])
+        for bus in buses.values():
+            bus.shutdown()
     return 0
 
 
