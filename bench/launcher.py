@@ -34,6 +34,7 @@ EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130
 STARTUP_TIMEOUT_S = 60.0
 SHUTDOWN_GRACE_S = 5.0
+TOKEN_LOSS_GRACE_S = 1.0
 
 
 class NodeFailed(RuntimeError):
@@ -111,11 +112,16 @@ def _check_children(children: list[Child], allowed_done: set[str]) -> None:
             )
 
 
-def _check_liveliness(children: list[Child], lost: list[str]) -> None:
-    """A node whose token vanished while its process runs is hung (or cut off from the bus)."""
-    for name in lost:
+def _check_liveliness(children: list[Child], lost: list[tuple[str, float]]) -> None:
+    """A node whose token vanished while its process runs on is hung (or cut off from the bus).
+
+    A node that finishes drops its token just before it exits: give it a grace period.
+    """
+    for name, lost_at_s in lost:
         child = next((c for c in children if c.name == name), None)
-        if child is not None and child.process.poll() is None:
+        if child is None or time.monotonic() - lost_at_s < TOKEN_LOSS_GRACE_S:
+            continue
+        if child.process.poll() is None:
             raise NodeFailed(
                 f"process '{name}' (pid {child.process.pid}) stopped answering on Zenoh: its liveliness "
                 f"token expired (hung, or cut off from the bus)"
@@ -214,11 +220,11 @@ def _follow_run(session, run_id: str, children: list[Child], n_steps: int, show_
             pass   # garbage on the status topic must not stop the launcher
 
     subscriber = session.declare_subscriber(keys.key(run_id, keys.STATUS_STEP), on_step)
-    lost: list[str] = []
+    lost: list[tuple[str, float]] = []
 
     def on_token(sample) -> None:
         if sample.kind == zenoh.SampleKind.DELETE:
-            lost.append(str(sample.key_expr).rsplit("/", 1)[-1])
+            lost.append((str(sample.key_expr).rsplit("/", 1)[-1], time.monotonic()))
 
     tokens = session.liveliness().declare_subscriber(keys.key(run_id, f"{keys.ALIVE}/*"), on_token)
     plant = next(c for c in children if c.name == "plant")
