@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import itertools
 import os
+import subprocess
+import sys
 from collections import Counter
 
 import pytest
@@ -98,6 +100,13 @@ def test_no_fault_no_event_and_every_frame_delivered(tmp_path):
     assert before_silence(r) == [], "false alarm on a clean bus"
     assert r.board["accepted"] == r.driver_sent and r.board["rejected"] == {}
     check_all(r)
+    # Any CAN tool reads the capture: cantools decodes every frame with the DBC.
+    with open(r.run_dir / "can.log") as capture:
+        decoded = subprocess.run([sys.executable, "-m", "cantools", "decode", str(p.DBC_PATH)], stdin=capture,
+                                 capture_output=True, text=True, timeout=60)
+    assert decoded.returncode == 0, decoded.stderr
+    assert decoded.stdout.count("MTQ_CMD(") == r.wire[p.CMD]
+    assert "MTQ_TLM_DIPOLE(" in decoded.stdout and "Unknown frame" not in decoded.stdout
 
 
 def test_dropped_commands_put_the_board_in_safe_state(tmp_path):
