@@ -220,3 +220,40 @@ def test_error_frames_take_the_driver_bus_off_and_back(tmp_path):
     assert latency_s(r, "board_command_timeout", start) <= 0.2 + 3 * COMMAND_TIMEOUT_S
     assert r.report["bus_off"] == {"flight": 1}
     check_all(r)
+
+
+def test_garbage_from_a_rogue_node_is_counted_and_never_fatal(tmp_path):
+    import can
+
+    from bench.bus.can.transport import open_can_bus
+    from bench.bus.session import SessionOptions
+
+    scenario = write_scenario(tmp_path / "scenario", {**ZENOH, "faults": []})
+    bench = CanBench(scenario, tmp_path / "run", f"canfault-{os.getpid()}-{next(_runs)}")
+    garbage = [can.Message(arbitration_id=0x210, is_extended_id=False, data=b"\x01\x02\x03"),   # short command
+               can.Message(arbitration_id=0x123, is_extended_id=False, data=bytes(8)),         # unknown id
+               can.Message(arbitration_id=0x210, is_extended_id=True, data=bytes(8)),          # extended id
+               can.Message(arbitration_id=0x710, is_extended_id=False, data=b"\xee")]          # no NMT state
+    try:
+        bench.start()
+        rogue = open_can_bus("zenoh", "flight", run_id=bench.run_id, session_options=SessionOptions(connect=(bench.hub,)))
+        try:
+            rogue.wait_for_peers(2, 10)
+            bench.drive(FAULT_START_S)
+            for msg in garbage:
+                rogue.send(msg)
+            bench.drive(DRIVE_S - FAULT_START_S)
+            bench.drive(SILENCE_S, commanding=False)
+        finally:
+            rogue.shutdown()
+    except BaseException:
+        bench.close()
+        raise
+    r = bench.stop()
+    # The board heard all four through the bus model, counted them, and kept applying commands.
+    assert r.board["bad_frames"] == {"wrong_length": 1, "unknown_id": 2, "garbage": 1}
+    assert r.board["rejected"] == {"wrong_length": 1}
+    assert r.board["accepted"] == r.driver_sent
+    assert r.first_event("command_rejected", detail="WRONG_LENGTH") is not None
+    check_only_commanded_applied(r)
+    check_safe_when_commands_stop(r)

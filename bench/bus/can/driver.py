@@ -158,7 +158,7 @@ class MagnetorquerDriver:
         if msg.is_error_frame:
             self._on_error_frame(msg)
             return
-        if msg.arbitration_id == self.protocol.frame_ids[p.CMD]:
+        if msg.arbitration_id == self.protocol.frame_ids[p.CMD] and not msg.is_extended_id:
             # Our own identifier, sent by someone else.
             self._event("spoofed_command", self._wire_age_s(msg), p.CMD, f"data {bytes(msg.data).hex()}")
             return
@@ -185,7 +185,10 @@ class MagnetorquerDriver:
             self._event("board_command_timeout", self._wire_age_s(msg), p.EMCY)
         elif code in (p.EMCY_E2E_CHECK_FAILED, p.EMCY_PDO_LENGTH):
             status = int(frame.signals["E2eStatus"])
-            reason = p.E2EStatus(status).name if status in p.E2EStatus._value2member_map_ else "WRONG_LENGTH"
+            if code == p.EMCY_PDO_LENGTH:
+                reason = "WRONG_LENGTH"
+            else:
+                reason = p.E2EStatus(status).name if status in p.E2EStatus._value2member_map_ else f"status {status}"
             counter = int(frame.signals["RejectedCounter"])
             self._event("command_rejected", self._command_age_s(counter, msg), p.EMCY,
                         f"{reason} counter {counter}")

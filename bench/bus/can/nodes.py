@@ -76,6 +76,7 @@ def run_board(ctx) -> int:
     board = MagnetorquerBoard(bus, config.board, p.Protocol(config.node_id), on_applied=on_applied)
     try:
         _wait_for_bus_peer(bus, config.board_channel, ctx)
+        ctx.declare_ready([])   # the plant starts the loop once every node is ready
         board.run(ctx.stop)
     finally:
         summary = {"sent": dict(board.sent), "received": dict(board.received), "accepted": board.accepted,
