@@ -112,14 +112,14 @@ def _check_children(children: list[Child], allowed_done: set[str]) -> None:
             )
 
 
-def _check_liveliness(children: list[Child], lost: list[tuple[str, float]]) -> None:
+def _check_liveliness(children: list[Child], lost: list[tuple[str, float]], grace_s: float = TOKEN_LOSS_GRACE_S) -> None:
     """A node whose token vanished while its process runs on is hung (or cut off from the bus).
 
     A node that finishes drops its token just before it exits: give it a grace period.
     """
     for name, lost_at_s in lost:
         child = next((c for c in children if c.name == name), None)
-        if child is None or time.monotonic() - lost_at_s < TOKEN_LOSS_GRACE_S:
+        if child is None or time.monotonic() - lost_at_s < grace_s:
             continue
         if child.process.poll() is None:
             raise NodeFailed(
@@ -233,7 +233,13 @@ def _follow_run(session, run_id: str, children: list[Child], n_steps: int, show_
         task = progress.add_task("steps", total=n_steps)
         done = 0
         while plant.process.poll() is None:
-            _check_children(children, allowed_done=set())
+            try:
+                _check_children(children, allowed_done=set())
+            except NodeFailed:
+                # A peer that noticed a hung node first may exit before the grace period is
+                # over; the hung one is the cause to name.
+                _check_liveliness(children, lost, grace_s=0.0)
+                raise
             _check_liveliness(children, lost)
             try:
                 done = max(done, steps.get(timeout=0.1) + 1)
@@ -244,6 +250,7 @@ def _follow_run(session, run_id: str, children: list[Child], n_steps: int, show_
     subscriber.undeclare()
     tokens.undeclare()
     if plant.process.returncode != 0:
+        _check_liveliness(children, lost, grace_s=0.0)
         _check_children([plant], allowed_done=set())
 
 
