@@ -88,6 +88,8 @@ class _Deadline:
 
 
 class MagnetorquerDriver:
+    """One board's driver. Not thread-safe: command, poll and health from the owner's loop."""
+
     def __init__(self, bus: can.BusABC, config: DriverConfig, board: BoardConfig, protocol: p.Protocol,
                  clock: Callable[[], float] = time.monotonic, wall_clock: Callable[[], float] = time.time):
         self.bus = bus

@@ -122,8 +122,10 @@ class Duplicate(ActiveFault):
 
 
 class Replay(ActiveFault):
-    recorded: can.Message | None = None
-    recorded_ns = 0
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.recorded: can.Message | None = None
+        self.recorded_ns = 0
 
     def apply(self, tx, outcome, injector):
         if self.recorded is None:
@@ -173,7 +175,9 @@ class Spoof(ActiveFault):
 
 
 class CounterFreeze(ActiveFault):
-    frozen: int | None = None
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.frozen: int | None = None
 
     def apply(self, tx, outcome, injector):
         current = tx.msg.data[1] & 0x0F
