@@ -5,6 +5,7 @@ No bus model here: the two talk directly, and each test breaks one thing by hand
 from __future__ import annotations
 
 import itertools
+import time
 
 import can
 import numpy as np
@@ -193,3 +194,35 @@ def test_applied_dipole_that_ignores_the_command_is_an_actuator_mismatch(rig):
     rig.board._advance_coils = lambda target_current_a, now_s: None   # coil currents stuck
     rig.run(0.5, dipole_am2=(0.0, 0.1, 0.0))
     assert "actuator_mismatch" in rig.kinds()
+
+
+def test_command_loop_commands_at_its_own_rate_from_another_thread():
+    import threading
+
+    from bench.bus.can.driver import CommandLoop
+
+    channel = f"test-can-{next(_channels)}"
+    board_bus, driver_bus = can.Bus(interface="virtual", channel=channel), can.Bus(interface="virtual", channel=channel)
+    board = MagnetorquerBoard(board_bus, BoardConfig(), p.Protocol())
+    driver = MagnetorquerDriver(driver_bus, DriverConfig(), BoardConfig(), p.Protocol())
+    stop = threading.Event()
+    sent = []
+    loop = CommandLoop(driver, 0.02, on_command=lambda counter, dipole, ns: sent.append(dipole))
+    board_thread = threading.Thread(target=board.run, args=(stop,))
+    loop_thread = threading.Thread(target=loop.run, args=(stop,))
+    try:
+        board_thread.start()
+        loop_thread.start()
+        loop.set_dipole([0.0, 0.05, 0.0])        # as an attitude law on another thread would
+        deadline = time.monotonic() + 5.0
+        while not (loop.health.ok and loop.health.applied_dipole_am2[1] == pytest.approx(0.05, abs=1e-3)):
+            assert time.monotonic() < deadline, loop.health
+            time.sleep(0.01)
+    finally:
+        stop.set()
+        loop_thread.join(2)
+        board_thread.join(2)
+        board_bus.shutdown()
+        driver_bus.shutdown()
+    assert sent and sent[-1] == [0.0, 0.05, 0.0]
+    assert board.rejected == {}

@@ -293,3 +293,58 @@ class MagnetorquerDriver:
             events=dict(self.event_counts),
             bad_frames=dict(self.protocol.bad.counts),
         )
+
+
+class CommandLoop:
+    """Commands the board every command period with the current dipole, polling in between.
+
+    The board goes to its safe state when commands stop for command_timeout_s (0.1 s by default),
+    so the flight side must command at its own rate, whatever the rate of the law that decides the
+    dipole: run this on its own thread and hand it the dipole with `set_dipole`, or give it
+    `dipole_at(t_s)` (seconds since the first command; a scenario's `CanConfig.dipole_at`).
+    `health` is a snapshot other threads may read; `on_command(counter, dipole_am2, sent_ns)` and
+    `on_events(events)` run on the loop's thread.
+    """
+
+    def __init__(self, driver: MagnetorquerDriver, period_s: float,
+                 dipole_at: Callable[[float], list[float]] | None = None,
+                 on_command: Callable[[int, list[float], int], None] | None = None,
+                 on_events: Callable[[list[FaultEvent]], None] | None = None):
+        self.driver = driver
+        self.period_s = period_s
+        self.dipole_at = dipole_at
+        self.on_command = on_command
+        self.on_events = on_events
+        self.health: BoardHealth = driver.health()
+        self.started_s: float | None = None
+        self._dipole_am2 = [0.0, 0.0, 0.0]
+
+    def set_dipole(self, dipole_am2) -> None:
+        self._dipole_am2 = [float(x) for x in dipole_am2]   # one reference swap: safe across threads
+
+    def run(self, stop=None, duration_s: float | None = None, commanding: bool = True) -> None:
+        """Until `stop` is set or `duration_s` has passed; commanding=False only listens."""
+        clock = self.driver.clock
+        now = clock()
+        end = now + duration_s if duration_s is not None else float("inf")
+        next_command_s = now
+        while now < end and not (stop is not None and stop.is_set()):
+            if commanding and now >= next_command_s:
+                self._command(now)
+                next_command_s += self.period_s
+                if next_command_s < now:   # woke late: skip the missed slots rather than burst
+                    next_command_s = now + self.period_s
+            until = min(next_command_s, end) if commanding else end
+            events = self.driver.poll(timeout_s=max(0.0, min(until - clock(), 0.01)))
+            if events and self.on_events is not None:
+                self.on_events(events)
+            self.health = self.driver.health()
+            now = clock()
+
+    def _command(self, now_s: float) -> None:
+        if self.started_s is None:
+            self.started_s = now_s
+        dipole = self.dipole_at(now_s - self.started_s) if self.dipole_at is not None else self._dipole_am2
+        counter = self.driver.command(dipole)
+        if self.on_command is not None:
+            self.on_command(counter, dipole, self.driver.last_sent_ns)

@@ -23,7 +23,7 @@ import can
 from bench.bus import keys
 from bench.bus.can import protocol as p
 from bench.bus.can.config import CanConfig
-from bench.bus.can.driver import FaultEvent, MagnetorquerDriver
+from bench.bus.can.driver import CommandLoop, FaultEvent, MagnetorquerDriver
 from bench.bus.can.nodes import ACCOUNTING_NAME, BOARD_NAME, CAPTURE_NAME, INJECTIONS_NAME, REPORT_NAME
 from bench.bus.can.transport import open_can_bus
 from bench.bus.session import SessionOptions, free_loopback_port, loopback_endpoint, open_session
@@ -134,31 +134,21 @@ class CanBench:
                 raise TimeoutError(f"no heartbeat from the board after {STARTUP_TIMEOUT_S} s")
         self.driver.events.clear()
         self.driver.event_counts.clear()
-        self.command_start_s = None
+        self.loop = CommandLoop(self.driver, self.config.driver.command_period_s, dipole_at=self.config.dipole_at,
+                                on_command=self._on_command, on_events=self.events.extend)
         return self
 
     # --- the flight side ------------------------------------------------------------------
     def drive(self, duration_s: float, commanding: bool = True) -> None:
         """Command the scripted profile every command period (or stay silent) and poll."""
-        period_s = self.config.driver.command_period_s
-        now = time.monotonic()
-        end = now + duration_s
-        next_command = now
-        while now < end:
-            if commanding and now >= next_command:
-                if self.command_start_s is None:
-                    self.command_start_s, self.command_start_ns = now, time.monotonic_ns()
-                dipole = self.config.dipole_at(now - self.command_start_s)
-                counter = self.driver.command(dipole)
-                self.last_command_ns = time.monotonic_ns()
-                self.commanded.append(dipole)
-                self.sent.append((counter, self.driver.last_sent_ns))
-                next_command += period_s
-                if next_command < now:   # late wake-up: skip, do not burst
-                    next_command = now + period_s
-            wait = (min(next_command, end) if commanding else end) - time.monotonic()
-            self.events += self.driver.poll(timeout_s=max(0.0, min(wait, 0.01)))
-            now = time.monotonic()
+        self.loop.run(duration_s=duration_s, commanding=commanding)
+
+    def _on_command(self, counter: int, dipole_am2: list[float], sent_ns: int) -> None:
+        if not self.sent:
+            self.command_start_ns = sent_ns
+        self.last_command_ns = sent_ns
+        self.commanded.append(dipole_am2)
+        self.sent.append((counter, sent_ns))
 
     # --- stopping and collecting ----------------------------------------------------------
     def stop(self) -> CanRunResult:
@@ -169,7 +159,7 @@ class CanBench:
             self.drive(0.2, commanding=False)
             self._terminate("canbus")
             self.driver.poll(timeout_s=0.05)   # frames still queued for us, for the accounting
-            self.events = events
+            self.events[:] = events
             return self._collect()
         finally:
             self.close()
