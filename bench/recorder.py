@@ -35,7 +35,9 @@ COUNTS_FILE = "recorder_counts.json"
 OFFSETS_FILE = "clock_offsets.json"
 MALFORMED_PREFIX = "malformed/"
 CLOCK_SYNC_PERIOD_S = 0.5   # cheap (one query per round); catches short-lived runs
-DRAIN_POLL_S = 0.1
+# The writer wakes this often and writes everything queued since, rather than once per sample:
+# on a small machine each wake-up of the recorder competes with the loop's processes for a core.
+DRAIN_PERIOD_S = 0.2
 
 MESSAGE_TYPES: tuple[type[Message], ...] = tuple(Message.__subclasses__())
 _any_message = msgspec.json.Decoder(Union[MESSAGE_TYPES])  # tagged union: dispatches on "type"
@@ -211,8 +213,8 @@ def run(ctx) -> int:
     clock = ClockSyncThread(ctx)
     clock.start()
     try:
-        while not ctx.stop.is_set():
-            recorder.drain(DRAIN_POLL_S)
+        while not ctx.stop.wait(DRAIN_PERIOD_S):
+            recorder.drain(0.0)
     finally:
         recorder.finish()
         ctx.malformed.update(recorder.recording.malformed)
