@@ -38,8 +38,10 @@ class Rig:
         self.board_config = board_config or BoardConfig()
         self.driver_config = driver_config or DriverConfig()
         self.applied = []
+        self.coil_changes = []
         self.board = MagnetorquerBoard(self.board_bus, self.board_config, p.Protocol(), clock=self.clock,
-                                       on_applied=self.applied.append)
+                                       on_applied=self.applied.append,
+                                       on_coils_changed=lambda s: self.coil_changes.append((s.safe_state, s.actuation_paused)))
         self.driver = MagnetorquerDriver(self.driver_bus, self.driver_config, self.board_config, p.Protocol(),
                                          clock=self.clock)
         self.events = []
@@ -108,6 +110,8 @@ def test_board_goes_to_safe_state_when_commands_stop_and_driver_hears_it(rig):
     assert np.allclose(rig.board.applied_dipole_am2, 0.0, atol=1e-6)
     assert rig.kinds().count("board_command_timeout") == 1
     assert rig.driver.health().safe_state and not rig.driver.health().ok
+    assert rig.coil_changes == [(True, False)]          # whoever publishes the output hears of it
+    assert np.all(rig.board.output_dipole_am2 == 0.0)
     # Detected within the timeout plus one telemetry period of the last command.
     event = next(e for e in rig.events if e.kind == "board_command_timeout")
     assert event.detected_ns  # stamped
@@ -183,6 +187,7 @@ def test_actuation_pauses_for_magnetometer_windows(rig):
             r.run(0.01)
             (paused if r.board.state.actuation_paused else active).append(r.board.applied_dipole_am2[0])
         assert paused and active
+        assert (False, True) in r.coil_changes and (False, False) in r.coil_changes
         assert max(abs(x) for x in paused[2:]) < 0.1  # coils decay during the window
         assert "actuator_mismatch" not in r.kinds()
     finally:

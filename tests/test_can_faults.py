@@ -81,6 +81,10 @@ def check_only_commanded_applied(r: CanRunResult) -> None:
 
 def check_safe_when_commands_stop(r: CanRunResult) -> None:
     assert latency_s(r, "board_command_timeout", r.last_command_ns) <= COMMAND_TIMEOUT_S + 2 * TELEMETRY_PERIOD_S + 0.1
+    # The plant hears it too: the last applied dipole the board published is zero, in safe state.
+    last = r.mtq_applied[-1]
+    assert last.safe_state and last.dipole_am2 == [0.0, 0.0, 0.0]
+    assert len(r.mtq_applied) >= len(r.board["applied"])
 
 
 def check_all(r: CanRunResult, only_commanded: bool = True) -> None:

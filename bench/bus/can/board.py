@@ -55,12 +55,17 @@ class BoardState:
 class MagnetorquerBoard:
     def __init__(self, bus: can.BusABC, config: BoardConfig, protocol: p.Protocol,
                  clock: Callable[[], float] = time.monotonic,
-                 on_applied: Callable[[AppliedCommand], None] | None = None):
+                 on_applied: Callable[[AppliedCommand], None] | None = None,
+                 on_coils_changed: Callable[[BoardState], None] | None = None):
+        """on_applied: each accepted command. on_coils_changed: the coil target changed without a
+        command (safe state entered, magnetometer window began or ended), so that whoever
+        publishes the applied dipole never leaves a stale one standing."""
         self.bus = bus
         self.config = config
         self.protocol = protocol
         self.clock = clock
         self.on_applied = on_applied
+        self.on_coils_changed = on_coils_changed
         self.state = BoardState()
         self.e2e = p.E2EReceiver(config.max_delta_counter)
         self.rejected: Counter = Counter()     # by E2E status name or "wrong_length"
@@ -76,7 +81,14 @@ class MagnetorquerBoard:
 
     @property
     def applied_dipole_am2(self) -> np.ndarray:
+        """The dipole the coils produce now (it lags the target by the coil time constant)."""
         return self.state.coil_current_a * self.config.coil_gain_am2_per_a
+
+    @property
+    def output_dipole_am2(self) -> np.ndarray:
+        """The dipole the coil drivers are set to: zero in safe state and magnetometer windows."""
+        s = self.state
+        return np.zeros(3) if (s.safe_state or s.actuation_paused) else s.target_dipole_am2.copy()
 
     # --- the loop -------------------------------------------------------------------------
     def start(self, now_s: float) -> None:
@@ -151,10 +163,16 @@ class MagnetorquerBoard:
     def update(self, now_s: float) -> None:
         """Safe state and magnetometer windows, coil currents up to now, periodic frames."""
         s, c = self.state, self.config
+        changed = False
         if (self._last_command_s is not None and not s.safe_state
                 and now_s - self._last_command_s > c.command_timeout_s):
             self._enter_safe_state()
-        s.actuation_paused = self._in_mag_window(now_s)
+            changed = True
+        paused = self._in_mag_window(now_s)
+        changed |= paused != s.actuation_paused
+        s.actuation_paused = paused
+        if changed and self.on_coils_changed is not None:
+            self.on_coils_changed(s)
         target = np.zeros(3) if (s.safe_state or s.actuation_paused) else s.target_dipole_am2
         self._advance_coils(target / c.coil_gain_am2_per_a, now_s)
         if now_s >= self._next_telemetry_s:

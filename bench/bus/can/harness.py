@@ -26,6 +26,7 @@ from bench.bus.can.config import CanConfig
 from bench.bus.can.driver import CommandLoop, FaultEvent, MagnetorquerDriver
 from bench.bus.can.nodes import ACCOUNTING_NAME, BOARD_NAME, CAPTURE_NAME, INJECTIONS_NAME, REPORT_NAME
 from bench.bus.can.transport import open_can_bus
+from bench.bus.schemas import MtqApplied, decode
 from bench.bus.session import SessionOptions, free_loopback_port, loopback_endpoint, open_session
 
 STARTUP_TIMEOUT_S = 30.0
@@ -44,6 +45,7 @@ class CanRunResult:
     driver_received: Counter
     commanded: list[list[float]]         # every dipole the driver commanded
     sent: list[tuple[int, int]]          # (alive counter, monotonic ns it went to the bus) per command
+    mtq_applied: list[MtqApplied]        # the board's actuator/mtq messages, in arrival order
     run_dir: Path
     command_start_ns: int = 0
     last_command_ns: int = 0
@@ -93,6 +95,10 @@ class CanBench:
         self.run_dir.mkdir(parents=True, exist_ok=True)
         self.hub = loopback_endpoint(free_loopback_port())
         self.session = open_session(SessionOptions(listen=(self.hub,)))
+        self.mtq_applied: list[MtqApplied] = []   # what the board published for the plant
+        self._subscriber = self.session.declare_subscriber(
+            keys.key(self.run_id, keys.ACTUATOR_MTQ),
+            lambda sample: self.mtq_applied.append(decode(sample.payload.to_bytes(), MtqApplied)))
 
     # --- processes ------------------------------------------------------------------------
     def _spawn(self, name: str) -> None:
@@ -215,6 +221,7 @@ class CanBench:
             driver_received=Counter(self.driver.received),
             commanded=list(self.commanded),
             sent=list(self.sent),
+            mtq_applied=list(self.mtq_applied),
             run_dir=self.run_dir,
             command_start_ns=getattr(self, "command_start_ns", 0),
             last_command_ns=getattr(self, "last_command_ns", 0),

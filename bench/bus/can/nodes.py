@@ -63,17 +63,26 @@ def run_board(ctx) -> int:
     bus = open_node_bus(ctx, config, config.board_channel)
     applied: list[dict] = []
 
+    def publish(received_ns: int | None, counter: int) -> None:
+        stamps = {"applied": time.monotonic_ns()}
+        if received_ns is not None:
+            stamps["board_received"] = received_ns
+        message = MtqApplied(
+            header=header(ctx.run_id, ctx.published[keys.ACTUATOR_MTQ], 0.0, **stamps),
+            dipole_am2=board.output_dipole_am2.tolist(), coil_current_a=board.state.coil_current_a.tolist(),
+            safe_state=board.state.safe_state, actuation_paused=board.state.actuation_paused, alive_counter=counter)
+        ctx.publish(keys.ACTUATOR_MTQ, message)
+
     def on_applied(command: AppliedCommand) -> None:
         applied.append({"counter": command.alive_counter, "dipole_am2": command.dipole_am2.tolist(),
                         "applied_ns": command.applied_ns})
-        message = MtqApplied(
-            header=header(ctx.run_id, len(applied), 0.0, board_received=command.received_ns, applied=command.applied_ns),
-            dipole_am2=command.dipole_am2.tolist(), coil_current_a=board.state.coil_current_a.tolist(),
-            safe_state=board.state.safe_state, actuation_paused=board.state.actuation_paused,
-            alive_counter=command.alive_counter)
-        ctx.publish(keys.ACTUATOR_MTQ, message)
+        publish(command.received_ns, command.alive_counter)
 
-    board = MagnetorquerBoard(bus, config.board, p.Protocol(config.node_id), on_applied=on_applied)
+    def on_coils_changed(state) -> None:
+        publish(None, state.last_command_counter)
+
+    board = MagnetorquerBoard(bus, config.board, p.Protocol(config.node_id), on_applied=on_applied,
+                              on_coils_changed=on_coils_changed)
     try:
         _wait_for_bus_peer(bus, config.board_channel, ctx)
         ctx.declare_ready([])   # the plant starts the loop once every node is ready
