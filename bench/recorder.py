@@ -34,6 +34,9 @@ RECORDING_FILE = "recording.mcap"
 COUNTS_FILE = "recorder_counts.json"
 OFFSETS_FILE = "clock_offsets.json"
 MALFORMED_PREFIX = "malformed/"
+# A chunk reaches the file when full: a recorder killed mid-run loses at most this much (a few
+# seconds of a real-time run) instead of mcap's default 1 MiB, the whole of a short run.
+CHUNK_SIZE_BYTES = 64 * 1024
 CLOCK_SYNC_PERIOD_S = 0.5   # cheap (one query per round); catches short-lived runs
 # The writer wakes this often and writes everything queued since, rather than once per sample:
 # on a small machine each wake-up of the recorder competes with the loop's processes for a core.
@@ -79,7 +82,7 @@ class Recording:
     def __init__(self, path: Path, run_id: str):
         self.run_id = run_id
         self._file = open(path, "wb")
-        self._writer = Writer(self._file)
+        self._writer = Writer(self._file, chunk_size=CHUNK_SIZE_BYTES)
         self._writer.start(profile="", library="orbit-hil-bench recorder")
         self._schemas: dict[type, int] = {}
         self._channels: dict[str, int] = {}

@@ -158,7 +158,7 @@ def test_report_files_tables_and_metrics(tmp_path):
     assert deadlines["plant_misses_controller_slow"] == len(SLOW_CYCLES)
     assert deadlines["plant_misses_transport_slow"] == len(TRANSPORT_LOST)
     assert deadlines["worst_cycle_time_s"] == pytest.approx(0.06)
-    assert metrics["recording"] == {"recorded": 3 * N + len(SLOW_CYCLES) + 6, "malformed": 1, "missing": 0}
+    assert metrics["recording"] == {"recorded": 3 * N + len(SLOW_CYCLES) + 6, "malformed": 1, "missing": 0, "truncated": False}
     assert metrics["estimator_error"]["fraction_within_3sigma"] == 1.0   # |error| <= 9 m, 3 sigma = 30 m
     assert metrics["estimator_error"]["rms_error"]["x"] == pytest.approx(np.sqrt(np.mean((3.0 * (1 + np.arange(N) % 3)) ** 2)))
     assert metrics["latency_ms"][END_TO_END.name]["n"] == N - len(SLOW_CYCLES | TRANSPORT_LOST)
@@ -216,3 +216,23 @@ def test_can_bus_load_and_fault_timeline(tmp_path):
     assert bus["injections"] == {"0:drop dropped": 3}
     assert (run_dir / "plots" / "bus_load.png").stat().st_size > 10_000
     assert "## CAN bus" in (run_dir / "report.md").read_text()
+
+
+def test_a_recording_cut_short_is_read_up_to_its_last_whole_chunk(tmp_path):
+    """A recorder killed before finishing its file: the report keeps what was written and says so."""
+    run_dir = make_run(tmp_path / "run")
+    path = run_dir / RECORDING_FILE
+    recording = Recording(path, RUN_ID)
+    for k in range(2000):      # ~0.5 MB: several chunks
+        hdr = header(RUN_ID, k, 0.0, sensed=k)
+        recording.write(keys.TRUTH, encode(TruthState(hdr, [float(k)] * 6, [0.0] * 3)), k + 1)
+    recording.close()
+    size = path.stat().st_size
+    with open(path, "r+b") as f:
+        f.truncate(size // 2)
+    run = load_run(run_dir)
+    assert run.recording_truncated
+    seqs = [m.seq for m in run.messages]
+    assert 0 < len(seqs) < 2000 and seqs == list(range(len(seqs)))
+    write_report(run_dir)
+    assert "ends early" in (run_dir / "report.md").read_text()

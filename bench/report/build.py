@@ -156,10 +156,12 @@ def recording_section(run: RunData) -> tuple[Section, dict]:
     malformed = sum(c["malformed"] for c in counts["topics"].values())
     note = ("recording.mcap holds every sample the recorder saw; 'published' is what each publisher reported "
             f"at shutdown. Missing in total: {missing}; malformed (kept raw): {malformed}.")
+    if run.recording_truncated:
+        note += " The recording ends early (the recorder did not finish it): samples after its last chunk are lost."
     if run.recorder_counts is None:
-        note = "No recorder ran in this run."
+        note = "No recorder ran in this run, or it did not finish." if not run.messages else "The recorder did not finish (no counts)."
     section = Section("Recording", [note], [Table(["topic", "published", "recorded", "malformed", "missing"], rows)])
-    return section, {"missing": missing, "malformed": malformed,
+    return section, {"missing": missing, "malformed": malformed, "truncated": run.recording_truncated,
                      "recorded": sum(c["recorded"] for c in counts["topics"].values())}
 
 

@@ -6,11 +6,13 @@ is None or empty then, and the report leaves the matching section out.
 from __future__ import annotations
 
 import json
+import struct
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from mcap.reader import make_reader
+from mcap.exceptions import McapError
+from mcap.reader import NonSeekingReader
 
 from bench.recorder import COUNTS_FILE, MALFORMED_PREFIX, OFFSETS_FILE, RECORDING_FILE
 from bench.scenario import Scenario, ScenarioError, load_scenario
@@ -44,6 +46,7 @@ class RunData:
     trajectory: dict[str, np.ndarray] = field(default_factory=dict)
     messages: list[Recorded] = field(default_factory=list)
     malformed_in_recording: int = 0
+    recording_truncated: bool = False
     recorder_counts: dict | None = None
     clock_offsets: dict = field(default_factory=dict)
     can_log: Path | None = None
@@ -61,16 +64,22 @@ class RunDirError(ValueError):
     """Not a run directory (or an unreadable one); the message says what is missing."""
 
 
-def read_recording(path: Path) -> tuple[list[Recorded], int]:
-    """Valid messages of an MCAP recording, and how many malformed payloads it holds."""
-    messages, malformed = [], 0
+def read_recording(path: Path) -> tuple[list[Recorded], int, bool]:
+    """Valid messages of an MCAP recording (in arrival order), how many malformed payloads it
+    holds, and whether it ended early (a recorder killed before it finished the file: what it
+    wrote until then is still read, with a non-seeking reader that does not need the summary)."""
+    messages, malformed, truncated = [], 0, False
     with open(path, "rb") as f:
-        for _schema, channel, message in make_reader(f).iter_messages(log_time_order=True):
-            if channel.topic.startswith(MALFORMED_PREFIX):
-                malformed += 1
-                continue
-            messages.append(Recorded(channel.topic, message.log_time, json.loads(message.data)))
-    return messages, malformed
+        try:
+            for _schema, channel, message in NonSeekingReader(f).iter_messages(log_time_order=False):
+                if channel.topic.startswith(MALFORMED_PREFIX):
+                    malformed += 1
+                    continue
+                messages.append(Recorded(channel.topic, message.log_time, json.loads(message.data)))
+        except (McapError, struct.error, EOFError, ValueError):
+            truncated = True
+    messages.sort(key=lambda m: m.log_time_ns)
+    return messages, malformed, truncated
 
 
 def _json_or(path: Path, default):
@@ -91,7 +100,7 @@ def load_run(run_dir: str | Path) -> RunData:
         with np.load(run_dir / "trajectory.npz") as npz:
             data.trajectory = {k: npz[k] for k in npz.files}
     if (run_dir / RECORDING_FILE).is_file():
-        data.messages, data.malformed_in_recording = read_recording(run_dir / RECORDING_FILE)
+        data.messages, data.malformed_in_recording, data.recording_truncated = read_recording(run_dir / RECORDING_FILE)
         if data.messages:
             data.run_id = data.messages[0].body["header"]["run_id"]
     data.recorder_counts = _json_or(run_dir / COUNTS_FILE, None)
