@@ -166,6 +166,11 @@ def test_plant_side_deadline_counts_steps_without_their_command():
     assert plant.counter.misses == 2 and outcomes[1].fallback == "hold"
 
 
+def test_stress_in_a_process_that_does_not_apply_it_is_refused():
+    with pytest.raises(ScenarioError, match="controller.deadline.stress.process"):
+        parse_scenario({"name": "t", "controller": {"deadline": {"stress": {"process": "estimator"}}}})
+
+
 def test_bad_deadline_section_names_the_field():
     with pytest.raises(ScenarioError, match="controller.deadline.fallback"):
         parse_scenario({"name": "t", "controller": {"deadline": {"fallback": "pray"}}})

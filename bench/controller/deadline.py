@@ -29,7 +29,9 @@ from bench.bus.schemas import DeadlineEvent, Header
 Seconds = Annotated[float, msgspec.Meta(ge=0)]
 PositiveSeconds = Annotated[float, msgspec.Meta(gt=0)]
 FallbackPolicy = Literal["hold", "shifted_plan", "lqr"]
-StressedProcess = Literal["controller", "estimator", "plant"]
+# Processes that apply a StressConfig (call StressInjector(config, name).apply(cycle) in their
+# loop). Only the controller does so far; a scenario naming another is refused, not ignored.
+StressedProcess = Literal["controller"]
 
 # Key of `info` under which a predictive controller returns its planned inputs, shape (N, n_u),
 # in N; the "shifted_plan" fallback replays the rest of the last plan that came in on time.
