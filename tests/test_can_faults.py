@@ -69,8 +69,8 @@ def check_accounting(r: CanRunResult) -> None:
     for name in p.BOARD_FRAMES:
         assert r.board["sent"].get(name, 0) == r.wire[name] - injected[name] + r.dropped[name], name
     assert r.board["received"].get(p.CMD, 0) == r.wire[p.CMD], "a command on the wire did not reach the board"
-    to_driver = sum(r.wire[n] for n in p.BOARD_FRAMES) + injected[p.CMD] + r.wire["error_frame"]
-    assert sum(r.driver_received.values()) == to_driver, "a frame on the wire did not reach the driver"
+    to_driver = Counter({n: r.wire[n] for n in p.BOARD_FRAMES}) + Counter({p.CMD: injected[p.CMD], "error_frame": r.wire["error_frame"]})
+    assert +r.driver_received == +to_driver, "a frame on the wire did not reach the driver"
 
 
 def check_only_commanded_applied(r: CanRunResult) -> None:

@@ -284,16 +284,23 @@ def _percentiles_us(values_ns: list[int]) -> dict:
 class RealTimeBridge:
     """Runs a BusModel on the wall clock between two python-can buses (flight side, board side).
 
-    Each bus gets a python-can Notifier whose thread stamps arrivals with the monotonic clock; the
-    loop feeds them to the model and sends each delivery on the listening side's bus. Deliveries
-    leave at most `granularity_s` after the model says their last bit passed.
+    A frame enters the model at the time its sender put it on its bus (python-can's timestamp:
+    the sender's clock over Zenoh, the kernel's on SocketCAN), not when this process got round
+    to reading it: a stall here must delay deliveries, never bunch frames 20 ms apart into a burst
+    that overflows a transmit queue in the model. Frames are submitted in that time order, the
+    model advanced to each first. Deliveries leave at most `granularity_s` after the model says
+    their last bit passed.
     """
+
+    # A timestamp further from the arrival than this is another host's clock: use the arrival.
+    MAX_TRANSPORT_DELAY_NS = 1_000_000_000
 
     def __init__(self, model: BusModel, buses: dict[str, can.BusABC], granularity_s: float = 0.0005):
         self.model = model
         self.buses = buses
         self.granularity_s = granularity_s
         self.send_failures = 0
+        self._wall_minus_monotonic_ns = time.time_ns() - time.monotonic_ns()
         # queue.Queue, not SimpleQueue: on CPython 3.11 a SimpleQueue.get(timeout) that a signal
         # interrupts (SIGTERM: stop) was seen never to return, so the node could not stop.
         self._inbox: queue.Queue = queue.Queue()
@@ -305,18 +312,33 @@ class RealTimeBridge:
                 now_ns = time.monotonic_ns()
                 next_ns = self.model.next_event_ns()
                 wait_s = 0.01 if next_ns is None else min(0.01, max(self.granularity_s, (next_ns - now_ns) / 1e9))
-                try:
-                    item = self._inbox.get(timeout=wait_s)
-                    while True:
-                        side, msg, t_ns = item
-                        self.model.submit(side, msg, t_ns)
-                        item = self._inbox.get_nowait()
-                except queue.Empty:
-                    pass
+                for t_ns, side, msg in sorted(self._arrivals(wait_s), key=lambda a: a[0]):
+                    self._deliver(self.model.run_until(t_ns))
+                    self.model.submit(side, msg, t_ns)
                 self._deliver(self.model.run_until(time.monotonic_ns()))
         finally:
             for notifier in self._notifiers:
                 notifier.stop()
+
+    def _arrivals(self, wait_s: float) -> list[tuple[int, str, can.Message]]:
+        """Everything that arrived (waiting up to wait_s for the first), with its send time."""
+        arrivals = []
+        try:
+            item = self._inbox.get(timeout=wait_s)
+            while True:
+                side, msg, arrival_ns = item
+                arrivals.append((self._sent_ns(msg, arrival_ns), side, msg))
+                item = self._inbox.get_nowait()
+        except queue.Empty:
+            pass
+        return arrivals
+
+    def _sent_ns(self, msg: can.Message, arrival_ns: int) -> int:
+        if msg.timestamp:
+            sent_ns = round(msg.timestamp * 1e9) - self._wall_minus_monotonic_ns
+            if 0 <= arrival_ns - sent_ns <= self.MAX_TRANSPORT_DELAY_NS:
+                return sent_ns
+        return arrival_ns
 
     def _deliver(self, deliveries: list[Delivery]) -> None:
         for delivery in deliveries:

@@ -126,12 +126,13 @@ class CanBench:
     def start(self) -> "CanBench":
         self._spawn("canbus")
         self._wait_token("ready", "canbus")
-        self._spawn("mtq")
+        # The driver listens before the board exists: every frame the board sends is counted.
         self.bus = open_can_bus(self.config.transport, self.config.flight_channel, run_id=self.run_id,
                                 session_options=SessionOptions(connect=(self.hub,)))
         if hasattr(self.bus, "wait_for_peers"):
             self.bus.wait_for_peers(1, STARTUP_TIMEOUT_S)
         self.driver = MagnetorquerDriver(self.bus, self.config.driver, self.config.board, p.Protocol(self.config.node_id))
+        self._spawn("mtq")
         deadline = time.monotonic() + STARTUP_TIMEOUT_S
         while not self.driver.health().alive:   # the board's first heartbeat
             self.driver.poll(timeout_s=0.05)
