@@ -284,7 +284,7 @@ def _wait_alive(session, run_id: str, children: list[Child]) -> None:
 
 
 def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None, show_progress: bool = True,
-              zenoh_config: str | None = None) -> tuple[int, Path]:
+              zenoh_config: str | None = None, write_report: bool = True) -> tuple[int, Path]:
     """Run a scenario as separate processes. Returns (exit code, run directory)."""
     hub = loopback_endpoint(port or free_loopback_port())
     # The session first: a taken port must fail before anything is written or started.
@@ -310,6 +310,11 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
         _check_children(children, allowed_done={c.name for c in children})
         metrics = write_metrics(run_dir, scenario, children, stats, wall_s)
         _print_summary(metrics, run_dir)
+        if write_report:
+            from bench.report.build import write_report as build_report
+
+            _, html = build_report(run_dir)
+            print(f"report: {html}")
         return 0, run_dir
     except NodeFailed as exc:
         print(f"bench: error: {exc}", file=sys.stderr)
@@ -329,7 +334,8 @@ def cmd_run(args) -> int:
         run_id = keys.check_run_id(args.run_id or _new_run_id(scenario))
         if args.port is not None and not 0 < args.port < 65536:
             raise ScenarioError(f"--port must be between 1 and 65535, got {args.port}")
-        code, _ = run_bench(scenario, run_id, Path(args.runs_dir), args.port, not args.no_progress, args.zenoh_config)
+        code, _ = run_bench(scenario, run_id, Path(args.runs_dir), args.port, not args.no_progress, args.zenoh_config,
+                            write_report=not args.no_report)
         return code
     except (ScenarioError, SessionConfigError, ValueError) as exc:
         print(f"bench: error: {exc}", file=sys.stderr)
@@ -369,6 +375,7 @@ def add_commands(subparsers) -> None:
     run.add_argument("--steps", type=int, help="override the scenario's run.steps")
     run.add_argument("--zenoh-config", help="JSON5 Zenoh configuration applied under the bench's own settings")
     run.add_argument("--no-progress", action="store_true", help="no progress bar")
+    run.add_argument("--no-report", action="store_true", help="skip report.html/report.md (bench report RUN_DIR later)")
     run.set_defaults(func=cmd_run)
 
     node = subparsers.add_parser("node", help="run one bench process (the launcher uses this; also for other hosts)")

@@ -174,3 +174,16 @@ def test_stress_in_a_process_that_does_not_apply_it_is_refused():
 def test_bad_deadline_section_names_the_field():
     with pytest.raises(ScenarioError, match="controller.deadline.fallback"):
         parse_scenario({"name": "t", "controller": {"deadline": {"fallback": "pray"}}})
+
+
+def test_lock_step_counts_a_miss_but_keeps_the_late_result():
+    # Lock-step's plant waits for every command; substituting a fallback there would make the
+    # trajectory depend on how loaded the machine was.
+    clock = FakeClock()
+    times_s = [0.002, 0.015, 0.001]
+    monitor = DeadlineMonitor(DeadlineConfig(budget_s=BUDGET_S), clock_ns=clock, apply_fallback=False)
+    outcomes = run(monitor, clock.controller(times_s), len(times_s))
+    assert [o.missed for o in outcomes] == [False, True, False]
+    assert [o.fallback for o in outcomes] == [None, None, None]
+    assert [o.thrust_n[0] for o in outcomes] == [0.0, 1.0, 2.0]
+    assert monitor.summary()["misses"] == 1 and monitor.summary()["fallbacks_applied"] == {}

@@ -64,15 +64,18 @@ def test_multiprocess_run_reproduces_in_process_simulation(default_run):
     np.testing.assert_allclose(trajectory["thrust_n"], reference["thrust_n"], rtol=1e-9, atol=1e-15)
 
 
-def test_summary_is_printed(default_run):
-    _, result = default_run
+def test_summary_is_printed_and_the_report_written(default_run):
+    run_dir, result = default_run
     assert "final position error" in result.stdout and "run directory" in result.stdout
+    assert (run_dir / "report.html").is_file() and (run_dir / "report.md").is_file()
+    assert (run_dir / "recording.mcap").stat().st_size > 0
 
 
 def test_nonlinear_dynamics_run_reproduces_in_process(tmp_path, runs_dir):
     scenario = tmp_path / "nl.toml"
     scenario.write_text('name = "nl"\n[run]\nsteps = 20\n[plant]\ndynamics = "nonlinear"\ninitial_condition = "C"\n')
-    result = run_bench_cli("run", str(scenario), "--run-id", "nl", "--runs-dir", str(runs_dir), "--no-progress")
+    result = run_bench_cli("run", str(scenario), "--run-id", "nl", "--runs-dir", str(runs_dir), "--no-progress",
+                           "--no-report")
     assert result.returncode == 0, result.stderr
     _, trajectory = load_run(runs_dir / "nl")
     reference, _ = simulate_in_process(load_scenario(str(scenario)))
@@ -82,7 +85,7 @@ def test_nonlinear_dynamics_run_reproduces_in_process(tmp_path, runs_dir):
 def test_real_time_mode_runs_on_the_wall_clock(runs_dir):
     started = time.monotonic()
     result = run_bench_cli("run", "--mode", "real-time", "--steps", "20", "--run-id", "rt", "--runs-dir",
-                           str(runs_dir), "--no-progress")
+                           str(runs_dir), "--no-progress", "--no-report")
     wall_s = time.monotonic() - started
     assert result.returncode == 0, result.stderr
     metrics, _ = load_run(runs_dir / "rt")
@@ -174,7 +177,8 @@ def test_smoother_in_the_loop_reproduces_in_process(runs_dir, name):
     # by construction. Equal trajectories show the process wiring hands over exactly that.
     import msgspec
 
-    result = run_bench_cli("run", name, "--steps", "40", "--run-id", name, "--runs-dir", str(runs_dir), "--no-progress")
+    result = run_bench_cli("run", name, "--steps", "40", "--run-id", name, "--runs-dir", str(runs_dir), "--no-progress",
+                           "--no-report")
     assert result.returncode == 0, result.stderr
     _, trajectory = load_run(runs_dir / name)
     scenario = load_scenario(name)

@@ -9,6 +9,7 @@ SENSE_RELPOS = "sense/relpos"
 TRUTH = "truth"
 ESTIMATE_TRANSLATION = "estimate/translation"
 COMMAND_THRUST = "command/thrust"
+COMMAND_APPLIED = "command/applied"   # the command the plant applied, with its full stamp chain
 ACTUATOR_MTQ = "actuator/mtq"
 EVENT_DEADLINE = "event/deadline"
 STATUS_STEP = "status/step"

@@ -19,7 +19,8 @@ class ControlCycle:
         self.law = ThrustLaw(scenario)
         deadline = scenario.controller.deadline
         lqr_law = lqr_fallback_law(scenario.controller, self.law.params) if deadline.fallback == "lqr" else None
-        self.monitor = DeadlineMonitor(deadline, n_inputs=3, lqr_law=lqr_law)
+        self.monitor = DeadlineMonitor(deadline, n_inputs=3, lqr_law=lqr_law,
+                                       apply_fallback=scenario.run.mode == "real-time")
         self.max_abs_thrust_n = self.law.params.max_abs_thrust_n
         self.saturated_cycles = 0
 

@@ -189,7 +189,11 @@ class DeadlineMonitor:
         lqr_law: Callable[[np.ndarray], np.ndarray] | None = None,
         stress: StressInjector | None = None,
         clock_ns: Callable[[], int] = time.monotonic_ns,
+        apply_fallback: bool = True,
     ):
+        """apply_fallback=False (lock-step mode): a miss is counted and reported but the late
+        result is still used, because the plant waits for it anyway and lock-step runs must not
+        depend on how busy the machine was."""
         if config.fallback == "lqr" and lqr_law is None:
             raise ValueError("controller.deadline.fallback = 'lqr' needs an LQR law (lqr_fallback_law)")
         self.config = config
@@ -197,6 +201,7 @@ class DeadlineMonitor:
         self.lqr_law = lqr_law
         self.stress = stress or StressInjector(config.stress, "controller")
         self.clock_ns = clock_ns
+        self.apply_fallback = apply_fallback
         self.counter = MissCounter()
         self.fallbacks_applied: dict[str, int] = {}
         self._last = _LastGood(command=np.zeros(n_inputs))
@@ -219,7 +224,7 @@ class DeadlineMonitor:
         missed = cycle_time_s > self.budget_s
         was_missing = self.counter.consecutive_misses > 0
         self.counter.record(cycle_time_s, missed)
-        if missed:
+        if missed and self.apply_fallback:
             u, fallback = self._fallback(x)
             self.fallbacks_applied[fallback] = self.fallbacks_applied.get(fallback, 0) + 1
         else:

@@ -10,6 +10,7 @@ from __future__ import annotations
 import queue
 import time
 
+import msgspec
 import numpy as np
 
 from bench.bus import keys
@@ -133,7 +134,10 @@ def run(ctx: NodeContext) -> int:
             if command is not None:
                 received = command.header.stamped("plant_received", time.monotonic_ns())
                 last_thrust_n = np.array(command.thrust_n)
-                stamps.record(k, received.stamped("applied", time.monotonic_ns()).stamps_ns)
+                applied = msgspec.structs.replace(command, header=received.stamped("applied", time.monotonic_ns()))
+                stamps.record(k, applied.header.stamps_ns)
+                # Published so the recording holds every stage's stamp, actuation included.
+                ctx.publish(keys.COMMAND_APPLIED, applied)
             plant.apply(last_thrust_n)
             ctx.publish(keys.STATUS_STEP, StepDone(header(ctx.run_id, k, plant.sim_time_s), n_steps, k == n_steps - 1))
     except LoopBroken as exc:
