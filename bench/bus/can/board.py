@@ -122,7 +122,7 @@ class MagnetorquerBoard:
     def handle(self, msg: can.Message, now_s: float) -> None:
         """One frame from the bus. Anything but a valid command is counted and ignored."""
         received_ns = time.monotonic_ns()
-        self.received[self.protocol.name_of(msg.arbitration_id) or ("error_frame" if msg.is_error_frame else "other")] += 1
+        self.received[p.frame_kind(self.protocol, msg)] += 1
         if msg.arbitration_id == self.protocol.frame_ids[p.CMD] and len(msg.data) != 8 and not msg.is_error_frame:
             self._reject("wrong_length", None, p.EMCY_PDO_LENGTH, 0)
         frame = self.protocol.decode(msg)

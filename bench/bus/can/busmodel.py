@@ -187,7 +187,7 @@ class BusModel:
                 self.tec[tx.source].on_success()
         stamped = _stamped(flight.msg, self.to_wall_s(flight.end_ns), CHANNEL_BUS)
         self.capture(stamped)
-        self.stats.frames[self.protocol.name_of(flight.msg.arbitration_id) or hex(flight.msg.arbitration_id)] += 1
+        self.stats.frames[p.frame_kind(self.protocol, flight.msg)] += 1
         if tx is None:
             return []   # no node's acceptance filter takes the babbler's identifier
         if tx.source == FLIGHT and flight.msg.arbitration_id == self._cmd_id:

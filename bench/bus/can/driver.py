@@ -156,7 +156,7 @@ class MagnetorquerDriver:
 
     def handle(self, msg: can.Message) -> None:
         now_s = self.clock()
-        self.received[self.protocol.name_of(msg.arbitration_id) or ("error_frame" if msg.is_error_frame else "other")] += 1
+        self.received[p.frame_kind(self.protocol, msg)] += 1
         if msg.is_error_frame:
             self._on_error_frame(msg)
             return

@@ -206,9 +206,8 @@ class CanBench:
         def names(path: Path, channel: str | None = None) -> Counter:
             if not path.is_file():
                 return Counter()
-            return Counter(protocol.name_of(m.arbitration_id) or ("error_frame" if m.is_error_frame
-                                                                 else hex(m.arbitration_id))
-                           for m in can.LogReader(str(path)) if channel is None or m.channel == channel)
+            return Counter(p.frame_kind(protocol, m) for m in can.LogReader(str(path))
+                           if channel is None or m.channel == channel)
 
         injections = [json.loads(line) for line in (can_dir / INJECTIONS_NAME).read_text().splitlines() if line]
         return CanRunResult(

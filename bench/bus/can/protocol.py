@@ -220,6 +220,13 @@ class Protocol:
         return Frame(message.name, signals, counter, crc_ok, msg.timestamp)
 
 
+def frame_kind(protocol: Protocol, msg: can.Message) -> str:
+    """A frame's name for counting: its DBC name, "error_frame", or its identifier in hex."""
+    if msg.is_error_frame:
+        return "error_frame"
+    return protocol.name_of(msg.arbitration_id) or hex(msg.arbitration_id)
+
+
 def _clamp(value, signal) -> float:
     low = signal.minimum if signal.minimum is not None else float("-inf")
     high = signal.maximum if signal.maximum is not None else float("inf")
