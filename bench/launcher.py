@@ -45,13 +45,13 @@ class NodeFailed(RuntimeError):
 # Which processes a scenario needs
 # ------------------------------------------------------------------------------------------------
 def nodes_for(scenario: Scenario) -> list[str]:
-    """Loop nodes always; the recorder and the CAN nodes where they exist and the scenario asks."""
-    names = ["plant", "estimator", "controller"]
-    if "recorder" in NODES:
-        names.insert(0, "recorder")   # first, so it is subscribed before anything is published
-    if getattr(scenario, "can", None) is not None:
-        names += [n for n in ("canbus", "mtq") if n in NODES]
-    return names
+    """In start order; they stop in reverse. The recorder first and last, so it sees everything;
+    the CAN bus and board before the flight side and after it, so the driver never sees the board
+    vanish at shutdown."""
+    names = ["recorder"] if "recorder" in NODES else []
+    if scenario.can is not None:
+        names += ["canbus", "mtq"]
+    return names + ["plant", "estimator", "controller"]
 
 
 # ------------------------------------------------------------------------------------------------

@@ -14,11 +14,15 @@ import numpy as np
 from bench.bus import keys
 from bench.bus.schemas import ThrustCommand, TranslationEstimate
 from bench.controller.cycle import ControlCycle
+from bench.controller.mtq_link import MagnetorquerLink
 from bench.node_runtime import NodeContext
 
 
 def run(ctx: NodeContext) -> int:
     control = ControlCycle(ctx.scenario)
+    mtq = MagnetorquerLink(ctx, ctx.scenario.can) if ctx.scenario.can is not None else None
+    if mtq is not None:
+        mtq.start()
     estimates = ctx.subscribe_queue(keys.ESTIMATE_TRANSLATION, TranslationEstimate)
     ctx.declare_publisher(keys.EVENT_DEADLINE)
     ctx.declare_ready([keys.COMMAND_THRUST])
@@ -38,6 +42,8 @@ def run(ctx: NodeContext) -> int:
         ))
         if outcome.has_event:
             ctx.publish(keys.EVENT_DEADLINE, outcome.deadline_event(hdr))
+    if mtq is not None:
+        mtq.stop()
     summary = control.monitor.summary() | {"saturated_cycles": control.saturated_cycles,
                                            "model_updates": control.law.model_updates}
     (ctx.run_dir / "deadline_controller.json").write_text(json.dumps(summary, indent=2))

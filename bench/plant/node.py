@@ -14,7 +14,7 @@ import msgspec
 import numpy as np
 
 from bench.bus import keys
-from bench.bus.schemas import RelativePosition, StepDone, ThrustCommand, TruthState, header
+from bench.bus.schemas import MtqApplied, RelativePosition, StepDone, ThrustCommand, TruthState, header
 from bench.node_runtime import NodeContext
 from bench.plant.model import TranslationPlant
 from bench.bus.schemas import STAGES
@@ -102,6 +102,10 @@ def run(ctx: NodeContext) -> int:
     plant = TranslationPlant.from_scenario(scenario)
     n_steps = scenario.n_steps
     commands = ctx.subscribe_queue(keys.COMMAND_THRUST, ThrustCommand)
+    dipoles = MagnetorquerRecord()
+    if scenario.can is not None:
+        # No attitude dynamics yet: the plant records the dipole the board applies (m x B later).
+        ctx.subscribe(keys.ACTUATOR_MTQ, MtqApplied, dipoles.add)
     sense_topic = keys.TRUTH if scenario.estimator.mode == "truth" else keys.SENSE_RELPOS
     ctx.declare_publisher(keys.SENSE_RELPOS)
     ctx.declare_publisher(keys.EVENT_DEADLINE)
@@ -144,12 +148,28 @@ def run(ctx: NodeContext) -> int:
         ctx.log.error("%s", exc)
         return 1
     finally:
-        _write_trajectory(ctx, plant, stamps, clock)
+        _write_trajectory(ctx, plant, stamps, clock, dipoles)
     return 0
 
 
-def _write_trajectory(ctx: NodeContext, plant: TranslationPlant, stamps: StampLog, clock: RealTimeClock | None) -> None:
-    arrays = plant.trajectory()
+class MagnetorquerRecord:
+    """Every applied-dipole report of the board, with the plant's receive time (monotonic ns)."""
+
+    def __init__(self):
+        self.rows: list[tuple] = []
+
+    def add(self, message: MtqApplied) -> None:
+        self.rows.append((time.monotonic_ns(), *message.dipole_am2, message.safe_state))
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        rows = np.array(self.rows, dtype=float).reshape(-1, 5)
+        return {"mtq_received_ns": rows[:, 0].astype(np.int64), "mtq_dipole_am2": rows[:, 1:4],
+                "mtq_safe_state": rows[:, 4].astype(bool)}
+
+
+def _write_trajectory(ctx: NodeContext, plant: TranslationPlant, stamps: StampLog, clock: RealTimeClock | None,
+                      dipoles: MagnetorquerRecord) -> None:
+    arrays = plant.trajectory() | dipoles.arrays()
     arrays.update({f"stamp_{stage}_ns": v for stage, v in stamps.stamps.items()})
     arrays["plant_late_commands"] = np.array(clock.late_commands if clock else 0)
     arrays["plant_missed_steps"] = np.array(clock.deadline.counter.misses if clock else 0)

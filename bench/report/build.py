@@ -131,6 +131,20 @@ def estimation_section(run: RunData, plot_dir: Path) -> tuple[Section | None, di
     return section, m
 
 
+def driver_events_table(path: Path) -> tuple[Table | None, dict | None]:
+    """Detected faults per kind: count, first and worst detection latency, and the final health."""
+    if not path.is_file():
+        return None, None
+    report = json.loads(path.read_text())
+    by_kind: dict[str, list[float]] = {}
+    for event in report["events"]:
+        by_kind.setdefault(event["kind"], []).append(event["latency_s"])
+    rows = [[kind, fmt(len(lat)), fmt(lat[0] * 1e3), fmt(max(lat) * 1e3)] for kind, lat in sorted(by_kind.items())]
+    rows.append(["board healthy at the end", "yes" if report["health"]["ok"] else "NO", "", ""])
+    metrics = {"events": {k: len(v) for k, v in by_kind.items()}, "board_ok_at_end": report["health"]["ok"]}
+    return Table(["driver event", "count", "first latency [ms]", "worst latency [ms]"], rows), metrics
+
+
 def can_section(run: RunData, plot_dir: Path) -> tuple[Section | None, dict | None]:
     load = canbus.bus_load(run)
     if load is None:
@@ -141,6 +155,12 @@ def can_section(run: RunData, plot_dir: Path) -> tuple[Section | None, dict | No
     rows += [[f"fault {f['name']}", f"{fmt(f['start_s'])} s to {fmt(f['end_s'])} s"] for f in m["faults"]]
     rows += [[f"injected {what}", fmt(n)] for what, n in sorted(m["injections"].items())]
     section = Section("CAN bus", ["From can.log (candump format)."], [Table(["bus", "value"], rows)])
+    driver_table, driver_metrics = driver_events_table(run.run_dir / "can" / "driver.json")
+    if driver_table is not None:
+        section.paragraphs.append("What the flight-side driver detected (can/driver.json), with the latency from "
+                                  "the fault's evidence on the bus to its detection.")
+        section.tables.append(driver_table)
+        m["driver"] = driver_metrics
     if load.load.size:
         path = plots.bus_load(load.window_start_s, load.load, load.fault_windows, load.injections,
                               plot_dir / "bus_load.png")
