@@ -191,3 +191,57 @@ def box_constraints(limits: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     h_mat[0::2] = np.eye(n)
     h_mat[1::2] = -np.eye(n)
     return h_mat, np.repeat(limits, 2)
+
+
+@dataclass(frozen=True)
+class ZSubsystem:
+    """The out-of-plane subsystem [z, vz] with additive disturbance (seed 003 eq. 21, table 11).
+
+    Same field names as `ScaledModel` so every controller runs on either; scaled units (Mm, km/s).
+    Disturbance set H_w w <= h_w is the box |w_i| <= max_abs_disturbance (the seed's eq. 22 prints
+    h_w = w_max [1, 1, 1, -1], which would pin w_2 = w_max; its own generate_params_z uses the box).
+    """
+
+    A: np.ndarray
+    B: np.ndarray
+    H_u: np.ndarray
+    h_u: np.ndarray
+    H_x: np.ndarray
+    h_x: np.ndarray
+    H_w: np.ndarray
+    h_w: np.ndarray
+    max_abs_disturbance: float
+    initial_state_a: np.ndarray
+    n_steps: int
+
+    @property
+    def nx(self) -> int:
+        return self.A.shape[0]
+
+    @property
+    def nu(self) -> int:
+        return self.B.shape[1]
+
+
+Z_STATES = (2, 5)     # z, vz in the full state
+Z_INPUTS = (2,)       # u_z
+
+
+def z_subsystem(params: RendezvousParams) -> ZSubsystem:
+    """The seed's generate_params_z: project the scaled model and constraints onto [z, vz], u_z."""
+    ref = load_reference()
+    model = params.scaled
+    sx, su = list(Z_STATES), list(Z_INPUTS)
+    h_x_mat = model.H_x[:, sx]
+    keep_x = np.any(h_x_mat != 0, axis=1)          # rows on x and y say 0 <= s_max: drop them
+    h_u_mat = model.H_u[:, su]
+    keep_u = np.any(h_u_mat != 0, axis=1)
+    w_max = float(ref["weights"]["max_abs_disturbance"])
+    h_w_mat, h_w = box_constraints(np.full(len(sx), w_max))
+    return ZSubsystem(
+        A=model.A[np.ix_(sx, sx)], B=model.B[np.ix_(sx, su)],
+        H_u=h_u_mat[keep_u], h_u=model.h_u[keep_u], H_x=h_x_mat[keep_x], h_x=model.h_x[keep_x],
+        H_w=h_w_mat, h_w=h_w, max_abs_disturbance=w_max,
+        initial_state_a=np.asarray(ref["initial_conditions_scaled"]["z_subsystem_A"], dtype=float),
+        n_steps=params.n_steps,
+    )

@@ -1,0 +1,104 @@
+"""An independent MPC solve for the tests: the seed's problems in their sparse (state-space) form
+on OSQP, with states as decision variables. Shares nothing with bench.controller.mpc but the
+model, so a condensing error there shows up as a different first input here."""
+from __future__ import annotations
+
+import numpy as np
+import osqp
+from scipy import sparse
+
+
+def reference_mpc_solution(model, Q, R, N, x0, *, P=None, terminal_equality=False, terminal_set=None,
+                           soft=None, tube=None, tight=True):
+    """(u_0 or v_0, z_0 or None, objective, status) of problem (17)-(20) or (23) from x0.
+
+    Variables: [x_0..x_N, u_0..u_{N-1}, eps_0..eps_N, t_0..t_N]. For a tube, x_0 is free and
+    H_E (x0 - x_0) <= h_E; otherwise x_0 = x0.
+    """
+    nx, nu = model.nx, model.nu
+    n_hx = model.H_x.shape[0]
+    n_x_all, n_u_all = (N + 1) * nx, N * nu
+    n_eps = (N + 1) * n_hx if soft is not None else 0
+    n_t = (N + 1) if soft is not None else 0
+    n = n_x_all + n_u_all + n_eps + n_t
+    ix = lambda i: slice(i * nx, (i + 1) * nx)
+    iu = lambda i: slice(n_x_all + i * nu, n_x_all + (i + 1) * nu)
+    ie = lambda i: slice(n_x_all + n_u_all + i * n_hx, n_x_all + n_u_all + (i + 1) * n_hx)
+    it = lambda i: n_x_all + n_u_all + n_eps + i
+
+    Pm = np.zeros((n, n))
+    q = np.zeros(n)
+    for i in range(N):
+        Pm[ix(i), ix(i)] = 2 * Q
+        Pm[iu(i), iu(i)] = 2 * R
+    if P is not None:
+        Pm[ix(N), ix(N)] = 2 * P
+    if soft is not None:
+        S, v = soft
+        for i in range(N + 1):
+            Pm[ie(i), ie(i)] = 2 * S
+            q[it(i)] = v
+
+    rows, lo, hi = [], [], []
+
+    def add(a, l, u):
+        rows.append(np.atleast_2d(a))
+        lo.extend(np.atleast_1d(l))
+        hi.extend(np.atleast_1d(u))
+
+    for i in range(N):                          # dynamics
+        a = np.zeros((nx, n))
+        a[:, ix(i + 1)] = -np.eye(nx)
+        a[:, ix(i)] = model.A
+        a[:, iu(i)] = model.B
+        add(a, np.zeros(nx), np.zeros(nx))
+    if tube is None:                            # x_0 = x0
+        a = np.zeros((nx, n))
+        a[:, ix(0)] = np.eye(nx)
+        add(a, x0, x0)
+    else:                                       # H_E (x0 - x_0) <= h_E
+        a = np.zeros((tube.H.shape[0], n))
+        a[:, ix(0)] = -tube.H
+        add(a, -np.inf * np.ones(tube.H.shape[0]), tube.h - tube.H @ x0)
+    for i in range(N + 1):                      # state constraints
+        a = np.zeros((n_hx, n))
+        a[:, ix(i)] = model.H_x
+        if soft is not None:
+            a[:, ie(i)] = -np.eye(n_hx)
+        elif tube is None and i == 0:
+            continue
+        add(a, -np.inf * np.ones(n_hx), model.h_x)
+        if soft is not None:
+            e = np.zeros((n_hx, n))
+            e[:, ie(i)] = np.eye(n_hx)
+            add(e, np.zeros(n_hx), np.full(n_hx, np.inf))
+            e = np.zeros((n_hx, n))
+            e[:, ie(i)] = np.eye(n_hx)
+            e[:, it(i)] = -1.0
+            add(e, -np.inf * np.ones(n_hx), np.zeros(n_hx))
+    for i in range(N):                          # input constraints
+        a = np.zeros((model.H_u.shape[0], n))
+        a[:, iu(i)] = model.H_u
+        add(a, -np.inf * np.ones(model.H_u.shape[0]), model.h_u)
+    if terminal_equality:
+        a = np.zeros((nx, n))
+        a[:, ix(N)] = np.eye(nx)
+        add(a, np.zeros(nx), np.zeros(nx))
+    if terminal_set is not None:
+        a = np.zeros((terminal_set.H.shape[0], n))
+        a[:, ix(N)] = terminal_set.H
+        add(a, -np.inf * np.ones(terminal_set.H.shape[0]), terminal_set.h)
+
+    A = sparse.csc_matrix(np.vstack(rows))
+    solver = osqp.OSQP()
+    tol = 1e-10 if tight else 1e-5
+    solver.setup(sparse.csc_matrix(np.triu(Pm)), q, A, np.array(lo), np.array(hi), verbose=False,
+                 eps_abs=tol, eps_rel=tol, max_iter=400000, polishing=True, polish_refine_iter=10,
+                 eps_prim_inf=1e-12, eps_dual_inf=1e-12)
+    res = solver.solve()
+    status = res.info.status
+    y = res.x
+    if y is None or not np.all(np.isfinite(y)):
+        return None, None, np.nan, status
+    const = 0.0
+    return y[iu(0)], (y[ix(0)] if tube is not None else None), float(res.info.obj_val) + const, status
