@@ -5,6 +5,8 @@ from typing import Annotated, Literal
 
 import msgspec
 
+from bench.controller.deadline import DeadlineConfig
+
 PositiveWeights = Annotated[list[Annotated[float, msgspec.Meta(gt=0)]], msgspec.Meta(min_length=1)]
 Horizon = Annotated[int, msgspec.Meta(ge=1)]
 
@@ -25,3 +27,5 @@ class ControllerConfig(msgspec.Struct, forbid_unknown_fields=True):
     tube_poles: Annotated[list[Annotated[float, msgspec.Meta(gt=-1, lt=1)]], msgspec.Meta(min_length=2, max_length=2)] = \
         msgspec.field(default_factory=lambda: [0.05, 0.1])
     tube_horizon: Horizon = 50
+    # Wall-clock budget per cycle, fallback on a miss, optional stress (bench/controller/deadline.py).
+    deadline: DeadlineConfig = msgspec.field(default_factory=DeadlineConfig)
