@@ -171,10 +171,11 @@ def test_garbage_on_every_bench_key_crashes_nothing(runs_dir):
         assert "Traceback" not in text, name
 
 
-@pytest.mark.parametrize("name", ["rendezvous_smoother", "rendezvous_uncertain_orbit"])
-def test_smoother_in_the_loop_reproduces_in_process(runs_dir, name):
-    # The estimator process needs the command of step k-1 with fix k; the in-process loop has it
-    # by construction. Equal trajectories show the process wiring hands over exactly that.
+@pytest.mark.parametrize("name", ["rendezvous_smoother", "rendezvous_uncertain_orbit", "rendezvous_mpc"])
+def test_builtin_scenario_reproduces_in_process(runs_dir, name):
+    # With the smoother the estimator process needs the command of step k-1 with fix k; the
+    # in-process loop has it by construction. Equal trajectories show the wiring hands over exactly
+    # that, and that the MPC's warm-started proxsuite solves see the same states in both.
     import msgspec
 
     result = run_bench_cli("run", name, "--steps", "40", "--run-id", name, "--runs-dir", str(runs_dir), "--no-progress",
