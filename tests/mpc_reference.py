@@ -1,15 +1,14 @@
 """An independent MPC solve for the tests: the seed's problems in their sparse (state-space) form
-on OSQP, with states as decision variables. Shares nothing with bench.controller.mpc but the
+on quadprog, with states as decision variables. Shares nothing with bench.controller.mpc but the
 model, so a condensing error there shows up as a different first input here."""
 from __future__ import annotations
 
 import numpy as np
-import osqp
-from scipy import sparse
+import quadprog
 
 
 def reference_mpc_solution(model, Q, R, N, x0, *, P=None, terminal_equality=False, terminal_set=None,
-                           soft=None, tube=None, tight=True):
+                           soft=None, tube=None):
     """(u_0 or v_0, z_0 or None, objective, status) of problem (17)-(20) or (23) from x0.
 
     Variables: [x_0..x_N, u_0..u_{N-1}, eps_0..eps_N, t_0..t_N]. For a tube, x_0 is free and
@@ -89,16 +88,19 @@ def reference_mpc_solution(model, Q, R, N, x0, *, P=None, terminal_equality=Fals
         a[:, ix(N)] = terminal_set.H
         add(a, -np.inf * np.ones(terminal_set.H.shape[0]), terminal_set.h)
 
-    A = sparse.csc_matrix(np.vstack(rows))
-    solver = osqp.OSQP()
-    tol = 1e-10 if tight else 1e-5
-    solver.setup(sparse.csc_matrix(np.triu(Pm)), q, A, np.array(lo), np.array(hi), verbose=False,
-                 eps_abs=tol, eps_rel=tol, max_iter=400000, polishing=True, polish_refine_iter=10,
-                 eps_prim_inf=1e-12, eps_dual_inf=1e-12)
-    res = solver.solve()
-    status = res.info.status
-    y = res.x
-    if y is None or not np.all(np.isfinite(y)):
-        return None, None, np.nan, status
-    const = 0.0
-    return y[iu(0)], (y[ix(0)] if tube is not None else None), float(res.info.obj_val) + const, status
+    # quadprog (Goldfarb-Idnani dual active set) solves to machine precision; it needs a
+    # positive definite Hessian, so the blocks without cost (x_N under MPC_TE, the t_i) get 1e-9.
+    A = np.vstack(rows)
+    lo, hi = np.array(lo), np.array(hi)
+    eq = lo == hi
+    lower = ~eq & np.isfinite(lo)
+    upper = ~eq & np.isfinite(hi)
+    C = np.vstack([A[eq], A[lower], -A[upper]])
+    b = np.concatenate([lo[eq], lo[lower], -hi[upper]])
+    G = Pm + 1e-9 * np.eye(n)
+    try:
+        y, obj = quadprog.solve_qp(G, -q, C.T, b, int(eq.sum()))[:2]
+    except ValueError as exc:                   # "constraints are inconsistent, no solution"
+        return None, None, np.nan, f"infeasible: {exc}"
+    objective = float(0.5 * y @ Pm @ y + q @ y)
+    return y[iu(0)], (y[ix(0)] if tube is not None else None), objective, "solved"

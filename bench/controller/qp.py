@@ -29,6 +29,7 @@ DEFAULT_EPS_ABS = 1e-9
 # Warm-started cycles take 1 to 20 iterations; infeasibility is detected within ~30 from a fresh
 # init. The inner limit matters as much as the outer one for a bounded worst case.
 DEFAULT_MAX_ITER = 300
+DUALITY_GAP_EPS = 1e-9
 DEFAULT_MAX_ITER_IN = 100
 # proxsuite's default 1e-4 for the infeasibility certificates declared feasible warm-started MPC
 # problems infeasible after one iteration (constraints here are ~0.1 in scaled units).
@@ -69,6 +70,11 @@ class DenseBoxQP:
         qp.settings.eps_primal_inf = INFEASIBILITY_EPS
         qp.settings.eps_dual_inf = INFEASIBILITY_EPS
         qp.settings.verbose = False
+        # Residuals alone let proxsuite stop at points with the wrong active set (first input
+        # 2e-4 N off, objective 2e-5 high); the duality gap closes that.
+        qp.settings.check_duality_gap = True
+        qp.settings.eps_duality_gap_abs = DUALITY_GAP_EPS
+        qp.settings.eps_duality_gap_rel = 0.0
         qp.settings.initial_guess = proxsuite.proxqp.InitialGuess.WARM_START_WITH_PREVIOUS_RESULT
         qp.init(self._H, g, self._A, self._b_or_none(b), self._C, self._in_or_none(l),
                 self._in_or_none(u), self._l_box, self._u_box, compute_preconditioner=self._precondition)
