@@ -7,8 +7,8 @@ proxsuite 0.8.0 behaviour this wrapper works around (measured on the CWH MPC):
   `solve()` runs once right after `init()`: the constructor does that solve.
 - with box constraints, explicit x/z warm starts passed to `solve` misbehave: none are passed.
 - every solve is preceded by `update()` of the vectors that changed.
-- any status other than PROXQP_SOLVED is a failed solve; the next solve starts from a fresh
-  `init`: warm-started from an infeasible problem's iterate, proxsuite ran 1.6 million inner
+- any status other than PROXQP_SOLVED is a failed solve, confirmed by a cold solve from a fresh
+  `init`, and the next cycle starts from that fresh state: warm-started from an infeasible problem's iterate, proxsuite ran 1.6 million inner
   iterations (54 s) on the next, feasible-looking cycle despite max_iter.
 - Ruiz preconditioning together with warm starts returned "solved" points whose first input was
   5e-4 N off the optimum (residuals met, complementarity not); the seed's scaling V already
@@ -51,7 +51,8 @@ class DenseBoxQP:
     def __init__(self, H: np.ndarray, A: np.ndarray | None, C: np.ndarray | None,
                  l_box: np.ndarray, u_box: np.ndarray,
                  eps_abs: float = DEFAULT_EPS_ABS, max_iter: int = DEFAULT_MAX_ITER,
-                 max_iter_in: int = DEFAULT_MAX_ITER_IN, precondition: bool = False):
+                 max_iter_in: int = DEFAULT_MAX_ITER_IN, precondition: bool = False,
+                 duality_gap_eps: float | None = DUALITY_GAP_EPS, infeasibility_eps: float = INFEASIBILITY_EPS):
         self.n = H.shape[0]
         self.n_eq = 0 if A is None else A.shape[0]
         self.n_in = 0 if C is None else C.shape[0]
@@ -59,6 +60,8 @@ class DenseBoxQP:
         self._l_box, self._u_box = np.asarray(l_box, float), np.asarray(u_box, float)
         self._eps_abs, self._max_iter, self._max_iter_in = eps_abs, max_iter, max_iter_in
         self._precondition = precondition
+        self._duality_gap_eps = duality_gap_eps
+        self._infeasibility_eps = infeasibility_eps
         self._fresh(np.zeros(self.n), np.zeros(self.n_eq), np.full(self.n_in, -np.inf), np.full(self.n_in, np.inf))
 
     def _fresh(self, g: np.ndarray, b: np.ndarray, l: np.ndarray, u: np.ndarray) -> None:
@@ -67,14 +70,15 @@ class DenseBoxQP:
         qp.settings.eps_rel = 0.0
         qp.settings.max_iter = self._max_iter
         qp.settings.max_iter_in = self._max_iter_in
-        qp.settings.eps_primal_inf = INFEASIBILITY_EPS
-        qp.settings.eps_dual_inf = INFEASIBILITY_EPS
+        qp.settings.eps_primal_inf = self._infeasibility_eps
+        qp.settings.eps_dual_inf = self._infeasibility_eps
         qp.settings.verbose = False
         # Residuals alone let proxsuite stop at points with the wrong active set (first input
         # 2e-4 N off, objective 2e-5 high); the duality gap closes that.
-        qp.settings.check_duality_gap = True
-        qp.settings.eps_duality_gap_abs = DUALITY_GAP_EPS
-        qp.settings.eps_duality_gap_rel = 0.0
+        if self._duality_gap_eps is not None:
+            qp.settings.check_duality_gap = True
+            qp.settings.eps_duality_gap_abs = self._duality_gap_eps
+            qp.settings.eps_duality_gap_rel = 0.0
         qp.settings.initial_guess = proxsuite.proxqp.InitialGuess.WARM_START_WITH_PREVIOUS_RESULT
         qp.init(self._H, g, self._A, self._b_or_none(b), self._C, self._in_or_none(l),
                 self._in_or_none(u), self._l_box, self._u_box, compute_preconditioner=self._precondition)
@@ -90,11 +94,15 @@ class DenseBoxQP:
 
     def solve(self, g: np.ndarray, b: np.ndarray, l: np.ndarray, u: np.ndarray) -> QPSolution:
         if self._needs_fresh:
-            self._fresh(g, b, l, u)
-        qp = self._qp
-        qp.update(g=g, b=self._b_or_none(b), l=self._in_or_none(l), u=self._in_or_none(u))
-        qp.solve()
-        res = qp.results
+            self._fresh(g, b, l, u)            # init + cold solve of this very problem
+        else:
+            self._qp.update(g=g, b=self._b_or_none(b), l=self._in_or_none(l), u=self._in_or_none(u))
+            self._qp.solve()
+            if self._qp.results.info.status != SOLVED:
+                # A warm start from a distant point has produced false infeasibility certificates
+                # (tube MPC, 1 cycle in ~6000): confirm every failure from a cold start.
+                self._fresh(g, b, l, u)
+        res = self._qp.results
         status = res.info.status
         solved = status == SOLVED
         self._needs_fresh = not solved

@@ -1,0 +1,59 @@
+"""Tube MPC on the out-of-plane subsystem (seed 003 tasks 25 to 32)."""
+import numpy as np
+import pytest
+
+from bench.controller.simulate import simulate_uncertain
+from bench.controller.tube import design_tube_mpc, generate_disturbances
+from bench.plant.cwh import RendezvousParams, z_subsystem
+
+U_TOL_N = 1e-5        # the QP meets the tube constraint to 1e-7; times |K_tube| ~ 1e3
+
+
+@pytest.fixture(scope="module")
+def design():
+    mz = z_subsystem(RendezvousParams.from_reference())
+    return mz, design_tube_mpc([300.0, 0.1], 1.0, 50, [0.05, 0.1], mz)
+
+
+def test_disturbances_are_uniform_on_the_box():
+    mz = z_subsystem(RendezvousParams.from_reference())
+    w = generate_disturbances(mz, 20000, np.random.default_rng(0))
+    assert w.shape == (2, 20000)
+    assert np.all(np.abs(w) <= mz.max_abs_disturbance)
+    # uniform on [-w_max, w_max]: mean 0, variance w_max^2 / 3
+    np.testing.assert_allclose(w.mean(axis=1), 0, atol=0.03 * mz.max_abs_disturbance)
+    np.testing.assert_allclose(w.var(axis=1), mz.max_abs_disturbance**2 / 3, rtol=0.05)
+
+
+def _check_constraints(mz, X, U, infos):
+    assert all(i["ctrl_feas"] for i in infos), [i["status"] for i in infos if not i["ctrl_feas"]][:3]
+    assert np.all(X.T @ mz.H_x.T <= mz.h_x + 1e-9)
+    assert np.all(U.T @ mz.H_u.T <= mz.h_u + U_TOL_N)
+
+
+def test_tube_mpc_keeps_constraints_for_100_sampled_disturbance_sequences(design):
+    mz, ctrl = design
+    rng = np.random.default_rng(42)
+    n_steps = 60          # the transient from x_z0^A, where the constraints bite, is over by then
+    for _ in range(100):
+        w = generate_disturbances(mz, n_steps, rng)
+        X, U, infos = simulate_uncertain(mz.initial_state_a, ctrl, w, mz)
+        _check_constraints(mz, X, U, infos)
+
+
+def test_tube_mpc_keeps_constraints_under_the_constant_worst_case_disturbance(design):
+    """Seed task 32: w(k) = [w_max, w_max] for all k, over the full two days."""
+    mz, ctrl = design
+    w = np.full((2, mz.n_steps), mz.max_abs_disturbance)
+    X, U, infos = simulate_uncertain(mz.initial_state_a, ctrl, w, mz)
+    _check_constraints(mz, X, U, infos)
+    assert abs(X[0, -1]) < 0.01          # and the state settles near the origin (within 10 km)
+
+
+def test_applied_input_is_nominal_plus_tube_feedback(design):
+    mz, ctrl = design
+    x = mz.initial_state_a
+    u, info = ctrl.eval(x)
+    y = ctrl.last_solution.y
+    z0, v0 = y[ctrl.qp_data.initial_state], y[ctrl.qp_data.inputs][:1]
+    np.testing.assert_allclose(u, v0 + ctrl.K_tube @ (x - z0), rtol=1e-12)
