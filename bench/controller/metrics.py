@@ -12,6 +12,12 @@ import numpy as np
 from bench.plant.cwh import RendezvousParams
 
 
+# MPC inputs and states ride their constraints to the QP tolerance (1e-9 in scaled units: 1e-9 N,
+# 1 mm); a trajectory is not called infeasible for that.
+THRUST_TOL_N = 1e-6
+POSITION_TOL_M = 1e-2
+
+
 @dataclass(frozen=True)
 class TrajectoryMetrics:
     max_abs_position_xz_m: float      # s_max^(i)
@@ -38,8 +44,9 @@ def traj_constraints(X_scaled: np.ndarray, U_n: np.ndarray, params: RendezvousPa
     j_u = float(np.sum(U_n * U_n))
     d_f = float(np.linalg.norm(X[0:3, -1]))
     v_f = float(np.linalg.norm(X[3:6, -1]))
-    feasible = (s_max <= params.max_abs_position_xz_m and y_max <= params.max_abs_position_y_m
-                and u_max <= params.max_abs_thrust_n and d_f <= params.max_final_position_m
+    feasible = (s_max <= params.max_abs_position_xz_m + POSITION_TOL_M
+                and y_max <= params.max_abs_position_y_m + POSITION_TOL_M
+                and u_max <= params.max_abs_thrust_n + THRUST_TOL_N and d_f <= params.max_final_position_m
                 and v_f <= params.max_final_velocity_mps)
     return TrajectoryMetrics(s_max, y_max, u_max, j_u, d_f, v_f, bool(feasible))
 
