@@ -118,3 +118,22 @@ def test_soft_constraints_stay_feasible_from_c_where_the_terminal_set_mpc_does_n
     assert not info_hard["ctrl_feas"]
     _, _, infos = simulate(x0["C"], soft, model, 60)
     assert all(i["ctrl_feas"] for i in infos)
+
+
+# `bench tune-lqr` from A (4 rounds around q*): feasible with J_u = 8.72 and d_f = 92 m.
+Q_TUNED = np.diag([108.55, 0.0887937, 372.281, 0.000133352, 0.00133352, 0.00133352])
+
+
+def test_tuned_lqr_and_mpc_meet_the_terminal_conditions_from_a(setup):
+    from bench.controller.lqr import LQR
+    from bench.controller.metrics import traj_constraints
+
+    params, model, P, x_lqr, x0 = setup
+    for ctrl in (LQR(Q_TUNED, R_STAR, model.A, model.B), MPC(Q_TUNED, R_STAR, N, model)):
+        X, U, infos = simulate(x0["A"], ctrl, model, params.n_steps)
+        m = traj_constraints(X, U, params)
+        assert m.feasible, m
+        assert m.input_cost_n2 < 9.4          # cheaper than the default scenario's q
+    # Q* itself ends ~170 m out: over the seed's d_f,max = 100 m (the 2022 edition allowed 300 m)
+    X, U, _ = simulate(x0["A"], MPC(Q_STAR, R_STAR, N, model), model, params.n_steps)
+    assert 150 < traj_constraints(X, U, params).final_distance_m < 300
