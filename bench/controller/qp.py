@@ -22,6 +22,8 @@ import numpy as np
 import proxsuite
 
 SOLVED = proxsuite.proxqp.QPSolverOutput.PROXQP_SOLVED
+CONFIRM_COLD = (proxsuite.proxqp.QPSolverOutput.PROXQP_PRIMAL_INFEASIBLE,
+                proxsuite.proxqp.QPSolverOutput.PROXQP_DUAL_INFEASIBLE)
 
 # Tolerance on the primal and dual residuals (scaled problem, eps_rel = 0). The first input must
 # match an independent solver to 1e-5 N: at 1e-7 it was up to 9e-5 N off, at 1e-9 within 1e-6 N.
@@ -98,9 +100,10 @@ class DenseBoxQP:
         else:
             self._qp.update(g=g, b=self._b_or_none(b), l=self._in_or_none(l), u=self._in_or_none(u))
             self._qp.solve()
-            if self._qp.results.info.status != SOLVED:
+            if self._qp.results.info.status in CONFIRM_COLD:
                 # A warm start from a distant point has produced false infeasibility certificates
-                # (tube MPC, 1 cycle in ~6000): confirm every failure from a cold start.
+                # (tube MPC, 1 cycle in ~6000): confirm them from a cold start. An iteration limit
+                # is not retried: it already cost the cycle's worst case.
                 self._fresh(g, b, l, u)
         res = self._qp.results
         status = res.info.status
