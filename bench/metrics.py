@@ -1,11 +1,10 @@
-"""Mission metrics of a rendezvous trajectory (seed 003 task 9 and the L2 fuel surrogate).
-
-Computed on the SI trajectory a run produced; the thresholds come from the scenario's params.
-"""
+"""Mission metrics of a bench run: seed 003's traj_constraints on the SI trajectory the plant
+flew, plus the L2 fuel surrogate, under the names metrics.json uses."""
 from __future__ import annotations
 
 import numpy as np
 
+from bench.controller.metrics import POSITION_TOL_M, THRUST_TOL_N, traj_constraints
 from bench.plant.cwh import RendezvousParams
 
 
@@ -13,28 +12,22 @@ def trajectory_metrics(state_m_mps: np.ndarray, thrust_n: np.ndarray, params: Re
     """Metrics of X (n+1 x 6, SI) and U (n x 3, N) against the seed's mission requirements."""
     x = np.asarray(state_m_mps, dtype=float)
     u = np.asarray(thrust_n, dtype=float).reshape(-1, 3)
-    input_cost = float(np.sum(u * u))                     # J_u = sum_k u_k' u_k  [N^2]
-    max_xz_m = float(np.max(np.abs(x[:, [0, 2]])))
-    max_y_m = float(np.max(np.abs(x[:, 1])))
-    max_thrust_n = float(np.max(np.abs(u))) if u.size else 0.0
-    final_position_error_m = float(np.linalg.norm(x[-1, :3]))
-    final_velocity_error_mps = float(np.linalg.norm(x[-1, 3:]))
-    checks = {
-        "position_xz": max_xz_m <= params.max_abs_position_xz_m,
-        "position_y": max_y_m <= params.max_abs_position_y_m,
-        "thrust": max_thrust_n <= params.max_abs_thrust_n,
-        "final_position": final_position_error_m <= params.max_final_position_m,
-        "final_velocity": final_velocity_error_mps <= params.max_final_velocity_mps,
-    }
+    m = traj_constraints((x * np.asarray(params.scaling)).T, u.T, params)
     return {
-        "final_position_error_m": final_position_error_m,
-        "final_velocity_error_mps": final_velocity_error_mps,
-        "input_cost": input_cost,
-        "fuel_l2": params.time_step_s * float(np.sqrt(input_cost)),   # ||u||_L2(0,T) [N s]
-        "max_abs_thrust_N": max_thrust_n,
-        "max_abs_position_xz_m": max_xz_m,
-        "max_abs_position_y_m": max_y_m,
-        "constraints_satisfied": all(checks.values()),
-        "constraint_checks": checks,
+        "final_position_error_m": m.final_distance_m,
+        "final_velocity_error_mps": m.final_speed_mps,
+        "input_cost": m.input_cost_n2,                                 # J_u = sum_k u_k' u_k [N^2]
+        "fuel_l2": params.time_step_s * float(np.sqrt(m.input_cost_n2)),   # ||u||_L2(0,T) [N s]
+        "max_abs_thrust_N": m.max_abs_thrust_n,
+        "max_abs_position_xz_m": m.max_abs_position_xz_m,
+        "max_abs_position_y_m": m.max_abs_position_y_m,
+        "constraints_satisfied": m.feasible,
+        "constraint_checks": {          # which of traj_constraints' conditions held
+            "position_xz": m.max_abs_position_xz_m <= params.max_abs_position_xz_m + POSITION_TOL_M,
+            "position_y": m.max_abs_position_y_m <= params.max_abs_position_y_m + POSITION_TOL_M,
+            "thrust": m.max_abs_thrust_n <= params.max_abs_thrust_n + THRUST_TOL_N,
+            "final_position": m.final_distance_m <= params.max_final_position_m,
+            "final_velocity": m.final_speed_mps <= params.max_final_velocity_mps,
+        },
         "steps": int(u.shape[0]),
     }
