@@ -5,6 +5,7 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 import pytest
+from gtsam_faults import FailingSmoother
 from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
@@ -131,23 +132,10 @@ def test_every_keyframe_is_constrained_by_the_gyro_alone():
     assert np.trace(r.attitude_covariance_rad2) > 2 * np.trace(first.attitude_covariance_rad2)
 
 
-class _FailingSmoother:
-    """Stands in for the gtsam smoother and fails the way an indeterminate system does."""
-
-    def __init__(self, real):
-        self.real = real
-
-    def update(self, *args):
-        raise RuntimeError("Indeterminant linear system detected (injected)")
-
-    def __getattr__(self, name):
-        return getattr(self.real, name)
-
-
 def test_failed_update_restarts_from_last_good_estimate(caplog):
     def break_once(smoother, keyframe):
         if keyframe == 12:
-            smoother._smoother = _FailingSmoother(smoother._smoother)
+            smoother._smoother = FailingSmoother(smoother._smoother)
 
     nees, smoother, last = _run(AttitudeSmootherConfig(), AttitudeSensorSpec(), 7, 400, on_keyframe=break_once)
     assert smoother.failed_updates == 1 and "failed" in caplog.text

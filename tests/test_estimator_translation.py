@@ -6,6 +6,7 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 import pytest
+from gtsam_faults import FailingSmoother
 from scipy.stats import chi2
 
 from bench.estimator import kalman
@@ -112,19 +113,6 @@ def test_nees_check_catches_an_overconfident_smoother(case, config):
     assert not ok and mean > 6.0, case
 
 
-class _FailingSmoother:
-    """Stands in for the gtsam smoother and fails the way an indeterminate system does."""
-
-    def __init__(self, real):
-        self.real = real
-
-    def update(self, *args):
-        raise RuntimeError("Indeterminant linear system detected (injected)")
-
-    def __getattr__(self, name):
-        return getattr(self.real, name)
-
-
 def test_failed_update_restarts_from_last_good_estimate(caplog):
     config = TranslationSmootherConfig()
     smoother, m = TranslationSmoother(config, PARAMS), _model(config)
@@ -132,7 +120,7 @@ def test_failed_update_restarts_from_last_good_estimate(caplog):
     x = PARAMS.initial_state_m_mps("A")
     for k in range(40):
         if k == 20:
-            smoother._smoother = _FailingSmoother(smoother._smoother)
+            smoother._smoother = FailingSmoother(smoother._smoother)
         r = smoother.update(k, 600.0 * k, x[:3] + rng.normal(0.0, NOISE_M, 3), np.zeros(3))
         assert r.reinitialised == (k == 20)
         err = x - r.state_m_mps
@@ -152,8 +140,8 @@ def test_smoother_keeps_publishing_while_gtsam_keeps_failing(monkeypatch):
     x = PARAMS.initial_state_m_mps("A")
     for k in range(40):
         if k == 20:
-            smoother._smoother = _FailingSmoother(smoother._smoother)
-            monkeypatch.setattr(gtsam, "IncrementalFixedLagSmoother", lambda *a: _FailingSmoother(real_class(*a)))
+            smoother._smoother = FailingSmoother(smoother._smoother)
+            monkeypatch.setattr(gtsam, "IncrementalFixedLagSmoother", lambda *a: FailingSmoother(real_class(*a)))
         if k == 25:
             monkeypatch.setattr(gtsam, "IncrementalFixedLagSmoother", real_class)
         r = smoother.update(k, 600.0 * k, x[:3] + rng.normal(0.0, NOISE_M, 3), np.zeros(3))

@@ -142,8 +142,20 @@ class RendezvousParams:
             raise KeyError(f"unknown initial condition {name!r} (known: {known})") from None
 
 
+class _ModelDimensions:
+    """n_x and n_u of a model with A and B, as the seed's params.model.nx / nu."""
+
+    @property
+    def nx(self) -> int:
+        return self.A.shape[0]
+
+    @property
+    def nu(self) -> int:
+        return self.B.shape[1]
+
+
 @dataclass(frozen=True)
-class ScaledModel:
+class ScaledModel(_ModelDimensions):
     """The discrete model and constraints in scaled units (seed 003 tasks 3 and 4).
 
     Constraints: H_u u <= h_u (|u_i| <= u_max), H_x x <= h_x (|x|,|z| <= s_max, |y| <= y_max),
@@ -168,13 +180,6 @@ class ScaledModel:
         h_x_mat = np.hstack([h_pos_mat, np.zeros((h_pos_mat.shape[0], 3))])
         return cls(A=a, B=b, H_u=h_u_mat, h_u=h_u, H_x=h_x_mat, h_x=h_x, scaling=scaling)
 
-    @property
-    def nx(self) -> int:
-        return self.A.shape[0]
-
-    @property
-    def nu(self) -> int:
-        return self.B.shape[1]
 
     def to_scaled(self, state_si: np.ndarray) -> np.ndarray:
         return self.scaling * np.asarray(state_si)
@@ -194,7 +199,7 @@ def box_constraints(limits: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 @dataclass(frozen=True)
-class ZSubsystem:
+class ZSubsystem(_ModelDimensions):
     """The out-of-plane subsystem [z, vz] with additive disturbance (seed 003 eq. 21, table 11).
 
     Same field names as `ScaledModel` so every controller runs on either; scaled units (Mm, km/s).
@@ -214,13 +219,6 @@ class ZSubsystem:
     initial_state_a: np.ndarray
     n_steps: int
 
-    @property
-    def nx(self) -> int:
-        return self.A.shape[0]
-
-    @property
-    def nu(self) -> int:
-        return self.B.shape[1]
 
 
 Z_STATES = (2, 5)     # z, vz in the full state
