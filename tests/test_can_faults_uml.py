@@ -25,17 +25,9 @@ pytestmark = pytest.mark.timeout(BOOT_TIMEOUT_S + 60)
 
 @pytest.fixture(scope="module")
 def guest(tmp_path_factory):
-    job = tmp_path_factory.mktemp("uml-can-faults")
-    try:
-        return uml.run_pytest([GUEST_DIR], job, timeout_s=BOOT_TIMEOUT_S)
-    except uml.UmlUnavailable as exc:
-        pytest.skip(str(exc))
+    return uml.guest_session(GUEST_DIR, tmp_path_factory.mktemp("uml-can-faults"), BOOT_TIMEOUT_S)
 
 
 @pytest.mark.parametrize("name", GUEST_TESTS)
 def test_can_fault_on_kernel_vcan(guest, name):
-    result, outcomes = guest
-    assert outcomes.get(name) == "passed", (
-        f"guest test {name}: {outcomes.get(name, 'did not run')} (UML exit {result.returncode})\n"
-        f"{result.output[-4000:]}"
-    )
+    uml.assert_guest_passed(guest, name)

@@ -29,20 +29,12 @@ GUEST_SOCKETCAN = [
 
 @pytest.fixture(scope="module")
 def guest(tmp_path_factory):
-    job = tmp_path_factory.mktemp("uml")
-    try:
-        return uml.run_pytest([GUEST_DIR], job, timeout_s=BOOT_TIMEOUT_S)
-    except uml.UmlUnavailable as exc:
-        pytest.skip(str(exc))
+    return uml.guest_session(GUEST_DIR, tmp_path_factory.mktemp("uml"), BOOT_TIMEOUT_S)
 
 
 @pytest.mark.parametrize("name", GUEST_SOCKETCAN)
 def test_socketcan_inside_uml(guest, name):
-    result, outcomes = guest
-    assert outcomes.get(name) == "passed", (
-        f"guest test {name}: {outcomes.get(name, 'did not run')} (UML exit {result.returncode})\n"
-        f"{result.output[-4000:]}"
-    )
+    uml.assert_guest_passed(guest, name)
 
 
 def bench_vcan(*args: str, as_user: str | None = None) -> subprocess.CompletedProcess:

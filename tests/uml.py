@@ -91,3 +91,22 @@ def run_pytest(selection: list[str], job_dir: Path, *, timeout_s: float = 60,
                     outcome = "skipped"
             outcomes[case.get("name")] = outcome
     return result, outcomes
+
+
+def guest_session(guest_dir: Path, job_dir: Path, timeout_s: float):
+    """Run a guest pytest directory in one UML boot; skip (with UML's reason) where it cannot boot."""
+    import pytest
+
+    try:
+        return run_pytest([guest_dir], job_dir, timeout_s=timeout_s)
+    except UmlUnavailable as exc:
+        pytest.skip(str(exc))
+
+
+def assert_guest_passed(guest, name: str) -> None:
+    """One guest test's outcome, with the end of UML's console where it did not pass."""
+    result, outcomes = guest
+    assert outcomes.get(name) == "passed", (
+        f"guest test {name}: {outcomes.get(name, 'did not run')} (UML exit {result.returncode})\n"
+        f"{result.output[-4000:]}"
+    )
