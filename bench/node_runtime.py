@@ -98,6 +98,14 @@ class NodeContext:
         self.subscribe(topic, kind, q.put)
         return q
 
+    def until_stopped(self, messages: "queue.Queue[Message]", poll_s: float = 0.2):
+        """Yield messages from a subscription queue until the node is told to stop."""
+        while not self.stop.is_set():
+            try:
+                yield messages.get(timeout=poll_s)
+            except queue.Empty:
+                continue
+
     # --- liveliness -----------------------------------------------------------------------
     def declare_alive(self) -> None:
         self._keepalive.append(self.session.liveliness().declare_token(keys.key(self.run_id, f"{keys.ALIVE}/{self.name}")))

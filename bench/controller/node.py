@@ -6,7 +6,6 @@ published as a DeadlineEvent as it happens. The monitor's summary goes to deadli
 from __future__ import annotations
 
 import json
-import queue
 import time
 
 import numpy as np
@@ -26,11 +25,7 @@ def run(ctx: NodeContext) -> int:
     estimates = ctx.subscribe_queue(keys.ESTIMATE_TRANSLATION, TranslationEstimate)
     ctx.declare_publisher(keys.EVENT_DEADLINE)
     ctx.declare_ready([keys.COMMAND_THRUST])
-    while not ctx.stop.is_set():
-        try:
-            estimate = estimates.get(timeout=0.2)
-        except queue.Empty:
-            continue
+    for estimate in ctx.until_stopped(estimates):
         received_ns = time.monotonic_ns()
         hdr = estimate.header.stamped("controller_received", received_ns)
         outcome = control.run(np.array(estimate.state_m_mps), estimate.mean_motion_radps, start_ns=received_ns)

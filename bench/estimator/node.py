@@ -55,11 +55,7 @@ def run(ctx: NodeContext) -> int:
         history = CommandHistory(ctx.subscribe_queue(keys.COMMAND_THRUST, ThrustCommand))
     command_wait_s = COMMAND_WAIT_S[scenario.run.mode]
     ctx.declare_ready([keys.ESTIMATE_TRANSLATION])
-    while not ctx.stop.is_set():
-        try:
-            sample = samples.get(timeout=0.2)
-        except queue.Empty:
-            continue
+    for sample in ctx.until_stopped(samples):
         hdr = sample.header.stamped("estimator_received", time.monotonic_ns())
         k = hdr.seq
         if history is None:
