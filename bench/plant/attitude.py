@@ -40,15 +40,25 @@ def quaternion_rate(q_wxyz: np.ndarray, omega_body_radps: np.ndarray) -> np.ndar
     ])
 
 
-def euler_rate(omega_body_radps: np.ndarray, torque_body_nm: np.ndarray, inertia_kgm2: np.ndarray) -> np.ndarray:
-    return np.linalg.solve(inertia_kgm2, torque_body_nm - np.cross(omega_body_radps, inertia_kgm2 @ omega_body_radps))
+def cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a x b for 3-vectors; np.cross costs ~10x more per call (argument handling), and the plant
+    calls it a dozen times per step."""
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+
+
+def euler_rate(omega_body_radps: np.ndarray, torque_body_nm: np.ndarray, inertia_kgm2: np.ndarray,
+               inertia_inverse: np.ndarray | None = None) -> np.ndarray:
+    rhs = torque_body_nm - cross3(omega_body_radps, inertia_kgm2 @ omega_body_radps)
+    return inertia_inverse @ rhs if inertia_inverse is not None else np.linalg.solve(inertia_kgm2, rhs)
 
 
 def rk4_attitude_step(q_wxyz: np.ndarray, omega_body_radps: np.ndarray, torque_body_nm: np.ndarray,
                       inertia_kgm2: np.ndarray, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
     """One RK4 step of the rigid body with torque held constant over dt; q re-normalised."""
+    j_inv = np.linalg.inv(inertia_kgm2)
+
     def f(q, w):
-        return quaternion_rate(q, w), euler_rate(w, torque_body_nm, inertia_kgm2)
+        return quaternion_rate(q, w), euler_rate(w, torque_body_nm, inertia_kgm2, j_inv)
 
     k1q, k1w = f(q_wxyz, omega_body_radps)
     k2q, k2w = f(q_wxyz + 0.5 * dt_s * k1q, omega_body_radps + 0.5 * dt_s * k1w)
@@ -61,7 +71,7 @@ def rk4_attitude_step(q_wxyz: np.ndarray, omega_body_radps: np.ndarray, torque_b
 
 def magnetorquer_torque_nm(dipole_body_am2: np.ndarray, field_body_t: np.ndarray) -> np.ndarray:
     """tau = m x B (seed 004 section 7): no torque along the field, hence the under-actuation."""
-    return np.cross(dipole_body_am2, field_body_t)
+    return cross3(dipole_body_am2, field_body_t)
 
 
 def body_to_inertial(q_wxyz: np.ndarray) -> Rotation:
@@ -124,11 +134,20 @@ class AttitudeSensorSpec:
     magnetometer_noise_std_t: float = 1.0e-7
     star_tracker_period_s: float = 10.0
     star_tracker_noise_std_rad: float = 1.0e-4
+    # A star tracker resolves rotation about its boresight (body z here) worse than across it, by
+    # the ratio of its field of view to star separations: typically 5-10 times (cross-boresight
+    # noise is star_tracker_noise_std_rad).
+    star_tracker_boresight_noise_factor: float = 1.0
+    star_tracker_outages_s: tuple[tuple[float, float], ...] = ()   # (start, end): no fix (Sun or Earth in view)
+    magnetometer_bias_t: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def __post_init__(self):
         for name in ("gyro_rate_hz", "magnetometer_period_s", "star_tracker_period_s"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"AttitudeSensorSpec.{name} must be positive, got {getattr(self, name)}")
+        if not self.star_tracker_boresight_noise_factor >= 1.0:
+            raise ValueError("AttitudeSensorSpec.star_tracker_boresight_noise_factor must be >= 1, "
+                             f"got {self.star_tracker_boresight_noise_factor}")
         for name in ("magnetometer_period_s", "star_tracker_period_s"):
             ratio = getattr(self, name) * self.gyro_rate_hz
             if abs(ratio - round(ratio)) > 1e-9:
@@ -197,12 +216,19 @@ class AttitudeSimulation:
         The gyro measures the average rate over its sample period (an integrating rate gyro), so
         integrating its samples reproduces the attitude change up to the sensor noise.
         """
-        spec, dt = self.sensors, self.dt_s
+        dt = self.dt_s
         q_before = self.q_wxyz
         self.q_wxyz, self.omega_body_radps = rk4_attitude_step(
             self.q_wxyz, self.omega_body_radps, np.asarray(torque_body_nm, float), self.inertia_kgm2, dt)
         self.tick += 1
         mean_rate = (body_to_inertial(q_before).inv() * body_to_inertial(self.q_wxyz)).as_rotvec() / dt
+        return self.measure(mean_rate)
+
+    def measure(self, mean_rate_radps: np.ndarray) -> AttitudeSample:
+        """The sensors at the current tick, the gyro reading `mean_rate_radps` (at tick 0, before
+        any step, the closed loop's first sample reads the initial rate)."""
+        spec, dt = self.sensors, self.dt_s
+        mean_rate = np.asarray(mean_rate_radps, dtype=float)
         # Bias is constant over the sample and then walks (what the preintegration assumes).
         gyro = mean_rate + self.gyro_bias_radps + self.rng.normal(0.0, spec.gyro_noise_density_radps_per_rthz / np.sqrt(dt), 3)
         self.gyro_bias_radps = self.gyro_bias_radps + self.rng.normal(
@@ -212,10 +238,12 @@ class AttitudeSimulation:
             field_inertial = self.geomagnetic.field_t(self.orbit.position_m(self.time_s), self.time_s)
             sample.field_inertial_t = field_inertial
             sample.magnetometer_t = body_to_inertial(self.q_wxyz).inv().apply(field_inertial) + self.rng.normal(
-                0.0, spec.magnetometer_noise_std_t, 3)
+                0.0, spec.magnetometer_noise_std_t, 3) + np.asarray(spec.magnetometer_bias_t)
         if self._on_tick(spec.star_tracker_period_s):
-            error = Rotation.from_rotvec(self.rng.normal(0.0, spec.star_tracker_noise_std_rad, 3))
-            sample.star_tracker_wxyz = (body_to_inertial(self.q_wxyz) * error).as_quat(scalar_first=True)
+            noise_std_rad = spec.star_tracker_noise_std_rad * np.array([1.0, 1.0, spec.star_tracker_boresight_noise_factor])
+            error = Rotation.from_rotvec(self.rng.normal(0.0, 1.0, 3) * noise_std_rad)
+            if not any(start <= self.time_s < end for start, end in spec.star_tracker_outages_s):
+                sample.star_tracker_wxyz = (body_to_inertial(self.q_wxyz) * error).as_quat(scalar_first=True)
         return sample
 
     def _on_tick(self, period_s: float) -> bool:
