@@ -18,6 +18,10 @@ from bench.node_runtime import NodeContext
 
 
 def run(ctx: NodeContext) -> int:
+    if ctx.scenario.kind == "attitude":
+        from bench.controller.attitude_node import run as run_attitude
+
+        return run_attitude(ctx)
     control = ControlCycle(ctx.scenario)
     mtq = MagnetorquerLink(ctx, ctx.scenario.can) if ctx.scenario.can is not None else None
     if mtq is not None:

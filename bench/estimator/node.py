@@ -45,6 +45,10 @@ class CommandHistory:
 
 
 def run(ctx: NodeContext) -> int:
+    if ctx.scenario.kind == "attitude":
+        from bench.estimator.attitude_node import run as run_attitude
+
+        return run_attitude(ctx)
     scenario = ctx.scenario
     estimator = StateEstimator(scenario)
     if estimator.needs_truth:

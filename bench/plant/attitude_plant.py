@@ -15,8 +15,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from bench.gnc import quaternion as qt
 from bench.plant.attitude import (
-    AttitudeSample, AttitudeSensorSpec, AttitudeSimulation, CircularOrbit, TiltedDipole, body_to_inertial,
+    AttitudeSample, AttitudeSensorSpec, AttitudeSimulation, CircularOrbit, TiltedDipole,
     magnetorquer_torque_nm, EARTH_RADIUS_M,
 )
 from bench.plant.attitude_config import AttitudePlantConfig
@@ -110,7 +111,7 @@ class AttitudePlant:
     def disturbance_torque_nm(self, field_body_t: np.ndarray) -> np.ndarray:
         torque = residual_dipole_torque_nm(self.residual_dipole_am2, field_body_t)
         if self.config.disturbances.gravity_gradient:
-            position_body = body_to_inertial(self.sim.q_wxyz).inv().apply(self.orbit.position_m(self.time_s))
+            position_body = qt.rotation_matrix(self.sim.q_wxyz).T @ self.orbit.position_m(self.time_s)
             torque = torque + gravity_gradient_torque_nm(position_body, self.sim.inertia_kgm2)
         return torque
 
@@ -118,7 +119,7 @@ class AttitudePlant:
         """Integrate one step with the board's applied dipole held over it."""
         dipole = np.asarray(dipole_applied_am2, dtype=float)
         field_inertial = self.field_inertial_t()
-        field_body = body_to_inertial(self.sim.q_wxyz).inv().apply(field_inertial)
+        field_body = qt.rotation_matrix(self.sim.q_wxyz).T @ field_inertial
         control = magnetorquer_torque_nm(dipole, field_body)
         disturbance = self.disturbance_torque_nm(field_body)
         log = self.log

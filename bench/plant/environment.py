@@ -24,6 +24,8 @@ from scipy.interpolate import CubicSpline
 from sgp4.api import SGP4_ERRORS, WGS72, Satrec, jday
 from sgp4.propagation import gstime
 
+from bench.plant.attitude import cross3
+
 EARTH_MU_M3PS2 = 3.986004418e14
 IGRF_REFERENCE_RADIUS_KM = 6371.2   # IGRF's reference radius a (Alken et al. 2021)
 
@@ -171,9 +173,9 @@ def gravity_gradient_torque_nm(position_body_m: np.ndarray, inertia_kgm2: np.nda
     """tau = 3 mu / r^3 (r_hat x J r_hat), r_hat the unit position in body axes (Wie, eq. 6.20)."""
     r = float(np.linalg.norm(position_body_m))
     r_hat = position_body_m / r
-    return 3.0 * mu_m3ps2 / r**3 * np.cross(r_hat, inertia_kgm2 @ r_hat)
+    return 3.0 * mu_m3ps2 / r**3 * cross3(r_hat, inertia_kgm2 @ r_hat)
 
 
 def residual_dipole_torque_nm(residual_dipole_am2: np.ndarray, field_body_t: np.ndarray) -> np.ndarray:
     """A spacecraft's own magnetic moment (harness currents, magnetised parts) in the field."""
-    return np.cross(residual_dipole_am2, field_body_t)
+    return cross3(residual_dipole_am2, field_body_t)

@@ -98,6 +98,10 @@ class RealTimeClock:
 
 
 def run(ctx: NodeContext) -> int:
+    if ctx.scenario.kind == "attitude":
+        from bench.plant.attitude_node import run as run_attitude
+
+        return run_attitude(ctx)
     scenario = ctx.scenario
     plant = TranslationPlant.from_scenario(scenario)
     n_steps = scenario.n_steps
