@@ -133,3 +133,54 @@ def summary_rows(metrics: dict) -> list[tuple[str, str]]:
     if latency.get("samples"):
         rows.append(("sense -> board p50 / p99", f"{latency['p50_ms']:.2f} / {latency['p99_ms']:.2f} ms"))
     return rows
+
+
+def applied_is_commanded_or_zero(trajectory: dict, can) -> np.ndarray:
+    """Per step: True when the dipole the plant applied is zero or what the board makes of a dipole
+    the law commanded in this run (so no frame altered on the bus moved the coils)."""
+    from bench.plant.mtq_acceptance import board_dipole_without_bus
+
+    commanded = trajectory["att_dipole_commanded_am2"]
+    expected = {tuple(board_dipole_without_bus(c, can)) for c in commanded if np.all(np.isfinite(c))}
+    return np.array([not np.any(a) or tuple(a) in expected for a in trajectory["att_dipole_applied_am2"]])
+
+
+def loop_recovery_s(trajectory: dict, can, after_sim_s: float) -> float | None:
+    """Simulated time after `after_sim_s` until the plant applies, at every later step, what the
+    board makes of the dipole commanded in that step (the loop is whole again); None if never."""
+    from bench.plant.mtq_acceptance import board_dipole_without_bus
+
+    times = trajectory["att_time_s"]
+    commanded, applied = trajectory["att_dipole_commanded_am2"], trajectory["att_dipole_applied_am2"]
+    whole = np.array([np.all(np.isfinite(c)) and np.array_equal(board_dipole_without_bus(c, can), a)
+                      for c, a in zip(commanded, applied)])
+    # Real time holds the latest report over a step: a command that changed mid-step shows the
+    # previous value, so "whole" allows the previous step's command as well.
+    previous = np.concatenate([[False], [np.all(np.isfinite(c)) and np.array_equal(board_dipole_without_bus(c, can), a)
+                                         for c, a in zip(commanded[:-1], applied[1:])]])
+    whole |= previous
+    later = times >= after_sim_s
+    broken = np.nonzero(later & ~whole)[0]
+    if len(broken) == 0:
+        return 0.0
+    last = broken[-1]
+    return float(times[last + 1] - after_sim_s) if last + 1 < len(times) else None
+
+
+def fault_effect(clean: dict, faulted: dict, scenario: Scenario, fault_end_sim_s: float) -> dict:
+    """The mission effect of a fault: the excess of the pointing error (or of the body rate, for
+    laws without a target) over the clean run of the same scenario, step by step, and how long
+    after the fault the loop applied what it commanded again."""
+    n = min(len(clean["att_time_s"]), len(faulted["att_time_s"]))
+    clean_c = {k: v[:n] for k, v in clean.items() if isinstance(v, np.ndarray) and v.ndim and len(v) >= n}
+    faulted_c = {k: v[:n] for k, v in faulted.items() if isinstance(v, np.ndarray) and v.ndim and len(v) >= n}
+    error_f, error_c = pointing_error_deg(faulted_c, scenario), pointing_error_deg(clean_c, scenario)
+    if error_f is None:
+        quantity = "body rate [deg/s]"
+        error_f = np.rad2deg(np.linalg.norm(faulted_c["att_omega_radps"], axis=1))
+        error_c = np.rad2deg(np.linalg.norm(clean_c["att_omega_radps"], axis=1))
+    else:
+        quantity = "pointing error [deg]"
+    excess = error_f - error_c
+    return {"quantity": quantity, "max_excess": float(excess.max()), "final_excess": float(excess[-1]),
+            "loop_recovery_s": loop_recovery_s(faulted, scenario.can, fault_end_sim_s)}
