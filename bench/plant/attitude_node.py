@@ -102,6 +102,7 @@ class AppliedLog:
         self.counter = np.full(n_steps, -1, dtype=np.int64)
         self.refused = np.zeros(n_steps, dtype=bool)
         self.safe_state = np.zeros(n_steps, dtype=bool)
+        self.board_applied_ns = np.full(n_steps, -1, dtype=np.int64)   # board set its coils (sense-to-torque)
 
 
 def run(ctx: NodeContext) -> int:
@@ -148,6 +149,8 @@ def run(ctx: NodeContext) -> int:
                 command = _wait_command_lockstep(ctx, commands, k, scenario.run.command_timeout_s)
                 last_command = command
                 dipole, report = _lockstep_dipole(scenario, acceptance, reports, command, step_started_ns, log, k)
+            if report is not None:
+                log.board_applied_ns[k] = report.header.stamps_ns.get("applied", -1)
             if command is not None:
                 hdr = command.header.stamped("plant_received", time.monotonic_ns())
                 if report is not None and "board_received" in report.header.stamps_ns:
@@ -222,6 +225,7 @@ def _write_trajectory(ctx, plant, stamps, clock, log: AppliedLog, acceptance: Di
     arrays.update({
         "att_dipole_commanded_am2": log.commanded[:n], "att_board_report_am2": log.reported[:n],
         "att_alive_counter": log.counter[:n], "att_refused": log.refused[:n], "att_safe_state": log.safe_state[:n],
+        "att_board_applied_ns": log.board_applied_ns[:n],
     })
     arrays.update({f"stamp_{stage}_ns": v[:n] for stage, v in stamps.stamps.items()})
     arrays["plant_late_commands"] = np.array(clock.late_commands if clock else 0)
