@@ -112,3 +112,14 @@ def test_short_in_process_detumble_applies_only_what_was_commanded_and_slows_the
     disturbance_power = np.linalg.norm(trajectory["att_torque_disturbance_nm"], axis=1) * np.linalg.norm(omega, axis=1)
     assert energy[-1] < 0.9 * energy[0]
     assert np.all(np.diff(energy) <= 1.01 * disturbance_power[:-1] * scenario.step_s)
+
+
+def test_cycle_commands_zero_for_a_nan_or_non_unit_estimate_and_counts_it():
+    from bench.controller.attitude_cycle import AttitudeCycle
+
+    cycle = AttitudeCycle(parse_scenario(builtin("attitude_slew"), "slew"))
+    for q in ([np.nan, 0.0, 0.0, 1.0], [1.0, 0.1, 0.0, 0.0]):
+        outcome = cycle.run(0.0, True, q, [0.0, 0.0, 0.0], [2e-5, 0.0, 1e-5])
+        assert not np.any(outcome.dipole_am2)
+    assert cycle.bad_estimate_cycles == 2
+    assert np.any(cycle.run(0.0, True, [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 0.0], [2e-5, 0.0, 1e-5]).dipole_am2)

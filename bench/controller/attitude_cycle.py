@@ -38,14 +38,19 @@ class AttitudeCycle:
         self.saturated_cycles = 0
         self.weak_field_cycles = 0
         self.waiting_for_estimate_cycles = 0
+        self.bad_estimate_cycles = 0
 
     def run(self, time_s: float, valid: bool, q_wxyz, omega_radps, field_body_t,
             start_ns: int | None = None) -> AttitudeCycleOutcome:
         if self.needs_attitude and not valid:
             self.waiting_for_estimate_cycles += 1
             return AttitudeCycleOutcome(np.zeros(3), None, False, False, None)
-        x = AttitudeControlInput(time_s, np.asarray(q_wxyz, float), np.asarray(omega_radps, float),
-                                 np.asarray(field_body_t, float))
+        q, omega, field_t = (np.asarray(v, float) for v in (q_wxyz, omega_radps, field_body_t))
+        if not (np.all(np.isfinite(q)) and np.all(np.isfinite(omega)) and abs(np.linalg.norm(q) - 1.0) < 1e-6):
+            # A schema-valid estimate with a NaN or non-unit attitude: coils off, counted, never fatal.
+            self.bad_estimate_cycles += 1
+            return AttitudeCycleOutcome(np.zeros(3), None, False, False, None)
+        x = AttitudeControlInput(time_s, q, omega, field_t)
         outcome = self.monitor.run_cycle(x, self.law.eval, start_ns)
         dipole = outcome.thrust_n      # the monitor's name for the command vector
         if not np.all(np.isfinite(dipole)):
@@ -61,4 +66,5 @@ class AttitudeCycle:
     def summary(self) -> dict:
         return self.monitor.summary() | {"law": self.law_name, "saturated_cycles": self.saturated_cycles,
                                          "weak_field_cycles": self.weak_field_cycles,
-                                         "waiting_for_estimate_cycles": self.waiting_for_estimate_cycles}
+                                         "waiting_for_estimate_cycles": self.waiting_for_estimate_cycles,
+                                         "bad_estimate_cycles": self.bad_estimate_cycles}

@@ -20,7 +20,6 @@ Without a [can] section the commanded dipole goes through the in-process board m
 """
 from __future__ import annotations
 
-import queue
 import threading
 import time
 
@@ -29,7 +28,7 @@ import numpy as np
 
 from bench.bus import keys
 from bench.bus.schemas import (
-    STAGES, AttitudeSensors, AttitudeTruth, DipoleCommand, MtqApplied, StepDone, header,
+    AttitudeSensors, AttitudeTruth, DipoleCommand, MtqApplied, StepDone, header,
 )
 from bench.node_runtime import NodeContext
 from bench.plant.attitude_plant import AttitudePlant
@@ -80,7 +79,7 @@ class BoardReports:
                 self._cond.wait(remaining)
 
 
-def _publish_step(ctx: NodeContext, plant: AttitudePlant, k: int, estimator_truth: bool) -> None:
+def _publish_step(ctx: NodeContext, plant: AttitudePlant, k: int) -> None:
     sample = plant.sense()
     hdr = header(ctx.run_id, k, plant.time_s, sensed=time.monotonic_ns())
     truth = plant.sim.truth()
@@ -137,7 +136,7 @@ def run(ctx: NodeContext) -> int:
                 raise LoopBroken(f"peer '{ctx.lost_peers[0]}' lost at step {k}")
             if realtime:
                 clock.sleep_until(clock.tick_s(k))
-            _publish_step(ctx, plant, k, estimator_truth)
+            _publish_step(ctx, plant, k)
             if realtime:
                 command = clock.collect_command(commands, k)
                 outcome = clock.deadline.check(k, time.monotonic() - clock.tick_s(k))
