@@ -16,8 +16,8 @@ import msgspec
 from bench.bus.can.config import CanConfig
 from bench.controller.config import ControllerConfig
 from bench.estimator.config import EstimatorConfig
+from bench.gnc.cwh import RendezvousParams
 from bench.plant.config import PlantConfig
-from bench.plant.cwh import RendezvousParams
 
 BUILTIN_PACKAGE = "bench.scenarios"
 

@@ -26,7 +26,7 @@ from bench.estimator.factors import range_bearing  # noqa: E402
 from bench.estimator.motion_model import CwhMotionModel  # noqa: E402
 from bench.estimator.translation import TranslationSmoother  # noqa: E402
 from bench.plant.attitude import AttitudeSensorSpec, AttitudeSimulation  # noqa: E402
-from bench.plant.cwh import RendezvousParams  # noqa: E402
+from bench.gnc.cwh import RendezvousParams  # noqa: E402
 
 PARAMS = RendezvousParams.from_reference()
 

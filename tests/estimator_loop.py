@@ -9,11 +9,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bench.controller.lqr import LQR
 from bench.estimator.config import TranslationSmootherConfig
-from bench.estimator.motion_model import params_with_mean_motion
 from bench.estimator.translation import TranslationSmoother
-from bench.plant.cwh import RendezvousParams
+from bench.gnc.cwh import params_with_mean_motion, RendezvousParams
+from bench.gnc.lqr import LQR
 
 # The tuned weights of the default scenario (bench/scenarios/rendezvous_lqr.toml).
 Q_DIAG = [94.0, 0.1579, 500.0, 0.01, 0.1, 0.01]

@@ -14,7 +14,7 @@ from bench.estimator.config import TranslationSmootherConfig
 from bench.estimator.factors import range_bearing
 from bench.estimator.motion_model import CwhMotionModel
 from bench.estimator.translation import TranslationSmoother
-from bench.plant.cwh import RendezvousParams
+from bench.gnc.cwh import RendezvousParams
 from bench.report.plots import estimator_error
 from estimator_loop import run_closed_loop
 

@@ -5,10 +5,51 @@ from typing import Annotated, Literal
 
 import msgspec
 
-from bench.controller.deadline import DeadlineConfig
-
+Seconds = Annotated[float, msgspec.Meta(ge=0)]
+PositiveSeconds = Annotated[float, msgspec.Meta(gt=0)]
+FallbackPolicy = Literal["hold", "shifted_plan", "lqr"]
+# Processes that apply a StressConfig (call StressInjector(config, name).apply(cycle) in their
+# loop). Only the controller does so far; a scenario naming another is refused, not ignored.
+StressedProcess = Literal["controller"]
 PositiveWeights = Annotated[list[Annotated[float, msgspec.Meta(gt=0)]], msgspec.Meta(min_length=1)]
 Horizon = Annotated[int, msgspec.Meta(ge=1)]
+
+
+class StressConfig(msgspec.Struct, forbid_unknown_fields=True):
+    """Extra time added to chosen cycles of one process, to make deadline misses on purpose.
+
+    A cycle i (0-based) is stressed if i is in `cycles`, or if `every_nth_cycle` = N > 0 and
+    (i + 1) is a multiple of N (the Nth, 2Nth, ... cycle). Over n cycles that is exactly
+    len({i in cycles, i < n} | {N-1, 2N-1, ...}) stressed cycles: tests can count them.
+    """
+
+    process: StressedProcess = "controller"
+    extra_cycle_time_s: Seconds = 0.0
+    cycles: list[Annotated[int, msgspec.Meta(ge=0)]] = []
+    every_nth_cycle: Annotated[int, msgspec.Meta(ge=0)] = 0
+    # "busy": burn CPU (load, as a slow solver would); "sleep": a pure delay (as a pre-empted one).
+    kind: Literal["busy", "sleep"] = "busy"
+
+    def is_stressed(self, cycle_index: int) -> bool:
+        if self.extra_cycle_time_s <= 0:
+            return False
+        if cycle_index in self.cycles:
+            return True
+        return self.every_nth_cycle > 0 and (cycle_index + 1) % self.every_nth_cycle == 0
+
+    def stressed_count(self, n_cycles: int) -> int:
+        """How many of cycles 0..n_cycles-1 get the extra time."""
+        return sum(self.is_stressed(i) for i in range(n_cycles))
+
+
+class DeadlineConfig(msgspec.Struct, forbid_unknown_fields=True):
+    """Scenario [controller.deadline]."""
+
+    # Wall-clock budget from the estimate's arrival to the command being ready. The default is
+    # half the step period of real-time mode at its default rate (10 steps per wall second).
+    budget_s: PositiveSeconds = 0.05
+    fallback: FallbackPolicy = "hold"
+    stress: StressConfig = msgspec.field(default_factory=StressConfig)
 
 
 class ControllerConfig(msgspec.Struct, forbid_unknown_fields=True):

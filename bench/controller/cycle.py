@@ -9,8 +9,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from bench.controller.deadline import CycleOutcome, DeadlineMonitor, lqr_fallback_law
+from bench.controller.deadline import DeadlineMonitor, lqr_fallback_law
 from bench.controller.thrust import ThrustLaw
+from bench.runtime.deadline import CycleOutcome
 from bench.scenario import Scenario
 
 

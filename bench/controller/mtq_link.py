@@ -14,7 +14,7 @@ from dataclasses import asdict
 from bench.bus.can.config import CanConfig
 from bench.bus.can.driver import CommandLoop, FaultEvent, MagnetorquerDriver
 from bench.bus.can.nodes import can_dir, open_node_bus
-from bench.node_runtime import NodeContext
+from bench.runtime.node import NodeContext
 
 DRIVER_REPORT_NAME = "driver.json"
 

@@ -11,8 +11,7 @@ from dataclasses import replace
 import numpy as np
 
 from bench.controller.factory import build_controller
-from bench.estimator.motion_model import params_with_mean_motion
-from bench.plant.cwh import RendezvousParams
+from bench.gnc.cwh import params_with_mean_motion, RendezvousParams
 from bench.scenario import Scenario
 
 # Rebuild the controller when the estimated mean motion has moved this much (relative) since the

@@ -27,7 +27,7 @@ from bench.estimator import factors
 from bench.estimator.config import TranslationSmootherConfig
 from bench.estimator.kalman import POSITION_MATRIX, Gaussian, predict
 from bench.estimator.motion_model import CwhMotionModel
-from bench.plant.cwh import RendezvousParams
+from bench.gnc.cwh import RendezvousParams
 
 log = logging.getLogger(__name__)
 

@@ -8,22 +8,16 @@ crosses a process boundary stays in SI; only `ScaledModel` speaks scaled units.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property
-import tomllib
-from importlib import resources
 
 import numpy as np
 from scipy.linalg import expm
 
+from bench.data import load_reference
+
 N_STATE = 6
 N_INPUT = 3
-
-
-def load_reference() -> dict:
-    """The rendezvous reference numbers (seed 003 and its 2022 parameter file)."""
-    text = resources.files("bench.data").joinpath("rendezvous.toml").read_text()
-    return tomllib.loads(text)
 
 
 def mean_motion_radps(gravitational_parameter_m3ps2: float, target_radius_m: float) -> float:
@@ -140,6 +134,17 @@ class RendezvousParams:
         except KeyError:
             known = ", ".join(sorted(self.initial_conditions_m_mps)) or "none"
             raise KeyError(f"unknown initial condition {name!r} (known: {known})") from None
+
+
+def params_with_mean_motion(params: RendezvousParams, mean_motion_radps: float) -> RendezvousParams:
+    """The params whose target orbit has this mean motion (R = (mu / n^2)^(1/3)).
+
+    How a controller adopts the smoother's estimated mean motion: rebuild its model from these.
+    """
+    if not (np.isfinite(mean_motion_radps) and mean_motion_radps > 0):
+        raise ValueError(f"mean_motion_radps must be positive and finite, got {mean_motion_radps}")
+    radius_m = (params.gravitational_parameter_m3ps2 / mean_motion_radps**2) ** (1.0 / 3.0)
+    return replace(params, target_radius_m=float(radius_m))
 
 
 class _ModelDimensions:
