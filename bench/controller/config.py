@@ -5,6 +5,9 @@ from typing import Annotated, Literal
 
 import msgspec
 
+from bench.data import load_reference
+
+SEED_WEIGHTS = load_reference()["weights"]     # Q*, horizons and tube poles of seed 003
 Seconds = Annotated[float, msgspec.Meta(ge=0)]
 PositiveSeconds = Annotated[float, msgspec.Meta(gt=0)]
 FallbackPolicy = Literal["hold", "shifted_plan", "lqr"]
@@ -58,15 +61,15 @@ class ControllerConfig(msgspec.Struct, forbid_unknown_fields=True):
     # mpc_tube: tube MPC (23) on the out-of-plane axis [z, vz], mpc with LQR terminal cost in plane.
     type: Literal["lqr", "mpc", "mpc_te", "mpc_ts", "mpc_ts_sc", "mpc_tube"] = "lqr"
     # Q = diag(q_diag), R = diag(r_diag), on the scaled state (seed 003); defaults are Q*, R*.
-    q_diag: PositiveWeights = msgspec.field(default_factory=lambda: [94.0, 0.1579, 300.0, 0.01, 0.10, 0.10])
+    q_diag: PositiveWeights = msgspec.field(default_factory=lambda: list(SEED_WEIGHTS["q_star"]))
     r_diag: PositiveWeights = msgspec.field(default_factory=lambda: [1.0, 1.0, 1.0])
-    horizon: Horizon = 30                               # N, prediction steps (seed: 30; tube 50)
+    horizon: Horizon = SEED_WEIGHTS["mpc_horizon"]      # N, prediction steps
     # mpc_ts_sc: slack penalty eps'S eps + v ||eps||_inf with S = soft_quadratic_weight * I (task 23).
     soft_quadratic_weight: Annotated[float, msgspec.Meta(gt=0)] = 1.0e3
     soft_linf_weight: Annotated[float, msgspec.Meta(ge=0)] = 1.0e5
     # mpc_tube: poles of A + B K_tube (task 31) and the out-of-plane horizon.
     tube_poles: Annotated[list[Annotated[float, msgspec.Meta(gt=-1, lt=1)]], msgspec.Meta(min_length=2, max_length=2)] = \
-        msgspec.field(default_factory=lambda: [0.05, 0.1])
-    tube_horizon: Horizon = 50
+        msgspec.field(default_factory=lambda: list(SEED_WEIGHTS["tube_poles"]))
+    tube_horizon: Horizon = SEED_WEIGHTS["tube_horizon"]
     # Wall-clock budget per cycle, fallback on a miss, optional stress (bench/controller/deadline.py).
     deadline: DeadlineConfig = msgspec.field(default_factory=DeadlineConfig)

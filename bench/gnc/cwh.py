@@ -65,20 +65,21 @@ def scale_system(a_d: np.ndarray, b_d: np.ndarray, scaling: np.ndarray) -> tuple
 class RendezvousParams:
     """The seed's `params` struct (seed 003 table 1), built from a scenario or the reference.
 
-    SI units throughout; `scaled` gives the model and constraints in the controllers' units.
+    SI units throughout; `scaled` gives the model and constraints in the controllers' units. No
+    defaults: the numbers come from `from_reference` (bench/data/rendezvous.toml) only.
     """
 
-    mass_kg: float = 300.0
-    gravitational_parameter_m3ps2: float = 3.986e14
-    target_radius_m: float = 7.0e6
-    time_step_s: float = 600.0
-    n_steps: int = 288
-    scaling: tuple[float, ...] = (1e-6, 1e-6, 1e-6, 1e-3, 1e-3, 1e-3)
-    max_abs_thrust_n: float = 1.0
-    max_abs_position_xz_m: float = 1.0e5
-    max_abs_position_y_m: float = 1.0e6
-    max_final_position_m: float = 100.0
-    max_final_velocity_mps: float = 1.0
+    mass_kg: float
+    gravitational_parameter_m3ps2: float
+    target_radius_m: float
+    time_step_s: float
+    n_steps: int
+    scaling: tuple[float, ...]
+    max_abs_thrust_n: float
+    max_abs_position_xz_m: float
+    max_abs_position_y_m: float
+    max_final_position_m: float
+    max_final_velocity_mps: float
     initial_conditions_m_mps: dict[str, tuple[float, ...]] = field(default_factory=dict, compare=False)
 
     @classmethod
@@ -127,6 +128,11 @@ class RendezvousParams:
     @cached_property
     def scaled(self) -> "ScaledModel":
         return ScaledModel.from_params(self)
+
+    def with_radius_error(self, relative_error: float) -> "RendezvousParams":
+        """These params with the target orbit radius R (1 + relative_error): what a flight side
+        believes that has the orbit this far wrong (seed 001, third case)."""
+        return replace(self, target_radius_m=self.target_radius_m * (1.0 + relative_error))
 
     def initial_state_m_mps(self, name: str) -> np.ndarray:
         try:
