@@ -71,5 +71,5 @@ class ControllerConfig(msgspec.Struct, forbid_unknown_fields=True):
     tube_poles: Annotated[list[Annotated[float, msgspec.Meta(gt=-1, lt=1)]], msgspec.Meta(min_length=2, max_length=2)] = \
         msgspec.field(default_factory=lambda: list(SEED_WEIGHTS["tube_poles"]))
     tube_horizon: Horizon = SEED_WEIGHTS["tube_horizon"]
-    # Wall-clock budget per cycle, fallback on a miss, optional stress (bench/controller/deadline.py).
+    # Wall-clock budget per cycle, fallback on a miss, optional stress (used by bench/controller/deadline.py).
     deadline: DeadlineConfig = msgspec.field(default_factory=DeadlineConfig)

@@ -1,7 +1,12 @@
-"""The actuator bus as separate processes, for tests and benchmarks: bus model, board, driver.
+"""The actuator bus as separate processes without the rest of the loop: bus model, board, driver.
+
+Part of the product, not test scaffolding: the CAN fault tests (tests/test_can_faults.py) and the
+bus-model benchmark (benchmarks/bench_can_busmodel.py) use it, and so can anyone who wants to
+exercise a driver against the board and the bus model alone.
 
 `CanBench` opens the hub Zenoh session (through bench.bus.session), starts `bench node canbus`
-and `bench node mtq` as their own OS processes on a scenario, and runs the flight-side driver in
+and `bench node mtq` as their own OS processes (`bench.runtime.process.start_node`, as the
+launcher does) on a scenario, and runs the flight-side driver in
 the calling process on the scripted dipole profile. When it stops it collects what each process
 wrote (board.json, busmodel.json, injections.jsonl, the captures) into a `CanRunResult` that
 accounts for every frame.
@@ -177,7 +182,7 @@ class CanBench:
             proc.kill()
             proc.wait()
             with open(self.run_dir / f"{name}.log", "a") as log:
-                log.write(f"\n[harness] no exit {EXIT_TIMEOUT_S} s after SIGTERM: killed\n")
+                log.write(f"\n[can_bench] no exit {EXIT_TIMEOUT_S} s after SIGTERM: killed\n")
 
     def close(self) -> None:
         for name in list(self.procs):
