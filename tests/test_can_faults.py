@@ -22,7 +22,7 @@ from collections import Counter
 import pytest
 
 from bench.bus.can import protocol as p
-from bench.bus.can.harness import CanBench, CanRunResult, write_scenario
+from bench.runtime.can_bench import CanBench, CanRunResult, write_scenario
 
 HEARTBEAT_PERIOD_S = 0.1
 TELEMETRY_PERIOD_S = 0.05

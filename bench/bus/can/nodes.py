@@ -149,5 +149,5 @@ def run_bus_model(ctx) -> int:
 
 
 def run(ctx) -> int:
-    """Entry point named in bench.node_runtime.NODES for both nodes; the node's name picks one."""
+    """Entry point named in bench.runtime.node.NODES for both nodes; the node's name picks one."""
     return {"mtq": run_board, "canbus": run_bus_model}[ctx.name](ctx)
