@@ -96,3 +96,29 @@ def test_bad_inputs_are_named():
         MagnetorquerAttitudeModel(np.eye(3), np.full((2, 3), np.nan), 1.0)
     with pytest.raises(ValueError, match="dt_s"):
         MagnetorquerAttitudeModel(np.eye(3), np.zeros((2, 3)), 0.0)
+
+
+def test_whole_horizon_linearisation_equals_step_by_step():
+    rng = np.random.default_rng(14)
+    m = model(steps=6)
+    X = np.array([state_from(rng.normal(size=4), rng.normal(scale=0.02, size=3)) for _ in range(7)])
+    U = rng.uniform(-0.2, 0.2, size=(6, 3))
+    A, B = m.linearise(X, U)
+    for k in range(6):
+        _, A_k, B_k = m.reduced_jacobians(X[k], U[k], k)
+        np.testing.assert_allclose(A[k], A_k, rtol=1e-13, atol=1e-15)
+        np.testing.assert_allclose(B[k], B_k, rtol=1e-13, atol=1e-18)
+    from bench.gnc.attitude_planning import _state_error_jacobian, body_vector
+    np.testing.assert_allclose(_state_error_jacobian(X[0]), qt.state_error_jacobian(X[0][:4]), atol=1e-15)
+    b = rng.normal(size=3)
+    np.testing.assert_allclose(body_vector(X[1][:4], b), qt.rotation_matrix(X[1][:4]).T @ b, atol=1e-14)
+
+
+def test_one_state_and_stacked_derivative_agree():
+    rng = np.random.default_rng(15)
+    m = model()
+    X = rng.normal(size=(5, 7))          # off the unit sphere too, as inside the RK stages
+    U, F = rng.normal(size=(5, 3)), m.field_inertial_t[rng.integers(0, 4, 5)]
+    stacked = m.derivative(X, U, F)
+    for i in range(5):
+        np.testing.assert_allclose(m.derivative(X[i], U[i], F[i]), stacked[i], rtol=1e-13, atol=1e-20)

@@ -20,6 +20,10 @@ Seed 004 errata handled here:
 - d omega_dot / d q is not zero once the field is rotated into the body with q (the seed's
   section 2 is for a body-fixed torque);
 - in its RK2 chain rule d x~_{k+1} / d x_k is the 7x7 identity, not I_4.
+
+The functions take one state or a stack of them (leading axes), so the Jacobians of a whole
+horizon come from one vectorised call (`linearise`); MILQR spent most of its time in a per-step
+Python loop over 4x4 and 3x3 products before.
 """
 from __future__ import annotations
 
@@ -30,17 +34,60 @@ import numpy as np
 from bench.gnc import quaternion as qt
 
 
-def inertial_to_body_matrix(q: np.ndarray) -> np.ndarray:
-    """H^T L(q)^T R(q) H: R(q)^T for a unit q; quadratic in q, so smooth off the unit sphere too."""
-    return qt.H.T @ qt.left_matrix(q).T @ qt.right_matrix(q) @ qt.H
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a x b over the last axis (np.cross's axis handling cost more than the arithmetic here)."""
+    a1, a2, a3 = a[..., 0], a[..., 1], a[..., 2]
+    b1, b2, b3 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a2 * b3 - a3 * b2, a3 * b1 - a1 * b3, a1 * b2 - a2 * b1], axis=-1)
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    """[v]x over leading axes: (..., 3) -> (..., 3, 3)."""
+    out = np.zeros(v.shape[:-1] + (3, 3))
+    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
+    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
+    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
+    return out
+
+
+def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.sum(a * b, axis=-1)
+
+
+def body_vector(q: np.ndarray, vector_inertial: np.ndarray) -> np.ndarray:
+    """q* (x) [0, b] (x) q = (s^2 - v.v) b + 2 (v.b) v - 2 s (v x b): R(q)' b for a unit q.
+
+    Quadratic in q and evaluated as such off the unit sphere (inside the RK stages), so that the
+    Jacobian below is its exact derivative.
+    """
+    s, v, b = q[..., :1], q[..., 1:4], vector_inertial
+    return (s * s - _dot(v, v)[..., None]) * b + 2.0 * _dot(v, b)[..., None] * v - 2.0 * s * _cross(v, b)
 
 
 def _d_body_vector_dq(q: np.ndarray, vector_inertial: np.ndarray) -> np.ndarray:
-    """d/dq of H^T (q* (x) [0, b] (x) q), 3x4: product rule on L(T q) R(q) [0, b]."""
-    b_quat = qt.H @ vector_inertial
-    # d/dq [L(q*) R(q) p] = L(q*) L(p) + R(p (x) q) T
-    return qt.H.T @ (qt.left_matrix(qt.conjugate(q)) @ qt.left_matrix(b_quat)
-                     + qt.right_matrix(qt.multiply(b_quat, q)) @ qt.T)
+    """d body_vector / dq, (..., 3, 4)."""
+    s, v, b = q[..., 0], q[..., 1:4], vector_inertial
+    out = np.empty(q.shape[:-1] + (3, 4))
+    out[..., 0] = 2.0 * s[..., None] * b - 2.0 * _cross(v, b)
+    out[..., 1:] = (-2.0 * b[..., :, None] * v[..., None, :] + 2.0 * v[..., :, None] * b[..., None, :]
+                    + 2.0 * _dot(v, b)[..., None, None] * np.eye(3) + 2.0 * s[..., None, None] * _skew(b))
+    return out
+
+
+def _attitude_jacobian(q: np.ndarray) -> np.ndarray:
+    """G(q) = L(q) H over leading axes, (..., 4, 3)."""
+    out = np.empty(q.shape[:-1] + (4, 3))
+    out[..., 0, :] = -q[..., 1:4]
+    out[..., 1:, :] = q[..., 0, None, None] * np.eye(3) + _skew(q[..., 1:4])
+    return out
+
+
+def _state_error_jacobian(x: np.ndarray) -> np.ndarray:
+    """E(x) (..., 7, 6) of `bench.gnc.quaternion.state_error_jacobian`, over leading axes."""
+    out = np.zeros(x.shape[:-1] + (7, 6))
+    out[..., :4, :3] = _attitude_jacobian(x[..., :4])
+    out[..., 4:, 3:] = np.eye(3)
+    return out
 
 
 @dataclass(frozen=True)
@@ -71,95 +118,115 @@ class MagnetorquerAttitudeModel:
     def horizon_steps(self) -> int:
         return self.field_inertial_t.shape[0]
 
-    # ---- continuous time -------------------------------------------------------------------------
+    # ---- continuous time (every function takes one state or a stack of them, leading axes first) --
 
     def derivative(self, x: np.ndarray, dipole_am2: np.ndarray, field_n: np.ndarray) -> np.ndarray:
-        # Written out component-wise: np.cross and 4x4 products dominated the planner's run time
-        # (cProfile, 82-step slew: 11 s of 21 s in this function before).
-        w0, v1, v2, v3, p, r_, s_ = x
+        if x.ndim == 1:
+            return self._derivative_one(x, dipole_am2, field_n)
+        q, w = x[..., :4], x[..., 4:]
+        torque = _cross(dipole_am2, body_vector(q, field_n))
+        w_dot = (torque - _cross(w, w @ self.inertia_kgm2)) @ self._inertia_inv.T
+        # q (x) [0, w] = [-v.w, s w + v x w]
+        q_dot = 0.5 * np.concatenate([-_dot(q[..., 1:], w)[..., None], q[..., :1] * w + _cross(q[..., 1:], w)], axis=-1)
+        return np.concatenate([q_dot, w_dot], axis=-1)
+
+    def _derivative_one(self, x, dipole_am2, field_n):
+        """`derivative` for one state, written out by component: the sequential roll-outs of the line
+        search call it 4 N times per trial, and array-stacking overhead made the vectorised form
+        3x slower there (cProfile, 82-step slew). Test: equal to the vectorised form."""
+        s, v1, v2, v3, p, r_, y = x
         b1, b2, b3 = field_n
-        # body field q* (x) [0, b] (x) q = (w^2 - v.v) b + 2 (v.b) v - 2 w (v x b), quadratic in q
         vv, vb = v1 * v1 + v2 * v2 + v3 * v3, v1 * b1 + v2 * b2 + v3 * b3
-        c0 = w0 * w0 - vv
-        f1 = c0 * b1 + 2.0 * vb * v1 - 2.0 * w0 * (v2 * b3 - v3 * b2)
-        f2 = c0 * b2 + 2.0 * vb * v2 - 2.0 * w0 * (v3 * b1 - v1 * b3)
-        f3 = c0 * b3 + 2.0 * vb * v3 - 2.0 * w0 * (v1 * b2 - v2 * b1)
+        c0 = s * s - vv
+        f1 = c0 * b1 + 2.0 * vb * v1 - 2.0 * s * (v2 * b3 - v3 * b2)
+        f2 = c0 * b2 + 2.0 * vb * v2 - 2.0 * s * (v3 * b1 - v1 * b3)
+        f3 = c0 * b3 + 2.0 * vb * v3 - 2.0 * s * (v1 * b2 - v2 * b1)
         m1, m2, m3 = dipole_am2
-        Jw = self.inertia_kgm2 @ x[4:]
-        net = np.array([m2 * f3 - m3 * f2 - (r_ * Jw[2] - s_ * Jw[1]),
-                        m3 * f1 - m1 * f3 - (s_ * Jw[0] - p * Jw[2]),
-                        m1 * f2 - m2 * f1 - (p * Jw[1] - r_ * Jw[0])])
+        h1, h2, h3 = self.inertia_kgm2 @ x[4:]
         out = np.empty(7)
-        out[0] = -0.5 * (v1 * p + v2 * r_ + v3 * s_)
-        out[1] = 0.5 * (w0 * p + v2 * s_ - v3 * r_)
-        out[2] = 0.5 * (w0 * r_ - v1 * s_ + v3 * p)
-        out[3] = 0.5 * (w0 * s_ + v1 * r_ - v2 * p)
-        out[4:] = self._inertia_inv @ net
+        out[0] = -0.5 * (v1 * p + v2 * r_ + v3 * y)
+        out[1] = 0.5 * (s * p + v2 * y - v3 * r_)
+        out[2] = 0.5 * (s * r_ - v1 * y + v3 * p)
+        out[3] = 0.5 * (s * y + v1 * r_ - v2 * p)
+        out[4:] = self._inertia_inv @ np.array([m2 * f3 - m3 * f2 - (r_ * h3 - y * h2),
+                                                m3 * f1 - m1 * f3 - (y * h1 - p * h3),
+                                                m1 * f2 - m2 * f1 - (p * h2 - r_ * h1)])
         return out
 
     def derivative_jacobians(self, x: np.ndarray, dipole_am2: np.ndarray,
                              field_n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """df/dx (7x7) and df/du (7x3) of `derivative`."""
-        q, w = x[:4], x[4:]
+        """df/dx (..., 7, 7) and df/du (..., 7, 3) of `derivative`."""
+        q, w = x[..., :4], x[..., 4:]
         J, J_inv = self.inertia_kgm2, self._inertia_inv
-        field_body = inertial_to_body_matrix(q) @ field_n
-        A = np.zeros((7, 7))
-        A[:4, :4] = 0.5 * qt.right_matrix(np.concatenate([[0.0], w]))
-        A[:4, 4:] = 0.5 * qt.left_matrix(q) @ qt.H        # seed: missing 1/2
-        # tau = m x b_body = [m]x b_body(q)
-        A[4:, :4] = J_inv @ qt.skew(dipole_am2) @ _d_body_vector_dq(q, field_n)
-        A[4:, 4:] = J_inv @ (qt.skew(J @ w) - qt.skew(w) @ J)
-        B = np.zeros((7, 3))
-        B[4:, :] = -J_inv @ qt.skew(field_body)            # m x b = -[b]x m
+        lead = x.shape[:-1]
+        A = np.zeros(lead + (7, 7))
+        # d(1/2 q (x) [0, w])/dq = 1/2 R([0, w]) = 1/2 [[0, -w'], [w, -[w]x]]
+        A[..., 0, 1:4] = -0.5 * w
+        A[..., 1:4, 0] = 0.5 * w
+        A[..., 1:4, 1:4] = -0.5 * _skew(w)
+        A[..., :4, 4:] = 0.5 * _attitude_jacobian(q)                  # seed: missing 1/2
+        A[..., 4:, :4] = J_inv @ _skew(dipole_am2) @ _d_body_vector_dq(q, field_n)   # tau = [m]x b(q)
+        A[..., 4:, 4:] = J_inv @ (_skew(w @ J) - _skew(w) @ J)
+        B = np.zeros(lead + (7, 3))
+        B[..., 4:, :] = -J_inv @ _skew(body_vector(q, field_n))       # m x b = -[b]x m
         return A, B
 
     # ---- one discrete step -----------------------------------------------------------------------
 
     def step(self, x: np.ndarray, dipole_am2: np.ndarray, k: int) -> np.ndarray:
         """x_{k+1} from x_k under dipole u_k held over step k (RK4, then q normalised)."""
-        return self._step(x, dipole_am2, k, with_jacobians=False)[0]
+        return self._step(np.asarray(x, float), np.asarray(dipole_am2, float), self.field_inertial_t[k], False)[0]
 
     def step_jacobians(self, x: np.ndarray, dipole_am2: np.ndarray, k: int):
         """(x_{k+1}, A (7x7), B (7x3)): the full-coordinate Jacobians of `step`, normalisation included."""
-        return self._step(x, dipole_am2, k, with_jacobians=True)
+        return self._step(np.asarray(x, float), np.asarray(dipole_am2, float), self.field_inertial_t[k], True)
 
-    def reduced_jacobians(self, x: np.ndarray, dipole_am2: np.ndarray, k: int):
-        """(x_{k+1}, A (6x6), B (6x3)) in error coordinates [Rodrigues phi; d_omega]."""
-        x_next, A, B = self._step(x, dipole_am2, k, with_jacobians=True)
-        E_next_T = qt.state_error_jacobian(x_next[:4]).T
-        return x_next, E_next_T @ A @ qt.state_error_jacobian(x[:4]), E_next_T @ B
+    def reduced_jacobians(self, x: np.ndarray, dipole_am2: np.ndarray, k):
+        """(x_{k+1}, A (6x6), B (6x3)) in error coordinates [Rodrigues phi; d_omega].
 
-    def _step(self, x, u, k, with_jacobians):
-        h, field_n = self.dt_s, self.field_inertial_t[k]
-        x = np.asarray(x, dtype=float)
-        u = np.asarray(u, dtype=float)
+        x, dipole_am2 and k may also be stacks (N, 7), (N, 3), (N,): the whole horizon in one call.
+        """
+        x = np.asarray(x, float)
+        x_next, A, B = self._step(x, np.asarray(dipole_am2, float), self.field_inertial_t[k], True)
+        E_next_T = np.swapaxes(_state_error_jacobian(x_next), -1, -2)
+        return x_next, E_next_T @ A @ _state_error_jacobian(x), E_next_T @ B
+
+    def linearise(self, states: np.ndarray, dipoles_am2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Reduced Jacobians A (N, 6, 6), B (N, 6, 3) along a trajectory, all steps at once."""
+        _, A, B = self.reduced_jacobians(states[:-1], dipoles_am2, np.arange(len(dipoles_am2)))
+        return A, B
+
+    def _step(self, x, u, field_n, with_jacobians):
+        h = self.dt_s
         stage_offsets = (0.0, 0.5 * h, 0.5 * h, h)
-        slopes, d_slope_dx, d_slope_du = [], [], []
-        dx_stage_dx, dx_stage_du = np.eye(7), np.zeros((7, 3))
-        x_stage = x
-        for i, c in enumerate(stage_offsets):
-            if i > 0:
-                x_stage = x + c * slopes[-1]
-                if with_jacobians:
-                    dx_stage_dx = np.eye(7) + c * d_slope_dx[-1]
-                    dx_stage_du = c * d_slope_du[-1]
-            slopes.append(self.derivative(x_stage, u, field_n))
+        weights = (h / 6.0, h / 3.0, h / 3.0, h / 6.0)
+        eye7 = np.eye(7)
+        x_tilde = x.copy()
+        A_tilde = eye7 + 0.0 * x[..., None] if with_jacobians else None     # (..., 7, 7)
+        B_tilde = 0.0
+        slope = d_slope_dx = d_slope_du = None
+        for c, wt in zip(stage_offsets, weights):
+            x_stage = x if slope is None else x + c * slope
+            slope = self.derivative(x_stage, u, field_n)
+            x_tilde = x_tilde + wt * slope
             if with_jacobians:
                 A_c, B_c = self.derivative_jacobians(x_stage, u, field_n)
-                d_slope_dx.append(A_c @ dx_stage_dx)
-                d_slope_du.append(A_c @ dx_stage_du + B_c)
-        weights = (h / 6.0, h / 3.0, h / 3.0, h / 6.0)
-        x_tilde = x + sum(wt * s for wt, s in zip(weights, slopes))
-        q_tilde = x_tilde[:4]
-        norm = np.linalg.norm(q_tilde)
-        x_next = np.concatenate([q_tilde / norm, x_tilde[4:]])
+                if d_slope_dx is None:
+                    d_slope_dx, d_slope_du = A_c, B_c
+                else:
+                    d_slope_dx = A_c @ (eye7 + c * d_slope_dx)
+                    d_slope_du = A_c @ (c * d_slope_du) + B_c
+                # seed: d x~ / d x_k is I_7 (it writes I_4)
+                A_tilde = A_tilde + wt * d_slope_dx
+                B_tilde = B_tilde + wt * d_slope_du
+        q_tilde = x_tilde[..., :4]
+        norm = np.linalg.norm(q_tilde, axis=-1, keepdims=True)
+        x_next = np.concatenate([q_tilde / norm, x_tilde[..., 4:]], axis=-1)
         if not with_jacobians:
             return x_next, None, None
-        # seed: d x~ / d x_k is I_7 (it writes I_4)
-        A_tilde = np.eye(7) + sum(wt * d for wt, d in zip(weights, d_slope_dx))
-        B_tilde = sum(wt * d for wt, d in zip(weights, d_slope_du))
-        N = np.eye(7)
-        N[:4, :4] = np.eye(4) / norm - np.outer(q_tilde, q_tilde) / norm**3
+        # normalisation Jacobian N = blockdiag(I/|q~| - q~ q~'/|q~|^3, I_3)
+        N = np.broadcast_to(eye7, A_tilde.shape).copy()
+        N[..., :4, :4] = np.eye(4) / norm[..., None] - q_tilde[..., :, None] * q_tilde[..., None, :] / norm[..., None] ** 3
         return x_next, N @ A_tilde, N @ B_tilde
 
     def rollout(self, x0: np.ndarray, dipoles_am2: np.ndarray) -> np.ndarray:

@@ -15,20 +15,23 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import LinAlgError, cho_factor, cho_solve
 
 
 @dataclass
 class BoxQPResult:
     x: np.ndarray
-    clamped: np.ndarray          # bool mask: variables held on a bound at the solution
-    free_cholesky: tuple | None  # scipy cho_factor of H_ff (None when nothing is free)
+    clamped: np.ndarray                 # bool mask: variables held on a bound at the solution
+    free_hessian: np.ndarray | None     # H_ff, positive definite (None when nothing is free)
     status: str                  # "converged" | "all_clamped" | "not_positive_definite" | "max_iterations" | "no_descent"
     iterations: int
 
     @property
     def ok(self) -> bool:
         return self.status in ("converged", "all_clamped")
+
+    def solve_free(self, rhs: np.ndarray) -> np.ndarray:
+        """H_ff^-1 rhs (MILQR's feedback rows of the free controls)."""
+        return np.linalg.solve(self.free_hessian, rhs)
 
 
 def objective(H: np.ndarray, g: np.ndarray, x: np.ndarray) -> float:
@@ -50,7 +53,7 @@ def solve_box_qp(H: np.ndarray, g: np.ndarray, lower: np.ndarray, upper: np.ndar
         raise ValueError(f"box QP has lower > upper at indices {np.flatnonzero(lower > upper)}")
     x = np.clip(np.zeros(n) if x0 is None else np.asarray(x0, dtype=float), lower, upper)
     value = objective(H, g, x)
-    factor = None
+    H_ff = None
     clamped = np.zeros(n, dtype=bool)
     scale = 1.0 + np.linalg.norm(g) + np.linalg.norm(H, ord=np.inf) * np.linalg.norm(x)
     for iteration in range(1, max_iterations + 1):
@@ -59,18 +62,21 @@ def solve_box_qp(H: np.ndarray, g: np.ndarray, lower: np.ndarray, upper: np.ndar
         free = ~clamped
         if not free.any():
             return BoxQPResult(x, clamped, None, "all_clamped", iteration)
+        H_ff = H[np.ix_(free, free)]
         try:
-            factor = cho_factor(H[np.ix_(free, free)])
-        except LinAlgError:
+            # numpy's Cholesky, not scipy's: on 3x3 blocks scipy's input checks cost more than the
+            # factorisation (MILQR solves one box QP per step per iteration)
+            L = np.linalg.cholesky(H_ff)
+        except np.linalg.LinAlgError:
             return BoxQPResult(x, clamped, None, "not_positive_definite", iteration)
         grad_free = grad[free]
         if np.linalg.norm(grad_free) <= gradient_tol * scale:
-            return BoxQPResult(x, clamped, factor, "converged", iteration)
+            return BoxQPResult(x, clamped, H_ff, "converged", iteration)
         step = np.zeros(n)
-        step[free] = -cho_solve(factor, grad_free)
+        step[free] = -np.linalg.solve(L.T, np.linalg.solve(L, grad_free))
         slope = grad @ step                   # < 0: a descent direction on the free subspace
         if slope >= 0:
-            return BoxQPResult(x, clamped, factor, "no_descent", iteration)
+            return BoxQPResult(x, clamped, H_ff, "no_descent", iteration)
         alpha = 1.0
         while True:
             candidate = np.clip(x + alpha * step, lower, upper)
@@ -80,8 +86,8 @@ def solve_box_qp(H: np.ndarray, g: np.ndarray, lower: np.ndarray, upper: np.ndar
                 break
             alpha *= step_shrink
             if alpha < min_step:
-                return BoxQPResult(x, clamped, factor, "converged", iteration)
+                return BoxQPResult(x, clamped, H_ff, "converged", iteration)
         x, value = candidate, candidate_value
     grad = g + H @ x
     clamped = ((x <= lower) & (grad > 0)) | ((x >= upper) & (grad < 0))
-    return BoxQPResult(x, clamped, factor, "max_iterations", max_iterations)
+    return BoxQPResult(x, clamped, H_ff if (~clamped).any() else None, "max_iterations", max_iterations)

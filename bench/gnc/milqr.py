@@ -29,7 +29,6 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.linalg import cho_solve
 
 from bench.gnc import quaternion as qt
 from bench.gnc.boxqp import solve_box_qp
@@ -73,7 +72,12 @@ class GeodesicAttitudeCost:
         return self._attitude(x[:4], self.final_attitude_weight)[0] + 0.5 * dw @ self.final_rate_weight @ dw
 
     def total(self, X, U) -> float:
-        return float(sum(self.stage(x, u) for x, u in zip(X[:-1], U)) + self.final(X[-1]))
+        """Stage costs of x_0..x_{N-1} plus the final cost of x_N, evaluated for the whole trajectory at once."""
+        dw = X[:-1, 4:] - self.omega_goal_radps
+        stage = (self.attitude_weight * (1.0 - np.abs(X[:-1, :4] @ self.q_goal_wxyz))
+                 + 0.5 * np.einsum("ki,ij,kj->k", dw, self.rate_weight, dw)
+                 + 0.5 * np.einsum("ki,ij,kj->k", U, self.dipole_weight, U))
+        return float(np.sum(stage) + self.final(X[-1]))
 
     def stage_expansion(self, x, u):
         """(l_x (6), l_u (3), l_xx (6x6), l_uu (3x3)) in error coordinates; l_ux is zero."""
@@ -117,14 +121,6 @@ class MilqrResult:
     info: dict = field(default_factory=dict)
 
 
-def _linearise(model, X, U):
-    N = len(U)
-    A, B = np.empty((N, 6, 6)), np.empty((N, 6, 3))
-    for k in range(N):
-        _, A[k], B[k] = model.reduced_jacobians(X[k], U[k], k)
-    return A, B
-
-
 def _backward_pass(cost, X, U, A, B, lower, upper, lam, l_prev):
     N = len(U)
     l, K = np.zeros((N, 3)), np.zeros((N, 3, 6))
@@ -146,7 +142,7 @@ def _backward_pass(cost, X, U, A, B, lower, upper, lam, l_prev):
         warm = res.x                              # seed: warm start l_k from l_{k+1}
         free = ~res.clamped
         if free.any():                            # clamped rows of K stay zero
-            K[k][free] = -cho_solve(res.free_cholesky, Qux[free])
+            K[k][free] = -res.solve_free(Qux[free])
         dV += [l[k] @ Qu, 0.5 * l[k] @ Quu @ l[k]]
         Vx = Qx + K[k].T @ Quu @ l[k] + K[k].T @ Qu + Qux.T @ l[k]
         Vxx = Qxx + K[k].T @ Quu @ K[k] + K[k].T @ Qux + Qux.T @ K[k]
@@ -158,10 +154,16 @@ def _forward_pass(model, cost, x0, X, U, l, K, alpha, lower, upper):
     N = len(U)
     Xn, Un = np.empty_like(X), np.empty_like(U)
     Xn[0] = x0
-    for k in range(N):
-        dx = qt.error_state(Xn[k, :4], Xn[k, 4:], X[k, :4], X[k, 4:])
-        Un[k] = np.clip(U[k] + alpha * l[k] + K[k] @ dx, lower, upper)
-        Xn[k + 1] = model.step(Xn[k], Un[k], k)
+    with np.errstate(over="ignore", invalid="ignore"):
+        for k in range(N):
+            try:
+                dx = qt.error_state(Xn[k, :4], Xn[k, 4:], X[k, :4], X[k, 4:])
+            except ValueError:      # 180 degrees off the nominal: a step this long is rejected
+                return Xn, Un, np.inf
+            Un[k] = np.clip(U[k] + alpha * l[k] + K[k] @ dx, lower, upper)
+            Xn[k + 1] = model.step(Xn[k], Un[k], k)
+            if not np.all(np.isfinite(Xn[k + 1])):
+                return Xn, Un, np.inf
     return Xn, Un, cost.total(Xn, Un)
 
 
@@ -179,7 +181,7 @@ def milqr(model, cost: GeodesicAttitudeCost, x0: np.ndarray, dipoles_init_am2: n
         raise ValueError(f"dipoles_init_am2 must be ({model.horizon_steps}, 3), got {U.shape}")
     X = model.rollout(x0, U)
     J = cost.total(X, U)
-    A, B = _linearise(model, X, U)
+    A, B = model.linearise(X, U)
     lam = options.regularisation_init
     l, K = np.zeros_like(U), np.zeros((len(U), 3, 6))
     history = [J]
@@ -221,7 +223,7 @@ def milqr(model, cost: GeodesicAttitudeCost, x0: np.ndarray, dipoles_init_am2: n
         if accepted:
             cost_change = J - Jn
             X, U, J = Xn, Un, Jn
-            A, B = _linearise(model, X, U)
+            A, B = model.linearise(X, U)
             history.append(J)
             lam = lam / options.regularisation_factor
             if lam < options.regularisation_min:
