@@ -91,7 +91,7 @@ def test_non_finite_input_is_named(slew_plan):
         AttitudePlan(0.0, 1.0, np.zeros((3, 7)), np.zeros((3, 3)), np.zeros((3, 3, 6)))
 
 
-def test_closed_loop_on_truth_model_ends_within_two_degrees(slew_plan):
+def test_closed_loop_on_truth_model_ends_within_half_a_degree(slew_plan):
     """Truth model stepped (and the law evaluated) at 2 Hz to keep the test short (the 10 Hz cost is
     in benchmarks/bench_milqr.py); initial attitude 3 deg off the plan; truth-state feedback."""
     q0 = qt.multiply(slew_plan.states[0, :4], qt.exp(np.deg2rad(3.0) * qt.normalize(np.array([1.0, -1.0, 0.5]))))
