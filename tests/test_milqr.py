@@ -54,11 +54,17 @@ def test_slew_converges_within_the_gramian_horizon(slew):
     np.testing.assert_allclose(model.rollout(X0, result.dipoles_am2), result.states, atol=1e-12)
 
 
-def test_ipopt_on_the_same_discretised_problem_reaches_the_same_cost(slew):
+@pytest.mark.parametrize("limit_am2", [LIMIT_AM2, 0.03])
+def test_ipopt_on_the_same_discretised_problem_reaches_the_same_cost(slew, limit_am2):
+    """At the board's 0.2 A m^2 no dipole saturates; at 0.03 A m^2 about a fifth of the samples sit on
+    the box, so the box-QP path is compared too."""
     from tests.milqr_reference import solve_with_ipopt
     _, model, result = slew
     cost = slew_cost()
-    objective, dipoles, _, status, _ = solve_with_ipopt(model, cost, X0, LIMIT_AM2, max_iter=3000, max_cpu_time_s=240.0)
+    if limit_am2 != LIMIT_AM2:
+        result = milqr(model, cost, X0, np.zeros((model.horizon_steps, 3)), -limit_am2, limit_am2)
+        assert result.info["converged"] and np.mean(np.isclose(np.abs(result.dipoles_am2), limit_am2)) > 0.1
+    objective, dipoles, _, status, _ = solve_with_ipopt(model, cost, X0, limit_am2, max_iter=3000, max_cpu_time_s=240.0)
     assert status == "Solve_Succeeded", status
     # IPOPT's dipoles replayed through the planning model give IPOPT's objective: same problem
     assert cost.total(model.rollout(X0, dipoles), dipoles) == pytest.approx(objective, rel=1e-8)
