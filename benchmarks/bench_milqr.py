@@ -19,6 +19,7 @@ import time
 import numpy as np
 
 from bench.gnc import quaternion as qt
+from bench.gnc.attitude_law import AttitudeControlInput as ControlInput
 from bench.gnc.attitude_tracking import AttitudePlan, TvlqrAttitudeTracker, tvlqr_gains_along
 from bench.gnc.milqr import milqr
 from bench.gnc.tvlqr import bryson_weights
@@ -26,11 +27,6 @@ from bench.plant.attitude import rk4_attitude_step
 from tests.milqr_reference import GOAL, INERTIA, LIMIT_AM2, X0, slew_cost, slew_problem, solve_with_ipopt
 
 CONTROL_RATE_HZ = 10.0
-
-
-class ControlInput:   # the fields of bench.gnc.attitude_law.AttitudeControlInput
-    def __init__(self, time_s, q_wxyz, omega_radps, field_body_t):
-        self.time_s, self.q_wxyz, self.omega_radps, self.field_body_t = time_s, q_wxyz, omega_radps, field_body_t
 
 
 def plan_slew(dt_s):

@@ -1,7 +1,5 @@
 """TVLQR attitude tracker: interface, saturation, hold after the plan, and closed loop on the truth
 model (rigid body at 10 Hz, torque m x B from the simulated field) tracking a MILQR slew plan."""
-from dataclasses import dataclass
-
 import numpy as np
 import pytest
 
@@ -12,15 +10,7 @@ from bench.gnc.milqr import GeodesicAttitudeCost, milqr
 from bench.gnc.tvlqr import bryson_weights
 from bench.plant.attitude import AttitudeSensorSpec, AttitudeSimulation, CircularOrbit, TiltedDipole, magnetorquer_torque_nm
 
-try:
-    from bench.gnc.attitude_law import AttitudeControlInput
-except ImportError:   # the lead's interface module has not landed on this branch: the spec, verbatim
-    @dataclass(frozen=True)
-    class AttitudeControlInput:
-        time_s: float
-        q_wxyz: np.ndarray
-        omega_radps: np.ndarray
-        field_body_t: np.ndarray
+from bench.gnc.attitude_law import AttitudeControlInput
 
 INERTIA = np.diag([0.03, 0.04, 0.02])
 LIMIT_AM2 = 0.2
@@ -71,7 +61,7 @@ def test_error_gives_gain_times_rodrigues_error_and_saturates_per_axis(slew_plan
     expected = slew_plan.dipoles_am2[k] - slew_plan.gains[k] @ np.concatenate([phi, np.zeros(3)])
     np.testing.assert_allclose(dipole, np.clip(expected, -LIMIT_AM2, LIMIT_AM2), atol=1e-12)
     big, info = law.eval(control_input(k * slew_plan.dt_s, qt.multiply(x[:4], qt.exp([0.0, 0.0, 1.0])), x[4:] + 0.05))
-    assert np.all(np.abs(big) <= LIMIT_AM2) and info["saturated_axes"] >= 1
+    assert np.all(np.abs(big) <= LIMIT_AM2) and info["saturated"]
 
 
 def test_after_the_plan_it_holds_the_final_state_with_the_last_gain(slew_plan):
@@ -85,8 +75,10 @@ def test_after_the_plan_it_holds_the_final_state_with_the_last_gain(slew_plan):
 
 def test_non_finite_input_is_named(slew_plan):
     law = TvlqrAttitudeTracker(slew_plan, LIMIT_AM2)
-    with pytest.raises(ValueError, match="omega_radps"):
-        law.eval(control_input(0.0, qt.IDENTITY_WXYZ, np.array([np.nan, 0, 0])))
+    dipole, info = law.eval(control_input(0.0, qt.IDENTITY_WXYZ, np.array([np.nan, 0, 0])))
+    assert info["bad_input"] == "omega_radps" and np.all(dipole == 0.0)
+    dipole, info = law.eval(control_input(0.0, qt.IDENTITY_WXYZ, np.zeros(3), np.array([np.inf, 0, 0])))
+    assert info["bad_input"] == "field_body_t" and np.all(dipole == 0.0)
     with pytest.raises(ValueError, match="plan shapes"):
         AttitudePlan(0.0, 1.0, np.zeros((3, 7)), np.zeros((3, 3)), np.zeros((3, 3, 6)))
 

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from bench.gnc import quaternion as qt
+from bench.gnc.attitude_law import AttitudeControlInput, saturate_dipole
 from bench.gnc.tvlqr import tvlqr_gains, tracking_control
 
 
@@ -71,8 +72,9 @@ def _slerp(q0: np.ndarray, q1: np.ndarray, fraction: float) -> np.ndarray:
 
 
 class TvlqrAttitudeTracker:
-    """Attitude law: tracks an `AttitudePlan`; `eval(x)` with x an AttitudeControlInput
-    (time_s, q_wxyz, omega_radps, field_body_t) returns (dipole_am2 body, info)."""
+    """Attitude law (`bench.gnc.attitude_law.AttitudeLaw`): tracks an `AttitudePlan`; `eval(x)`
+    returns the body dipole (A m^2, saturated per axis) and info. The measured field is not used by
+    the law (the plan's gains carry the field model); it is only checked like the other inputs."""
 
     def __init__(self, plan: AttitudePlan, dipole_limit_am2: float):
         if not (np.isfinite(dipole_limit_am2) and dipole_limit_am2 > 0):
@@ -97,23 +99,24 @@ class TvlqrAttitudeTracker:
         omega_ref = (1.0 - fraction) * x0[4:] + fraction * x1[4:]
         return q_ref, omega_ref, plan.dipoles_am2[k], plan.gains[k], k, phase
 
-    def eval(self, x) -> tuple[np.ndarray, dict]:
+    def eval(self, x: AttitudeControlInput) -> tuple[np.ndarray, dict]:
         q = np.asarray(x.q_wxyz, dtype=float)
         omega = np.asarray(x.omega_radps, dtype=float)
         for name, value in (("time_s", np.asarray(x.time_s, dtype=float)), ("q_wxyz", q), ("omega_radps", omega),
                             ("field_body_t", np.asarray(x.field_body_t, dtype=float))):
-            if not np.all(np.isfinite(value)):
-                raise ValueError(f"AttitudeControlInput.{name} is not finite: {value}")
+            if not np.all(np.isfinite(value)) or (name == "q_wxyz" and np.linalg.norm(value) < 1e-12):
+                # as the other laws of bench.gnc.attitude_law: command nothing and say why
+                return np.zeros(3), {"bad_input": name, "saturated": False, "plan_id": self.plan.plan_id}
         q_ref, omega_ref, u_bar, K, k, phase = self.reference(float(x.time_s))
         dx = qt.error_state(qt.normalize(q), omega, q_ref, omega_ref)
-        unclamped = tracking_control(u_bar, K, dx)
-        dipole = np.clip(unclamped, -self.dipole_limit_am2, self.dipole_limit_am2)
+        dipole, saturated = saturate_dipole(tracking_control(u_bar, K, dx), self.dipole_limit_am2)
         return dipole, {
+            "bad_input": None,
+            "saturated": saturated,
             "plan_id": self.plan.plan_id,
             "plan_step": k,
             "phase": phase,
             "attitude_error_rad": qt.angle_between_rad(q_ref, q),
             "rate_error_radps": float(np.linalg.norm(omega - omega_ref)),
-            "saturated_axes": int(np.sum(np.abs(unclamped) > self.dipole_limit_am2)),
             "feedforward_am2": u_bar,
         }
