@@ -95,13 +95,16 @@ def test_closed_loop_on_truth_model_ends_within_half_a_degree(slew_plan):
         field_body = sim.field_body_t()
         dipole, _ = law.eval(control_input(sim.time_s, sim.q_wxyz, sim.omega_body_radps, field_body))
         sim.step(magnetorquer_torque_nm(dipole, field_body))
-    assert qt.angle_between_rad(sim.q_wxyz, GOAL) < np.deg2rad(0.5)
+    closed_deg = np.rad2deg(qt.angle_between_rad(sim.q_wxyz, GOAL))
+    assert closed_deg < 0.5
     # open loop (feed-forward only) from the same start for contrast: feedback is what gets it there
     sim_ol = AttitudeSimulation(INERTIA, q0, np.zeros(3), sensors=sensors, orbit=ORBIT, seed=3)
     while sim_ol.time_s < slew_plan.end_time_s:
         k = min(int(sim_ol.time_s / slew_plan.dt_s), slew_plan.steps - 1)
         sim_ol.step(magnetorquer_torque_nm(slew_plan.dipoles_am2[k], sim_ol.field_body_t()))
-    assert qt.angle_between_rad(sim_ol.q_wxyz, GOAL) > qt.angle_between_rad(sim.q_wxyz, GOAL)
+    open_deg = np.rad2deg(qt.angle_between_rad(sim_ol.q_wxyz, GOAL))
+    print(f"truth feedback: final pointing error {closed_deg:.3f} deg; feed-forward only {open_deg:.2f} deg")
+    assert open_deg > closed_deg
 
 
 def test_closed_loop_with_the_smoother_in_the_loop_ends_within_two_degrees(slew_plan):

@@ -169,7 +169,11 @@ def _forward_pass(model, cost, x0, X, U, l, K, alpha, lower, upper):
 
 def milqr(model, cost: GeodesicAttitudeCost, x0: np.ndarray, dipoles_init_am2: np.ndarray,
           lower_am2: np.ndarray, upper_am2: np.ndarray, options: MilqrOptions = MilqrOptions()) -> MilqrResult:
-    """Optimise the dipole sequence from x0 (q_wxyz, omega) over model.horizon_steps steps."""
+    """Optimise the dipole sequence from x0 (q_wxyz, omega) over model.horizon_steps steps.
+
+    The wall-time cap is checked between iterations (one iteration is not interrupted), so a call
+    may overrun it by one iteration; the planner runs outside the control deadline for that reason.
+    """
     started = time.perf_counter()
     x0 = np.asarray(x0, dtype=float)
     if x0.shape != (7,) or not np.all(np.isfinite(x0)):
