@@ -69,7 +69,7 @@ def test_full_jacobians_match_central_differences_including_normalisation():
         assert rel_err(B, B_fd) < 1e-6
 
 
-def test_step_agrees_with_truth_model_when_field_is_body_fixed_over_step():
+def test_step_with_zero_dipole_equals_the_truth_model_rk4():
     """With zero dipole both integrators are the same RK4 on the torque-free body."""
     rng = np.random.default_rng(12)
     m = model(dt_s=0.5)

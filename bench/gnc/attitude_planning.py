@@ -202,7 +202,7 @@ class MagnetorquerAttitudeModel:
         weights = (h / 6.0, h / 3.0, h / 3.0, h / 6.0)
         eye7 = np.eye(7)
         x_tilde = x.copy()
-        A_tilde = eye7 + 0.0 * x[..., None] if with_jacobians else None     # (..., 7, 7)
+        A_tilde = np.broadcast_to(eye7, x.shape[:-1] + (7, 7)).copy() if with_jacobians else None
         B_tilde = 0.0
         slope = d_slope_dx = d_slope_du = None
         for c, wt in zip(stage_offsets, weights):
