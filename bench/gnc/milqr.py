@@ -113,8 +113,11 @@ class MilqrOptions:
 class MilqrResult:
     states: np.ndarray            # (N+1, 7) [q_wxyz, omega_radps]
     dipoles_am2: np.ndarray       # (N, 3)
-    feedback_gains: np.ndarray    # (N, 3, 6): u = u_bar - K dx (seed 000 convention), clamped rows zero
-    feedforward: np.ndarray       # (N, 3) last backward pass's l
+    # Last backward pass (about the returned trajectory when stop_reason is feedforward_small, about
+    # the one before the last accepted step otherwise): u = u_bar - K dx (seed 000), clamped rows zero.
+    # The tracker recomputes TVLQR gains along the plan with its own weights (attitude_tracking.py).
+    feedback_gains: np.ndarray    # (N, 3, 6)
+    feedforward: np.ndarray       # (N, 3) that pass's l
     cost: float
     A: np.ndarray                 # (N, 6, 6) reduced Jacobians along the returned trajectory
     B: np.ndarray                 # (N, 6, 3)
