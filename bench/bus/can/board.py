@@ -1,9 +1,15 @@
 """The virtual magnetorquer board: what a real coil-driver board does on its CAN bus.
 
-It accepts only commands that pass the E2E check, quantises each axis to its driver's resolution
-and saturates it, drives coil currents that follow with a first-order lag (the coil's L/R), turns
-the coils off when commands stop (safe state) or while the magnetometer samples, and sends
-heartbeat and telemetry at fixed periods and an emergency frame for every rejected command.
+It applies only commands of its profile's frame that pass, in this order, SecOC (profile "secoc":
+the MAC, then the freshness value: age at most one command period plus the stated margin, newer
+than the last applied) and the E2E profile-2 receiver state machine (protocol.E2EReceiver, ticked
+once per command period without a command and reset when the command timeout expires). It
+quantises each axis to its driver's resolution and saturates it, drives coil currents that follow
+with a first-order lag (the coil's L/R), turns the coils off when commands stop (safe state) or
+while the magnetometer samples, and sends heartbeat and telemetry at fixed periods. Every rejected
+command, and every command that shows earlier ones were lost, is reported by an emergency frame,
+no two closer than the EMCY inhibit time (CiA 301 0x1015): what is rejected within it is reported
+by the next one, with the running count of rejected frames.
 
 `step(now_s)` handles what arrived and what is due at `now_s`; `run(stop)` is the process loop.
 Time comes from the caller's clock, so unit tests drive the board deterministically.
@@ -22,7 +28,8 @@ import can
 import numpy as np
 
 from bench.bus.can import protocol as p
-from bench.bus.can.config import BoardConfig
+from bench.bus.can import secoc
+from bench.bus.can.config import BoardConfig, SecurityConfig
 
 log = logging.getLogger(__name__)
 
@@ -37,6 +44,7 @@ class AppliedCommand:
     alive_counter: int
     received_ns: int                # board decoded the frame
     applied_ns: int                 # board set the coil targets
+    age_s: float | None = None      # secoc: age from its freshness value when applied (board clock)
 
 
 @dataclass
@@ -56,7 +64,8 @@ class MagnetorquerBoard:
     def __init__(self, bus: can.BusABC, config: BoardConfig, protocol: p.Protocol,
                  clock: Callable[[], float] = time.monotonic,
                  on_applied: Callable[[AppliedCommand], None] | None = None,
-                 on_coils_changed: Callable[[BoardState], None] | None = None):
+                 on_coils_changed: Callable[[BoardState], None] | None = None,
+                 security: SecurityConfig | None = None):
         """on_applied: each accepted command. on_coils_changed: the coil target changed without a
         command (safe state entered, magnetometer window began or ended), so that whoever
         publishes the applied dipole never leaves a stale one standing."""
@@ -67,15 +76,30 @@ class MagnetorquerBoard:
         self.on_applied = on_applied
         self.on_coils_changed = on_coils_changed
         self.state = BoardState()
-        self.e2e = p.E2EReceiver(config.max_delta_counter)
+        self.e2e = p.E2EReceiver(config.max_delta_counter, config.sync_counter, config.max_no_new_or_repeated)
+        self.command_name = protocol.command_name
+        self.command_period_s = p.cycle_time_s(self.command_name)
+        self.freshness: secoc.FreshnessVerifier | None = None
+        if protocol.profile == "secoc":
+            security = security or SecurityConfig(profile="secoc")
+            if protocol.key is None:
+                raise ValueError("the secoc profile needs the key in the board's Protocol")
+            self.freshness = secoc.FreshnessVerifier(
+                protocol.key, p.secoc_data_id(self.command_name),
+                max_age_s=self.command_period_s + security.freshness_margin_s, max_future_s=security.max_future_s)
+        self.last_command_age_s: float | None = None
         self.rejected: Counter = Counter()     # by E2E status name or "wrong_length"
         self.accepted = 0
+        self.lost_commands = 0
         self.sent: Counter = Counter()
         self.received: Counter = Counter()     # every frame heard, by name (frame accounting)
         self._tx_counter: Counter = Counter()  # alive counters of the board's own protected frames
         self._started_s: float | None = None
         self._last_update_s: float | None = None
         self._last_command_s: float | None = None
+        self._next_no_data_s: float | None = None    # next E2E check without a new command
+        self._last_emcy_s: float | None = None
+        self._pending_emcy: dict | None = None       # held back by the inhibit time
         self._next_heartbeat_s = 0.0
         self._next_telemetry_s = 0.0
 
@@ -123,15 +147,40 @@ class MagnetorquerBoard:
         """One frame from the bus. Anything but a valid command is counted and ignored."""
         received_ns = time.monotonic_ns()
         self.received[p.frame_kind(self.protocol, msg)] += 1
-        if msg.arbitration_id == self.protocol.frame_ids[p.CMD] and len(msg.data) != 8 and not msg.is_error_frame:
-            self._reject("wrong_length", None, p.EMCY_PDO_LENGTH, 0)
+        command_id = self.protocol.frame_ids[self.command_name]
+        if (msg.arbitration_id == command_id and not msg.is_error_frame and not msg.is_remote_frame
+                and not msg.is_extended_id
+                and len(msg.data) != self.protocol.db.get_message_by_name(self.command_name).length):
+            self._reject("wrong_length", None, p.EMCY_PDO_LENGTH, 0, now_s)
         frame = self.protocol.decode(msg)
-        if frame is None or frame.name != p.CMD:
+        if frame is None or frame.name not in p.COMMANDS:
             return  # other nodes' frames (our own telemetry echoed, a babbler) are not for us
-        status = self.e2e.check(frame.counter, frame.crc_ok)
-        if not status.accepted:
-            self._reject(status.name, frame.counter, p.EMCY_E2E_CHECK_FAILED, int(status))
+        if frame.name != self.command_name:
+            # A plain command where the profile wants an authenticated one (a downgrade).
+            status = p.E2EStatus.NOT_AUTHENTICATED if self.freshness is not None else None
+            if status is not None:
+                self._reject(status.name, frame.counter, p.EMCY_E2E_CHECK_FAILED, int(status), now_s)
             return
+        freshness = None
+        if self.freshness is not None:
+            verdict, freshness, age_s = self.freshness.verify(bytes(msg.data), now_s)
+            if verdict is not secoc.Verdict.OK:
+                # Before E2E: a forged or stale frame must not move the receiver's state.
+                status = p.E2EStatus[verdict.value]
+                self._reject(status.name, frame.counter, p.EMCY_E2E_CHECK_FAILED, int(status), now_s)
+                return
+            self.last_command_age_s = age_s
+        status = self.e2e.check(frame.counter, frame.crc_ok)
+        self._next_no_data_s = now_s + 1.5 * self.command_period_s
+        if not status.accepted:
+            self._reject(status.name, frame.counter, p.EMCY_E2E_CHECK_FAILED, int(status), now_s)
+            return
+        if freshness is not None:
+            self.freshness.accept(freshness)
+        if status is p.E2EStatus.OK_SOME_LOST:
+            # Accepted, but commands were lost on the way: the flight side must hear of it.
+            self.lost_commands += self.e2e.lost_data
+            self._emergency(p.EMCY_E2E_CHECK_FAILED, int(status), frame.counter, now_s)
         self.update(now_s)  # coils run up to now on the old target before it changes
         self._apply(frame, now_s, received_ns)
 
@@ -148,16 +197,31 @@ class MagnetorquerBoard:
         self._last_command_s = now_s
         self.accepted += 1
         if self.on_applied is not None:
-            self.on_applied(AppliedCommand(s.target_dipole_am2.copy(), frame.counter, received_ns, time.monotonic_ns()))
+            self.on_applied(AppliedCommand(s.target_dipole_am2.copy(), frame.counter, received_ns, time.monotonic_ns(),
+                                           self.last_command_age_s if self.freshness is not None else None))
 
-    def _reject(self, reason: str, counter: int | None, error_code: int, e2e_status: int) -> None:
+    def _reject(self, reason: str, counter: int | None, error_code: int, e2e_status: int, now_s: float) -> None:
         self.rejected[reason] += 1
         self.state.command_rejected_since_tlm = True
-        self._send(self.protocol.encode(p.EMCY, {
-            "ErrorCode": error_code, "ErrorRegister": ERROR_REGISTER_GENERIC | ERROR_REGISTER_COMMUNICATION,
-            "E2eStatus": e2e_status, "RejectedCounter": counter or 0,
-            "RejectedFrames": min(sum(self.rejected.values()), 0xFFFF),
-        }))
+        self._emergency(error_code, e2e_status, counter, now_s)
+
+    def _emergency(self, error_code: int, e2e_status: int, counter: int | None, now_s: float,
+                   error_register: int = ERROR_REGISTER_GENERIC | ERROR_REGISTER_COMMUNICATION) -> None:
+        """Send an EMCY now, or when the inhibit time since the last one has passed (the latest
+        one waiting replaces an earlier one; RejectedFrames carries the running count)."""
+        self._pending_emcy = {"ErrorCode": error_code, "ErrorRegister": error_register, "E2eStatus": e2e_status,
+                              "RejectedCounter": counter or 0}
+        self._flush_emergency(now_s)
+
+    def _flush_emergency(self, now_s: float) -> None:
+        if self._pending_emcy is None:
+            return
+        if self._last_emcy_s is not None and now_s - self._last_emcy_s < self.config.emcy_inhibit_s:
+            return
+        signals = self._pending_emcy | {"RejectedFrames": min(sum(self.rejected.values()), 0xFFFF)}
+        self._pending_emcy = None
+        self._last_emcy_s = now_s
+        self._send(self.protocol.encode(p.EMCY, signals))
 
     # --- time -----------------------------------------------------------------------------
     def update(self, now_s: float) -> None:
@@ -166,8 +230,12 @@ class MagnetorquerBoard:
         changed = False
         if (self._last_command_s is not None and not s.safe_state
                 and now_s - self._last_command_s > c.command_timeout_s):
-            self._enter_safe_state()
+            self._enter_safe_state(now_s)
             changed = True
+        while self._next_no_data_s is not None and now_s >= self._next_no_data_s:
+            self.e2e.no_new_data()    # one E2E check per command period that brought none
+            self._next_no_data_s += self.command_period_s
+        self._flush_emergency(now_s)
         paused = self._in_mag_window(now_s)
         changed |= paused != s.actuation_paused
         s.actuation_paused = paused
@@ -182,11 +250,13 @@ class MagnetorquerBoard:
             self._send(self.protocol.encode(p.HEARTBEAT, {"NmtState": p.NMT_OPERATIONAL}))
             self._next_heartbeat_s = _next_tick(self._next_heartbeat_s, c.heartbeat_period_s, now_s)
 
-    def _enter_safe_state(self) -> None:
+    def _enter_safe_state(self, now_s: float) -> None:
         self.state.safe_state = self.state.command_timeout = True
+        # The stream is gone: whatever comes next starts a new one (E2E state reset after a timeout).
+        self.e2e.reset()
+        self._next_no_data_s = None
         log.warning("no valid command for %.3f s: coils off", self.config.command_timeout_s)
-        self._send(self.protocol.encode(p.EMCY, {"ErrorCode": p.EMCY_COMMAND_TIMEOUT,
-                                                 "ErrorRegister": ERROR_REGISTER_COMMUNICATION}))
+        self._emergency(p.EMCY_COMMAND_TIMEOUT, 0, None, now_s, ERROR_REGISTER_COMMUNICATION)
 
     def _in_mag_window(self, now_s: float) -> bool:
         c = self.config

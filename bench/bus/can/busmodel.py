@@ -86,7 +86,7 @@ class BusModel:
         self.bus_free_ns = t0_ns
         self.now_ns = t0_ns
         self.stats = BusStats()
-        self._cmd_id = protocol.frame_ids[p.CMD]
+        self._cmd_id = protocol.frame_ids[protocol.command_name]
 
     # --- input ----------------------------------------------------------------------------
     def submit(self, source: str, msg: can.Message, t_ns: int) -> None:
@@ -270,7 +270,7 @@ class BusModel:
 def _stamped(msg: can.Message, timestamp_s: float, channel: str) -> can.Message:
     return can.Message(timestamp=timestamp_s, arbitration_id=msg.arbitration_id, is_extended_id=msg.is_extended_id,
                        is_remote_frame=msg.is_remote_frame, is_error_frame=msg.is_error_frame, dlc=msg.dlc,
-                       data=bytes(msg.data), channel=channel, is_rx=False)
+                       is_fd=msg.is_fd, data=bytes(msg.data), channel=channel, is_rx=False)
 
 
 def _percentiles_us(values_ns: list[int]) -> dict:

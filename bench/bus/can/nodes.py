@@ -38,7 +38,8 @@ def can_dir(run_dir: Path) -> Path:
 def open_node_bus(ctx, config: CanConfig, channel: str) -> can.BusABC:
     """A CAN bus for this node; over Zenoh it shares the node's own session (one per process)."""
     if config.transport == "zenoh":
-        return can.Bus(interface="zenoh", channel=channel, run_id=ctx.run_id, session=ctx.session, ignore_config=True)
+        return can.Bus(interface="zenoh", channel=channel, run_id=ctx.run_id, session=ctx.session, fd=True,
+                       ignore_config=True)
     return open_can_bus(config.transport, channel, run_id=ctx.run_id)
 
 
@@ -81,8 +82,8 @@ def run_board(ctx) -> int:
     def on_coils_changed(state) -> None:
         publish(None, state.last_command_counter)
 
-    board = MagnetorquerBoard(bus, config.board, p.Protocol(config.node_id), on_applied=on_applied,
-                              on_coils_changed=on_coils_changed)
+    board = MagnetorquerBoard(bus, config.board, config.protocol(), on_applied=on_applied,
+                              on_coils_changed=on_coils_changed, security=config.security)
     try:
         _wait_for_bus_peer(bus, config.board_channel, ctx)
         ctx.declare_ready([])   # the plant starts the loop once every node is ready
@@ -121,7 +122,7 @@ def run_bus_model(ctx) -> int:
     buses = {FLIGHT: open_node_bus(ctx, config, config.flight_channel),
              BOARD: open_node_bus(ctx, config, config.board_channel)}
     capture = Capture(Path(ctx.run_dir) / CAPTURE_NAME, out / ACCOUNTING_NAME) if config.capture else None
-    protocol = p.Protocol(config.node_id)
+    protocol = p.Protocol(config.node_id, config.security.profile)   # no key: the injector is no insider
     t0_ns = time.monotonic_ns()
     wall_offset_s = time.time() - t0_ns / 1e9
     injector = FaultInjector(config.faults, protocol, seed=ctx.scenario.run.seed)
