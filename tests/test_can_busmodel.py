@@ -198,3 +198,36 @@ def test_error_frames_drive_the_transmitter_to_bus_off_and_back():
             driver.handle(d.msg)
     assert [e.kind for e in driver.events] == ["error_warning", "error_passive", "bus_off", "bus_restarted"]
     driver.bus.shutdown()
+
+
+def _bus_off_then(board_frames_after_restart: int):
+    """Five commands queued at T0; the first is destroyed 32 times (bus-off); the board sends
+    frames from the moment the flight controller's restart delay ends."""
+    bus = model(FaultSpec("error_frames", start_s=0.0, count=32, params={"restart_delay_s": 0.01}))
+    for k in range(5):
+        bus.submit(FLIGHT, PROTO.command([0.1, 0, 0], counter=k), T0)
+    deliveries = bus.run_until(T0 + 5 * MS)
+    bus_off_ns = round(deliveries[-1].msg.timestamp * 1e9)
+    assert errors.read_error_frame(deliveries[-1].msg) == (errors.ErrorState.BUS_OFF, False)
+    restart_ns = bus_off_ns + 10 * MS
+    telemetry = [PROTO.encode(p.TLM_DIPOLE, {}, counter=k) for k in range(board_frames_after_restart)]
+    bus.run_until(restart_ns - 1)
+    for msg in telemetry:
+        bus.submit(BOARD, msg, restart_ns)
+    deliveries = bus.run_until(T0 + 100 * MS)
+    restarted = [d for d in deliveries if d.msg.is_error_frame]
+    assert len(restarted) == 1 and errors.read_error_frame(restarted[0].msg) == (errors.ErrorState.ACTIVE, True)
+    return bus, restart_ns, round(restarted[0].msg.timestamp * 1e9), telemetry
+
+
+def test_bus_off_recovery_is_the_restart_delay_then_128_times_11_recessive_bits_and_the_queue_is_flushed():
+    bus, restart_ns, back_ns, _ = _bus_off_then(0)
+    assert back_ns - restart_ns == 1408 * 1000          # idle bus at 1 Mbit/s: 1408 bit times
+    assert bus.report()["dropped"] == {"bus_off": 1, "bus_off_flush": 4}
+
+
+def test_frames_on_the_bus_during_recovery_count_as_one_11_bit_sequence_each():
+    bus, restart_ns, back_ns, telemetry = _bus_off_then(3)
+    # Worked by hand: each frame occupies frame_bits but counts as one sequence of 11 bits.
+    extra_bits = sum(bittiming.frame_bits(m) - 11 for m in telemetry)
+    assert back_ns - restart_ns == (1408 + extra_bits) * 1000

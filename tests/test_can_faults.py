@@ -261,3 +261,18 @@ def test_garbage_from_a_rogue_node_is_counted_and_never_fatal(tmp_path):
     assert r.first_event("command_rejected", detail="WRONG_LENGTH") is not None
     check_only_commanded_applied(r)
     check_safe_when_commands_stop(r)
+
+
+def test_on_the_secoc_profile_replays_and_a_data_id_aware_spoofer_never_reach_the_coils(tmp_path):
+    secoc = {**ZENOH, "security": {"profile": "secoc"}}
+    r = run_fault(tmp_path, {"name": "replay", "start_s": FAULT_START_S, "every": 3, "params": {"after_s": 0.6}},
+                  {"name": "spoof", "start_s": FAULT_START_S, "every": 3, "params": {"knows_data_id": True}},
+                  transport=secoc)
+    injected = Counter(i["fault"].split(":")[1] for i in r.injections if i["action"] == "injected")
+    assert injected["replay"] > 5 and injected["spoof"] > 5
+    # Every replay was rejected as stale and every forgery by its MAC, across processes.
+    assert r.board["rejected"] == {"STALE": injected["replay"], "WRONG_MAC": injected["spoof"]}
+    check_only_commanded_applied(r)
+    assert r.board["accepted"] == r.driver_sent
+    assert max(a["age_s"] for a in r.board["applied"]) <= COMMAND_PERIOD_S + 0.02
+    check_safe_when_commands_stop(r)

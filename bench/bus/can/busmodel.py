@@ -82,6 +82,7 @@ class BusModel:
         self._held: list[Transmission] = []    # the injector's frames and frames it holds back, by time
         self.tec = {node: errors.TransmitErrorCounter() for node in NODES}
         self.recover_at_ns: dict[str, int] = {}
+        self.restart_ns: dict[str, int] = {}
         self.in_flight: _InFlight | None = None
         self.bus_free_ns = t0_ns
         self.now_ns = t0_ns
@@ -123,8 +124,11 @@ class BusModel:
                 deliveries += self._complete(self.in_flight)
                 self.in_flight = None
                 continue
-            deliveries += self._restart_recovered(t_ns)
             start_ns = self._next_start_ns()
+            due_ns = min(self.recover_at_ns.values(), default=None)
+            if due_ns is not None and due_ns <= t_ns and (start_ns is None or due_ns <= start_ns):
+                deliveries += self._restart_recovered(due_ns)   # in time order with the frames
+                continue
             if start_ns is None or start_ns > t_ns:
                 break
             self._arbitrate(start_ns)
@@ -177,8 +181,22 @@ class BusModel:
         self.bus_free_ns = end_ns
         self._account_busy(start_ns, end_ns)
 
+    def _flush_queue(self, node: str, t_ns: int) -> None:
+        """Bus-off: the controller's transmit buffers are cleared (nothing stale is sent later)."""
+        queue = self.queues[node]
+        while queue:
+            flushed = queue.popleft()
+            self._log(flushed.msg, CHANNEL_DROPPED, t_ns)
+            self.stats.dropped["bus_off_flush"] += 1
+
     def _complete(self, flight: _InFlight) -> list[Delivery]:
         tx = flight.tx
+        frame_ns = flight.end_ns - flight.start_ns
+        eleven_bits_ns = bittiming.duration_ns(11, self.bitrate_bps)
+        for node, restart_ns in self.restart_ns.items():
+            if node in self.recover_at_ns and flight.start_ns >= restart_ns:
+                # A frame on the bus is one occurrence of 11 recessive bits (its end), not len/11.
+                self.recover_at_ns[node] += max(0, frame_ns - eleven_bits_ns)
         if flight.destroyed_by is not None:
             return self._transmission_error(flight)
         if tx is not None:
@@ -207,9 +225,14 @@ class BusModel:
             self._log(tx.msg, CHANNEL_DROPPED, flight.end_ns)
             self.stats.dropped["bus_off"] += 1
             self.stats.bus_off[tx.source] += 1
-            recovery_ns = max(bittiming.duration_ns(bittiming.BUS_OFF_RECOVERY_BITS, self.bitrate_bps),
-                              round(flight.destroyed_by.spec.param("restart_delay_s") * 1e9))
-            self.recover_at_ns[tx.source] = flight.end_ns + recovery_ns
+            self._flush_queue(tx.source, flight.end_ns)
+            # SocketCAN restarts the controller restart-ms after bus-off; the controller then
+            # joins the bus only after 128 occurrences of 11 recessive bits (ISO 11898-1): 1408
+            # bit times on an idle bus, more when frames pass meanwhile (see _complete).
+            restart_ns = flight.end_ns + round(flight.destroyed_by.spec.param("restart_delay_s") * 1e9)
+            self.restart_ns[tx.source] = restart_ns
+            self.recover_at_ns[tx.source] = restart_ns + bittiming.duration_ns(bittiming.BUS_OFF_RECOVERY_BITS,
+                                                                                self.bitrate_bps)
         report = errors.error_frame(state, counter.tec, timestamp_s=self.to_wall_s(flight.end_ns))
         report.channel = CHANNEL_BUS
         self.capture(report)
@@ -220,6 +243,7 @@ class BusModel:
         for node, at_ns in list(self.recover_at_ns.items()):
             if at_ns <= t_ns:
                 del self.recover_at_ns[node]
+                self.restart_ns.pop(node, None)
                 self.tec[node].restart()
                 report = errors.error_frame(errors.ErrorState.ACTIVE, 0, restarted=True,
                                             timestamp_s=self.to_wall_s(at_ns))

@@ -24,8 +24,8 @@ What the driver detects, and from what evidence:
   gap in the driver's own commands is reported as caused by the host, not the bus.
 
 `health().ok` is false while the board is lost, in safe state or bus-off, while either telemetry
-frame is overdue (each has its own deadline, and the applied dipole of an overdue MTQ_TLM_DIPOLE is
-not reported), and for `fault_hold_s` after a spoofed command, an implausible applied dipole or a
+frame is overdue (each has its own deadline; the applied dipole then shown is the last heard, and
+`telemetry_fresh` is false), and for `fault_hold_s` after a spoofed command, an implausible applied dipole or a
 corrupted, repeated or out-of-sequence telemetry frame.
 """
 from __future__ import annotations
@@ -331,9 +331,9 @@ class MagnetorquerDriver:
 
     def health(self) -> BoardHealth:
         now_s = self.clock()
-        # An overdue frame's values are not the board's now: report none rather than stale ones.
-        dipole = self._tlm.get(p.TLM_DIPOLE, {}) if not self._telemetry[p.TLM_DIPOLE].lost else {}
-        coil = self._tlm.get(p.TLM_COIL, {}) if not self._telemetry[p.TLM_COIL].lost else {}
+        # The last values heard; telemetry_fresh (and ok) say whether they are still the board's.
+        dipole = self._tlm.get(p.TLM_DIPOLE, {})
+        coil = self._tlm.get(p.TLM_COIL, {})
         recent = sorted(k for k, t in self._fault_seen_s.items() if now_s - t < self.config.fault_hold_s)
         return BoardHealth(
             alive=self._heartbeat.last_s is not None and not self._heartbeat.lost,

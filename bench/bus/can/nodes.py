@@ -76,7 +76,7 @@ def run_board(ctx) -> int:
 
     def on_applied(command: AppliedCommand) -> None:
         applied.append({"counter": command.alive_counter, "dipole_am2": command.dipole_am2.tolist(),
-                        "applied_ns": command.applied_ns})
+                        "applied_ns": command.applied_ns, "age_s": command.age_s})
         publish(command.received_ns, command.alive_counter)
 
     def on_coils_changed(state) -> None:
