@@ -79,6 +79,8 @@ class SimBench:
         self.sent: list[Sent] = []
         self.events = []
         self._next_command_ns = T0_NS
+        self.run(0.005, commanding=False)   # boot-up heartbeat, NMT start from the driver: operational
+        assert self.board.nmt_state == p.NMT_OPERATIONAL
 
     def dipole(self, k: int) -> tuple:
         x = round(0.001 * (1 + k % 150), 3)

@@ -46,6 +46,9 @@ class Rig:
                                          clock=self.clock)
         self.events = []
         self.board_alive = True
+        # Boot: the board's boot-up heartbeat, the driver's NMT start, the board operational.
+        self.run(0.005, commanding=False)
+        assert self.board.nmt_state == p.NMT_OPERATIONAL, self.board.nmt_state
 
     def run(self, duration_s: float, dipole_am2=(0.1, -0.05, 0.02), commanding: bool = True):
         next_command = self.clock.t

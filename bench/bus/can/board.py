@@ -11,6 +11,12 @@ command, and every command that shows earlier ones were lost, is reported by an 
 no two closer than the EMCY inhibit time (CiA 301 0x1015): what is rejected within it is reported
 by the next one, with the running count of rejected frames.
 
+As a CANopen node (CiA 301) it boots into pre-operational (boot-up heartbeat, then heartbeats
+carrying its NMT state) and processes commands and sends telemetry only once an NMT master has
+started it (operational); stop and enter-pre-operational turn the coils off, reset node and
+reset communication boot it again. A cleared error (commands back after a timeout) is announced
+by an error-reset EMCY (code 0x0000).
+
 `step(now_s)` handles what arrived and what is due at `now_s`; `run(stop)` is the process loop.
 Time comes from the caller's clock, so unit tests drive the board deterministically.
 """
@@ -99,9 +105,11 @@ class MagnetorquerBoard:
         self._last_command_s: float | None = None
         self._next_no_data_s: float | None = None    # next E2E check without a new command
         self._last_emcy_s: float | None = None
-        self._pending_emcy: dict | None = None       # held back by the inhibit time
+        self._pending_emcy: list[dict] = []         # held back by the inhibit time
         self._next_heartbeat_s = 0.0
         self._next_telemetry_s = 0.0
+        self.nmt_state = p.NMT_BOOT_UP
+        self.ignored: Counter = Counter()      # frames not for this NMT state (CiA 301: not processed)
 
     @property
     def applied_dipole_am2(self) -> np.ndarray:
@@ -116,11 +124,47 @@ class MagnetorquerBoard:
 
     # --- the loop -------------------------------------------------------------------------
     def start(self, now_s: float) -> None:
-        """Boot: announce ourselves (CANopen boot-up heartbeat) and schedule periodic frames."""
-        self._started_s = self._last_update_s = now_s
+        """Boot: announce ourselves (CANopen boot-up heartbeat), enter pre-operational, schedule
+        the periodic frames."""
+        if self._started_s is None:
+            self._started_s = self._last_update_s = now_s
         self._send(self.protocol.encode(p.HEARTBEAT, {"NmtState": p.NMT_BOOT_UP}))
+        self.nmt_state = p.NMT_PRE_OPERATIONAL
         self._next_heartbeat_s = now_s + self.config.heartbeat_period_s
         self._next_telemetry_s = now_s + self.config.telemetry_period_s
+
+    # --- CiA 301 NMT slave ----------------------------------------------------------------
+    def _on_nmt(self, frame: p.Frame, now_s: float) -> None:
+        if int(frame.signals["NodeId"]) not in (0, self.protocol.node_id):
+            return
+        command = int(frame.signals["Command"])
+        if command == p.NMT_START and self.nmt_state != p.NMT_OPERATIONAL:
+            self.nmt_state = p.NMT_OPERATIONAL
+            self._last_command_s = now_s            # the command timeout runs from the start
+            self.e2e.reset()
+        elif command in (p.NMT_STOP, p.NMT_ENTER_PRE_OPERATIONAL):
+            self.nmt_state = p.NMT_STOPPED if command == p.NMT_STOP else p.NMT_PRE_OPERATIONAL
+            self._coils_off(now_s)
+        elif command in (p.NMT_RESET_NODE, p.NMT_RESET_COMMUNICATION):
+            self._coils_off(now_s)
+            self.e2e.reset()
+            self._tx_counter.clear()
+            self._pending_emcy.clear()
+            self.start(now_s)                       # boot-up heartbeat, pre-operational
+
+    def _coils_off(self, now_s: float) -> None:
+        """Leaving operational: no commands will come, the coils must not hold the last one."""
+        s = self.state
+        self.update(now_s)
+        s.target_dipole_am2 = np.zeros(3)
+        s.mode = p.MODE_OFF
+        changed = not s.safe_state
+        s.safe_state = True
+        s.command_timeout = False
+        self._last_command_s = None
+        self._next_no_data_s = None
+        if changed and self.on_coils_changed is not None:
+            self.on_coils_changed(s)
 
     def step(self, now_s: float | None = None) -> None:
         """Handle every frame waiting on the bus, then advance the coils and send what is due."""
@@ -148,13 +192,20 @@ class MagnetorquerBoard:
         received_ns = time.monotonic_ns()
         self.received[p.frame_kind(self.protocol, msg)] += 1
         command_id = self.protocol.frame_ids[self.command_name]
-        if (msg.arbitration_id == command_id and not msg.is_error_frame and not msg.is_remote_frame
+        if (msg.arbitration_id == command_id and self.nmt_state == p.NMT_OPERATIONAL
+                and not msg.is_error_frame and not msg.is_remote_frame
                 and not msg.is_extended_id
                 and len(msg.data) != self.protocol.db.get_message_by_name(self.command_name).length):
             self._reject("wrong_length", None, p.EMCY_PDO_LENGTH, 0, now_s)
         frame = self.protocol.decode(msg)
+        if frame is not None and frame.name == p.NMT:
+            self._on_nmt(frame, now_s)
+            return
         if frame is None or frame.name not in p.COMMANDS:
             return  # other nodes' frames (our own telemetry echoed, a babbler) are not for us
+        if self.nmt_state != p.NMT_OPERATIONAL:
+            self.ignored[f"{frame.name} while {_NMT_NAMES[self.nmt_state]}"] += 1   # PDOs run only when operational
+            return
         if frame.name != self.command_name:
             # A plain command where the profile wants an authenticated one (a downgrade).
             status = p.E2EStatus.NOT_AUTHENTICATED if self.freshness is not None else None
@@ -193,6 +244,9 @@ class MagnetorquerBoard:
         s.mode = int(frame.signals["Mode"])
         s.target_dipole_am2 = saturated if s.mode == p.MODE_DIPOLE else np.zeros(3)
         s.last_command_counter = frame.counter
+        if s.command_timeout:
+            # CiA 301: the error is gone; say so with an error-reset EMCY and the error register now.
+            self._emergency(p.EMCY_NO_ERROR, 0, frame.counter, now_s, error_register=0)
         s.safe_state = s.command_timeout = False
         self._last_command_s = now_s
         self.accepted += 1
@@ -207,19 +261,25 @@ class MagnetorquerBoard:
 
     def _emergency(self, error_code: int, e2e_status: int, counter: int | None, now_s: float,
                    error_register: int = ERROR_REGISTER_GENERIC | ERROR_REGISTER_COMMUNICATION) -> None:
-        """Send an EMCY now, or when the inhibit time since the last one has passed (the latest
-        one waiting replaces an earlier one; RejectedFrames carries the running count)."""
-        self._pending_emcy = {"ErrorCode": error_code, "ErrorRegister": error_register, "E2eStatus": e2e_status,
-                              "RejectedCounter": counter or 0}
+        """Send an EMCY now, or when the inhibit time since the last one has passed. Waiting EMCYs
+        queue in order; one of the same error code as the last waiting one replaces it (a burst
+        of rejections is one report; RejectedFrames carries the running count)."""
+        if self.nmt_state == p.NMT_STOPPED:
+            return   # CiA 301: a stopped node sends only its heartbeat
+        emcy = {"ErrorCode": error_code, "ErrorRegister": error_register, "E2eStatus": e2e_status,
+                "RejectedCounter": counter or 0}
+        if self._pending_emcy and self._pending_emcy[-1]["ErrorCode"] == error_code:
+            self._pending_emcy[-1] = emcy
+        else:
+            self._pending_emcy.append(emcy)
         self._flush_emergency(now_s)
 
     def _flush_emergency(self, now_s: float) -> None:
-        if self._pending_emcy is None:
+        if not self._pending_emcy:
             return
         if self._last_emcy_s is not None and now_s - self._last_emcy_s < self.config.emcy_inhibit_s:
             return
-        signals = self._pending_emcy | {"RejectedFrames": min(sum(self.rejected.values()), 0xFFFF)}
-        self._pending_emcy = None
+        signals = self._pending_emcy.pop(0) | {"RejectedFrames": min(sum(self.rejected.values()), 0xFFFF)}
         self._last_emcy_s = now_s
         self._send(self.protocol.encode(p.EMCY, signals))
 
@@ -243,11 +303,11 @@ class MagnetorquerBoard:
             self.on_coils_changed(s)
         target = np.zeros(3) if (s.safe_state or s.actuation_paused) else s.target_dipole_am2
         self._advance_coils(target / c.coil_gain_am2_per_a, now_s)
-        if now_s >= self._next_telemetry_s:
+        if now_s >= self._next_telemetry_s and self.nmt_state == p.NMT_OPERATIONAL:
             self._send_telemetry()
             self._next_telemetry_s = _next_tick(self._next_telemetry_s, c.telemetry_period_s, now_s)
         if now_s >= self._next_heartbeat_s:
-            self._send(self.protocol.encode(p.HEARTBEAT, {"NmtState": p.NMT_OPERATIONAL}))
+            self._send(self.protocol.encode(p.HEARTBEAT, {"NmtState": self.nmt_state}))
             self._next_heartbeat_s = _next_tick(self._next_heartbeat_s, c.heartbeat_period_s, now_s)
 
     def _enter_safe_state(self, now_s: float) -> None:
@@ -300,6 +360,10 @@ class MagnetorquerBoard:
         except can.CanError as exc:  # a full or broken bus must not kill the board
             self.sent["send_failed"] += 1
             log.warning("send failed: %s", exc)
+
+
+_NMT_NAMES = {p.NMT_BOOT_UP: "boot_up", p.NMT_STOPPED: "stopped", p.NMT_OPERATIONAL: "operational",
+              p.NMT_PRE_OPERATIONAL: "pre_operational"}
 
 
 def _next_tick(previous_s: float, period_s: float, now_s: float) -> float:

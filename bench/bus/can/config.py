@@ -84,6 +84,9 @@ class DriverConfig(msgspec.Struct, forbid_unknown_fields=True):
     # After a spoofed command, an implausible applied dipole or bad telemetry, health is not ok
     # for this long (a fault that stops is not forgotten at the next good frame).
     fault_hold_s: PositiveS = 1.0
+    # The driver is the board's NMT master: it starts the board whenever it reports boot-up or
+    # pre-operational (CiA 301: a node processes commands only when operational).
+    nmt_auto_start: bool = True
 
 
 class DipoleStep(msgspec.Struct, forbid_unknown_fields=True):

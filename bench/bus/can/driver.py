@@ -7,7 +7,8 @@ it noticed (the latency): a lost heartbeat counts from when the next one was due
 from when it was on the bus, a rejected command from when the driver sent it.
 
 What the driver detects, and from what evidence:
-- board lost / back: heartbeat (CANopen consumer) and telemetry deadlines;
+- board lost / back: heartbeat (CANopen consumer) and telemetry deadlines; as the NMT master it
+  starts the board (NMT start) whenever a heartbeat says boot-up or pre-operational;
 - corrupted, repeated, out-of-sequence or lost telemetry: the E2E check of each telemetry frame;
 - commands the board rejected (corrupted, repeated, out of sequence, re-synchronising, forged,
   stale, wrong length), commands lost on the way (the board's E2E check saw the counter jump) and
@@ -60,6 +61,7 @@ KINDS = (
     "telemetry_corrupted", "telemetry_repeated", "telemetry_out_of_sequence", "telemetry_lost",
     "command_rejected", "command_lost", "board_command_timeout", "spoofed_command", "actuator_mismatch",
     "error_warning", "error_passive", "bus_off", "bus_restarted", "error_active", "host_overrun",
+    "board_error_reset",
 )
 # Events after which the board's word cannot be trusted for DriverConfig.fault_hold_s.
 HEALTH_FAULTS = frozenset({"spoofed_command", "actuator_mismatch", "telemetry_corrupted", "telemetry_repeated",
@@ -86,8 +88,8 @@ class BoardHealth:
 
     @property
     def ok(self) -> bool:
-        return (self.alive and not self.safe_state and self.bus_state != errors.ErrorState.BUS_OFF.value
-                and self.telemetry_fresh and not self.recent_faults)
+        return (self.alive and self.nmt_state == p.NMT_OPERATIONAL and not self.safe_state
+                and self.bus_state != errors.ErrorState.BUS_OFF.value and self.telemetry_fresh and not self.recent_faults)
 
 
 @dataclass
@@ -120,7 +122,8 @@ class MagnetorquerDriver:
         self.wall_clock = wall_clock
         self.events: deque[FaultEvent] = deque(maxlen=MAX_EVENTS_KEPT)
         self.event_counts: Counter = Counter()
-        self.sent_frames = 0
+        self.sent_frames = 0                 # commands (NMT frames are counted in nmt_sent)
+        self.nmt_sent: Counter = Counter()
         self.last_sent_ns: int | None = None
         self.received: Counter = Counter()   # every frame heard, by name (frame accounting)
         self._counter = 0
@@ -217,10 +220,22 @@ class MagnetorquerDriver:
             self._event("board_rebooted", 0.0, p.HEARTBEAT)
         self._nmt_state = state
         self._arrived(self._heartbeat, now_s, "heartbeat_resumed", p.HEARTBEAT)
+        if self.config.nmt_auto_start and state in (p.NMT_BOOT_UP, p.NMT_PRE_OPERATIONAL):
+            self.nmt(p.NMT_START)
+
+    def nmt(self, command: int) -> None:
+        """Send a CiA 301 NMT command (p.NMT_START, ...) to this driver's board."""
+        try:
+            self.bus.send(self.protocol.encode(p.NMT, {"Command": command, "NodeId": self.protocol.node_id}))
+            self.nmt_sent[command] += 1
+        except can.CanError:
+            self.nmt_sent["send_failed"] += 1
 
     def _on_emergency(self, frame: p.Frame, msg: can.Message) -> None:
         code = int(frame.signals["ErrorCode"])
-        if code == p.EMCY_COMMAND_TIMEOUT:
+        if code == p.EMCY_NO_ERROR:
+            self._event("board_error_reset", 0.0, p.EMCY, f"error register {int(frame.signals['ErrorRegister']):#04x}")
+        elif code == p.EMCY_COMMAND_TIMEOUT:
             # Our own silence longer than the board's timeout is the host's doing, not the bus's.
             host = self._largest_gap_s > self.board.command_timeout_s
             detail = f"cause host_overrun: driver command gap {self._largest_gap_s * 1e3:.1f} ms" if host else "cause bus"

@@ -44,6 +44,7 @@ TLM_DIPOLE = "MTQ_TLM_DIPOLE"
 TLM_COIL = "MTQ_TLM_COIL"
 HEARTBEAT = "MTQ_HEARTBEAT"
 EMCY = "MTQ_EMCY"
+NMT = "NMT"                  # CiA 301 module control: identifier 0 whatever the node id
 BOARD_FRAMES = (TLM_DIPOLE, TLM_COIL, HEARTBEAT, EMCY)
 AXES = ("X", "Y", "Z")
 
@@ -56,6 +57,13 @@ NMT_STOPPED = 0x04
 NMT_OPERATIONAL = 0x05
 NMT_PRE_OPERATIONAL = 0x7F
 NMT_STATES = {NMT_BOOT_UP, NMT_STOPPED, NMT_OPERATIONAL, NMT_PRE_OPERATIONAL}
+# NMT command specifiers (CiA 301 7.2.8.3.1).
+NMT_START = 0x01
+NMT_STOP = 0x02
+NMT_ENTER_PRE_OPERATIONAL = 0x80
+NMT_RESET_NODE = 0x81
+NMT_RESET_COMMUNICATION = 0x82
+NMT_COMMANDS = {NMT_START, NMT_STOP, NMT_ENTER_PRE_OPERATIONAL, NMT_RESET_NODE, NMT_RESET_COMMUNICATION}
 
 # CANopen emergency error codes the board uses (CiA 301 table 21).
 EMCY_NO_ERROR = 0x0000          # error reset
@@ -242,7 +250,7 @@ class Protocol:
         self.key = key
         self.db = database()
         offset = node_id - DBC_NODE_ID
-        self.frame_ids = {m.name: m.frame_id + offset for m in self.db.messages}
+        self.frame_ids = {m.name: m.frame_id + (offset if m.name != NMT else 0) for m in self.db.messages}
         self._by_id = {frame_id: self.db.get_message_by_name(name) for name, frame_id in self.frame_ids.items()}
         self.data_ids = {m.name: data_id_list(m.name) for m in self.db.messages}
         self.bad = BadFrames()
@@ -321,6 +329,9 @@ class Protocol:
             self.bad.count("garbage")
             return None
         if message.name == HEARTBEAT and signals["NmtState"] not in NMT_STATES:
+            self.bad.count("garbage")
+            return None
+        if message.name == NMT and signals["Command"] not in NMT_COMMANDS:
             self.bad.count("garbage")
             return None
         data_ids = self.data_ids[message.name]
