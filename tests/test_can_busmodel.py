@@ -215,7 +215,7 @@ def _bus_off_then(board_frames_after_restart: int):
     for msg in telemetry:
         bus.submit(BOARD, msg, restart_ns)
     deliveries = bus.run_until(T0 + 100 * MS)
-    restarted = [d for d in deliveries if d.msg.is_error_frame]
+    restarted = [d for d in deliveries if d.msg.is_error_frame and d.destinations == (FLIGHT,)]
     assert len(restarted) == 1 and errors.read_error_frame(restarted[0].msg) == (errors.ErrorState.ACTIVE, True)
     return bus, restart_ns, round(restarted[0].msg.timestamp * 1e9), telemetry
 
@@ -226,8 +226,14 @@ def test_bus_off_recovery_is_the_restart_delay_then_128_times_11_recessive_bits_
     assert bus.report()["dropped"] == {"bus_off": 1, "bus_off_flush": 4}
 
 
-def test_frames_on_the_bus_during_recovery_count_as_one_11_bit_sequence_each():
+def test_frames_during_recovery_count_once_each_and_a_lone_transmitter_stops_at_error_passive():
     bus, restart_ns, back_ns, telemetry = _bus_off_then(3)
-    # Worked by hand: each frame occupies frame_bits but counts as one sequence of 11 bits.
-    extra_bits = sum(bittiming.frame_bits(m) - 11 for m in telemetry)
-    assert back_ns - restart_ns == (1408 + extra_bits) * 1000
+    # Worked by hand. With the flight side bus-off the board is alone: no ACK. Each attempt runs
+    # to the ACK slot (frame bits - 13 tail + CRC delimiter + ACK slot) and an error frame (23
+    # bits), and ends in 11 recessive bits: one of the 128 occurrences recovery waits for. The
+    # attempts are back to back from the restart, so recovery takes 128 of them.
+    attempt_bits = bittiming.frame_bits(telemetry[0]) - 13 + 2 + 23
+    assert back_ns - restart_ns == 128 * attempt_bits * 1000
+    # ACK errors raise an error-passive transmitter's TEC no further (ISO 11898-1 rule 3, exception 1).
+    assert bus.stats.tec_max["board"] == 128 and not bus.counters["board"].bus_off
+    assert bus.stats.bus_errors["ack"] == 128          # then the flight side ACKs again

@@ -29,6 +29,7 @@ class Transmission:
     destinations: tuple[str, ...]
     fault: str | None = None     # the fault that injected or altered it
     held: bool = False           # held back on the bus (by the injector), not in its sender's queue
+    after: "Transmission | None" = None   # an injected frame goes only once this one has left its queue
 
 
 @dataclass(frozen=True)
@@ -118,7 +119,7 @@ class Delay(ActiveFault):
 class Duplicate(ActiveFault):
     def apply(self, tx, outcome, injector):
         for _ in range(int(self.spec.param("copies"))):
-            injector.inject(tx.msg, tx.ready_ns, outcome, self.label)
+            injector.inject(tx.msg, tx.ready_ns, outcome, self.label, after=tx)
         return True
 
 
@@ -134,7 +135,7 @@ class Replay(ActiveFault):
             self.affected -= 1   # recording is not an injection
             return True
         if tx.submitted_ns - self.recorded_ns >= self.spec.param("after_s") * 1e9:
-            injector.inject(self.recorded, tx.ready_ns, outcome, self.label)
+            injector.inject(self.recorded, tx.ready_ns, outcome, self.label, after=tx)
         else:
             self.affected -= 1
         return True
@@ -186,7 +187,7 @@ class Spoof(ActiveFault):
                                       counter, freshness if freshness is not None else 0)
         if not self.spec.param("knows_data_id"):
             forged = self.protocol.reprotect(forged, data_ids=(int(self.spec.param("data_id")),) * p.COUNTER_MODULO)
-        injector.inject(forged, tx.ready_ns, outcome, self.label)
+        injector.inject(forged, tx.ready_ns, outcome, self.label, after=tx)
         return True
 
 
@@ -330,9 +331,13 @@ class FaultInjector:
         outcome.dropped.append((tx.msg, label))
         self.record(tx.submitted_ns, label, "dropped", tx.msg)
 
-    def inject(self, msg: can.Message, ready_ns: int, outcome: SubmitOutcome, label: str) -> None:
+    def inject(self, msg: can.Message, ready_ns: int, outcome: SubmitOutcome, label: str,
+               after: Transmission | None = None) -> None:
+        """A frame of the injector's own, ready at ready_ns; `after`: only once that frame is sent
+        ("right after" it, rather than colliding with it on an equal identifier)."""
         t_ns = ready_ns
-        outcome.queued.append(Transmission(_copy(msg), SOURCE_INJECTOR, t_ns, t_ns, ("flight", "board"), label))
+        outcome.queued.append(Transmission(_copy(msg), SOURCE_INJECTOR, t_ns, t_ns, ("flight", "board"), label,
+                                           after=after))
         self.record(t_ns, label, "injected", msg)
 
     def replace(self, tx: Transmission, altered: can.Message, outcome: SubmitOutcome, label: str) -> None:
