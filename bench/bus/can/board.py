@@ -97,6 +97,7 @@ class MagnetorquerBoard:
         self.rejected: Counter = Counter()     # by E2E status name or "wrong_length"
         self.accepted = 0
         self.lost_commands = 0
+        self.host_overruns = 0                 # periodic frames sent more than half a period late
         self.sent: Counter = Counter()
         self.received: Counter = Counter()     # every frame heard, by name (frame accounting)
         self._tx_counter: Counter = Counter()  # alive counters of the board's own protected frames
@@ -304,11 +305,19 @@ class MagnetorquerBoard:
         target = np.zeros(3) if (s.safe_state or s.actuation_paused) else s.target_dipole_am2
         self._advance_coils(target / c.coil_gain_am2_per_a, now_s)
         if now_s >= self._next_telemetry_s and self.nmt_state == p.NMT_OPERATIONAL:
+            self._count_late(now_s - self._next_telemetry_s, c.telemetry_period_s)
             self._send_telemetry()
             self._next_telemetry_s = _next_tick(self._next_telemetry_s, c.telemetry_period_s, now_s)
         if now_s >= self._next_heartbeat_s:
+            self._count_late(now_s - self._next_heartbeat_s, c.heartbeat_period_s)
             self._send(self.protocol.encode(p.HEARTBEAT, {"NmtState": self.nmt_state}))
             self._next_heartbeat_s = _next_tick(self._next_heartbeat_s, c.heartbeat_period_s, now_s)
+
+    def _count_late(self, late_s: float, period_s: float) -> None:
+        """A periodic frame more than half its period late: this process was not scheduled in
+        time (a host overrun, which the flight side would otherwise take for a bus fault)."""
+        if late_s > 0.5 * period_s:
+            self.host_overruns += 1
 
     def _enter_safe_state(self, now_s: float) -> None:
         self.state.safe_state = self.state.command_timeout = True

@@ -91,6 +91,8 @@ def run_board(ctx) -> int:
     finally:
         summary = {"sent": dict(board.sent), "received": dict(board.received), "accepted": board.accepted,
                    "rejected": dict(board.rejected), "bad_frames": dict(board.protocol.bad.counts),
+                   "ignored": dict(board.ignored), "lost_commands": board.lost_commands, "nmt_state": board.nmt_state,
+                   "host_overruns": board.host_overruns,
                    "applied": applied}
         (can_dir(ctx.run_dir) / BOARD_NAME).write_text(json.dumps(summary))
         ctx.log.info("board: sent %s, accepted %d, rejected %s", dict(board.sent), board.accepted, dict(board.rejected))
