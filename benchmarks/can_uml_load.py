@@ -55,10 +55,11 @@ def one_run(index: int, job_dir: Path, selection: str, timeout_s: float) -> dict
     report = job_dir / "host_overruns.jsonl"
     if report.exists():
         records = [json.loads(line) for line in report.read_text().splitlines() if line]
-    by_test = {r["test"].rstrip("0123456789"): r for r in records}
+    # pytest's tmp_path names are the test's name cut to 30 characters plus a number.
+    by_prefix = {r["test"].rstrip("0123456789"): r for r in records}
     tests = {}
     for name, outcome in outcomes.items():
-        record = by_test.get(name, {})
+        record = next((r for prefix, r in by_prefix.items() if name.startswith(prefix)), {})
         host = record.get("host_overruns", 0) + record.get("board_host_overruns", 0)
         if outcome == "failed" and host:
             outcome = "failed with host overruns"

@@ -120,9 +120,12 @@ def test_command_loop_counts_its_own_late_periods_as_host_overruns():
             return real_poll(0.0, max_frames)
 
         rig.driver.poll = poll
+        heard = []
+        loop.on_events = heard.extend
         loop.run(duration_s=0.5)
         assert rig.driver.host_overruns == 1
         assert [e.kind for e in rig.driver.events].count("host_overrun") == 1
+        assert [e.kind for e in heard] == ["host_overrun"]        # whoever listens to the loop hears it
         assert loop.health.host_overruns == 1
         assert np.allclose(rig.board.state.target_dipole_am2, 0.0)   # the loop's default dipole
     finally:

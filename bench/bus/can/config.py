@@ -10,6 +10,13 @@ from typing import Annotated, Literal
 import msgspec
 
 from bench.bus.can.faults import FaultSpec
+from bench.bus.can.protocol import CMD, HEARTBEAT, TLM_DIPOLE, cycle_time_s
+
+
+def _dbc_cycle_s(name: str):
+    """A default period from the DBC's GenMsgCycleTime, the protocol's nominal; a scenario may
+    override it (a deliberate deviation, e.g. a slow board)."""
+    return msgspec.field(default_factory=lambda: cycle_time_s(name))
 
 PositiveS = Annotated[float, msgspec.Meta(gt=0)]
 NonNegS = Annotated[float, msgspec.Meta(ge=0)]
@@ -22,8 +29,8 @@ class BoardConfig(msgspec.Struct, forbid_unknown_fields=True):
     coil_time_constant_s: PositiveS = 0.005          # L/R of a coil
     coil_gain_am2_per_a: PositiveS = 2.0             # turns x area: dipole per ampere
     command_timeout_s: PositiveS = 0.1               # no valid command this long: coils off
-    heartbeat_period_s: PositiveS = 0.1
-    telemetry_period_s: PositiveS = 0.05
+    heartbeat_period_s: PositiveS = _dbc_cycle_s(HEARTBEAT)          # 0.1 s in mtq.dbc
+    telemetry_period_s: PositiveS = _dbc_cycle_s(TLM_DIPOLE)         # 0.05 s (MTQ_TLM_COIL too)
     # Magnetometer sampling windows: coils held off for window_s every period_s (0: never).
     mag_window_period_s: NonNegS = 0.0
     mag_window_s: NonNegS = 0.0
@@ -71,7 +78,7 @@ class SecurityConfig(msgspec.Struct, forbid_unknown_fields=True):
 
 
 class DriverConfig(msgspec.Struct, forbid_unknown_fields=True):
-    command_period_s: PositiveS = 0.02
+    command_period_s: PositiveS = _dbc_cycle_s(CMD)                  # 0.02 s in mtq.dbc
     # A board is lost when its heartbeat is this many heartbeat periods late (CANopen consumer time).
     heartbeat_timeout_periods: Annotated[float, msgspec.Meta(ge=1.0)] = 2.5
     telemetry_timeout_periods: Annotated[float, msgspec.Meta(ge=1.0)] = 3.0

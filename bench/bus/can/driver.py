@@ -175,9 +175,9 @@ class MagnetorquerDriver:
     def poll(self, timeout_s: float = 0.0, max_frames: int = 1000) -> list[FaultEvent]:
         """Handle the frames that arrived (waiting up to timeout_s for the first), check deadlines.
 
-        Returns the events detected during this call.
+        Returns the events detected since the previous call (during it, and in between: a host
+        overrun the command loop reported).
         """
-        self._new_events = []
         msg = self.bus.recv(timeout=timeout_s)
         handled = 0
         while msg is not None:
@@ -187,7 +187,8 @@ class MagnetorquerDriver:
                 break  # a flood must not starve the deadline checks below
             msg = self.bus.recv(timeout=0.0)
         self.check_deadlines(self.clock())
-        return self._new_events
+        events, self._new_events = self._new_events, []
+        return events
 
     def handle(self, msg: can.Message) -> None:
         now_s = self.clock()
