@@ -146,7 +146,29 @@ def test_a_node_alone_on_the_bus_gets_ack_errors_up_to_error_passive_and_no_furt
     deliveries = bus.run_until(T0 + 20 * MS)
     reports = [d.msg for d in deliveries]
     assert all(m.is_error_frame and m.arbitration_id & errors.CAN_ERR_ACK for m in reports)
-    # Every retry is reported (as with berr-reporting on); TEC 8, 16, ... 128, then 128 for good.
-    assert [m.data[6] for m in reports[:16]] == [8 * k for k in range(1, 17)]
-    assert len(reports) > 100 and {m.data[6] for m in reports[16:]} == {128}
+    # Reported on each change of state (ACK errors one by one only with berr-reporting): warning at
+    # TEC 96 (12 attempts), error-passive at 128 (16), then retries for ever at 128.
+    assert [(m.data[6], errors.read_error_frame(m)[0]) for m in reports] == [
+        (96, errors.ErrorState.WARNING), (128, errors.ErrorState.PASSIVE)]
+    assert bus.stats.bus_errors["ack"] > 100
     assert bus.counters[FLIGHT].tec == 128 and not bus.counters[FLIGHT].bus_off
+
+
+def test_the_return_to_error_active_is_reported_to_the_node_and_the_driver_reads_it():
+    # 12 destroyed attempts: TEC 96 (warning, reported). Then successful frames, one TEC each:
+    # at TEC 95 the controller is error-active again, reported with CAN_ERR_CRTL_ACTIVE.
+    from bench.bus.can.config import BoardConfig, DriverConfig
+    from bench.bus.can.driver import MagnetorquerDriver
+    bus = model(FaultSpec("error_frames", start_s=0.0, count=12))
+    for k in range(3):
+        bus.submit(FLIGHT, PROTO.command([0.1, 0, 0], counter=k), T0 + k * MS)
+    deliveries = bus.run_until(T0 + 10 * MS)
+    reports = [d.msg for d in deliveries if d.destinations == (FLIGHT,) and d.msg.is_error_frame]
+    assert len(reports) == 13 and reports[-1].data[1] == errors.CAN_ERR_CRTL_ACTIVE and reports[-1].data[6] == 95
+    assert bus.counters[FLIGHT].tec == 96 - 3                 # three frames got through
+    driver = MagnetorquerDriver(can.Bus(interface="virtual", channel="arbitration-active"), DriverConfig(),
+                                BoardConfig(), PROTO)
+    for msg in reports:
+        driver.handle(msg)
+    assert [e.kind for e in driver.events] == ["error_warning", "error_active"]
+    driver.bus.shutdown()

@@ -276,7 +276,9 @@ class BusModel:
     def _count(self, node: str, t_ns: int, *, transmit: bool, ok: bool,
                error: errors.BusError | None = None) -> list[Delivery]:
         """Apply one fault-confinement rule to a node; an error report when the controller would
-        send one (every error it transmitted, and every change of its state)."""
+        send one: every change of its state, and every error it transmitted except a missing ACK
+        (a node alone retries back to back, thousands a second: SocketCAN reports those only with
+        berr-reporting on, and a bridge forwarding each would fall behind the wall clock)."""
         counters = self.counters[node]
         before = counters.state
         if ok:
@@ -284,7 +286,7 @@ class BusModel:
         else:
             after = counters.on_transmit_error(error) if transmit else counters.on_receive_error()
         self.stats.tec_max[node] = max(self.stats.tec_max[node], counters.tec)
-        if after is before and (ok or not transmit):
+        if after is before and (ok or not transmit or error is errors.BusError.ACK):
             return []
         report = errors.error_frame(after, counters.tec, rec=counters.rec, error=None if ok else error,
                                     transmitting=transmit, state_changed=after is not before,
