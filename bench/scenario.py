@@ -14,12 +14,13 @@ from typing import Annotated, Literal
 import msgspec
 
 from bench.bus.can.config import CanConfig
-from bench.controller.attitude_config import AttitudeControlConfig
-from bench.controller.config import ControllerConfig
+from bench.controller.config import ATTITUDE_LAWS, AttitudeControlConfig, ControllerConfig
 from bench.estimator.config import EstimatorConfig
-from bench.plant.attitude_config import AttitudeConfigError, AttitudePlantConfig, check_attitude_plant, check_unit_quaternion
+from bench.gnc.cwh import RendezvousParams
+from bench.plant.config import (
+    AttitudeConfigError, AttitudePlantConfig, check_attitude_plant, check_unit_quaternion, inertia_matrix,
+)
 from bench.plant.config import PlantConfig
-from bench.plant.cwh import RendezvousParams
 
 BUILTIN_PACKAGE = "bench.scenarios"
 
@@ -39,6 +40,17 @@ class RunConfig(msgspec.Struct, forbid_unknown_fields=True):
     command_timeout_s: Annotated[float, msgspec.Meta(gt=0)] = 10.0
 
 
+class OnboardConfig(msgspec.Struct, forbid_unknown_fields=True):
+    """What the flight side (estimator and controller alike) believes about the world.
+
+    The defaults believe the plant's truth ([plant]); a belief that differs is a scenario.
+    """
+
+    # The target orbit radius believed on board is the plant's R (1 + believed_radius_error)
+    # (seed 001, third case). Off by 50 % or more is a different orbit, not an estimation problem.
+    believed_radius_error: Annotated[float, msgspec.Meta(gt=-0.5, lt=0.5)] = 0.0
+
+
 class Scenario(msgspec.Struct, forbid_unknown_fields=True):
     name: str
     description: str = ""
@@ -49,6 +61,7 @@ class Scenario(msgspec.Struct, forbid_unknown_fields=True):
     plant: PlantConfig = msgspec.field(default_factory=PlantConfig)
     estimator: EstimatorConfig = msgspec.field(default_factory=EstimatorConfig)
     controller: ControllerConfig = msgspec.field(default_factory=ControllerConfig)
+    onboard: OnboardConfig = msgspec.field(default_factory=OnboardConfig)
     can: CanConfig | None = None
     attitude: AttitudePlantConfig = msgspec.field(default_factory=AttitudePlantConfig)
     attitude_control: AttitudeControlConfig = msgspec.field(default_factory=AttitudeControlConfig)
@@ -65,6 +78,11 @@ class Scenario(msgspec.Struct, forbid_unknown_fields=True):
         if self.run.steps is not None:
             overrides["n_steps"] = self.run.steps
         return RendezvousParams.from_reference(**overrides)
+
+    def onboard_params(self) -> RendezvousParams:
+        """The params as the flight side believes them ([onboard]): what estimator and controller
+        build their models on. The plant flies `params()`."""
+        return self.params().with_radius_error(self.onboard.believed_radius_error)
 
     @property
     def n_steps(self) -> int:
@@ -94,8 +112,6 @@ MAX_ATTITUDE_TIME_FACTOR = 2.0
 
 
 def _check_attitude(s: Scenario) -> None:
-    from bench.controller.attitude_laws import ATTITUDE_LAWS   # imports this module
-
     try:
         check_attitude_plant(s.attitude)
     except AttitudeConfigError as exc:
@@ -113,7 +129,6 @@ def _check_attitude(s: Scenario) -> None:
     try:
         check_unit_quaternion(control.target.q_wxyz, "attitude_control.target.q_wxyz")
         if control.inertia_kgm2 is not None:
-            from bench.plant.attitude_config import inertia_matrix
             inertia_matrix(control.inertia_kgm2, "attitude_control.inertia_kgm2")
     except AttitudeConfigError as exc:
         raise ScenarioError(str(exc)) from None

@@ -22,7 +22,7 @@ from pathlib import Path
 import msgspec
 import numpy as np
 
-from bench.attitude_sim import simulate_attitude_in_process
+from bench.sim import simulate_attitude_in_process
 from bench.report.rundata import load_run
 from bench.scenario import load_scenario
 

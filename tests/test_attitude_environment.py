@@ -9,11 +9,11 @@ import pytest
 import sgp4
 
 from bench.plant.attitude import body_to_inertial, rk4_attitude_step
-from bench.plant.attitude_config import (
+from bench.plant.config import (
     AttitudeConfigError, AttitudePlantConfig, FieldConfig, OrbitConfig, check_attitude_plant,
 )
 from bench.plant.attitude_plant import AttitudePlant
-from bench.plant.environment import (
+from bench.gnc.environment import (
     EARTH_MU_M3PS2, IGRF_REFERENCE_RADIUS_KM, IgrfAlongOrbit, Sgp4Orbit, TleError, gravity_gradient_torque_nm,
     igrf_field_inertial_t, inertial_from_earth_fixed, greenwich_angle_rad,
 )

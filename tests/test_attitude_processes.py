@@ -13,11 +13,11 @@ import os
 import numpy as np
 import pytest
 
-from bench.attitude_metrics import (
+from bench.report.attitude_metrics import (
     applied_is_commanded_or_zero, attitude_metrics, continuous_rotation_angle_deg, fault_effect, loop_recovery_s,
     pointing_error_deg,
 )
-from bench.attitude_sim import simulate_attitude_in_process
+from bench.sim import simulate_attitude_in_process
 from bench.report.attitude import fault_windows_sim_s
 from bench.report.rundata import load_run
 from bench.scenario import load_scenario

@@ -1,5 +1,5 @@
 """One attitude-controller cycle under its deadline: estimate in, dipole out. Shared by the
-controller process and the in-process loop (bench.attitude_sim) so the two cannot drift apart.
+controller process and the in-process loop (bench.sim) so the two cannot drift apart.
 
 The law picks the dipole (bench.controller.attitude_laws, from the scenario); the deadline monitor
 of the translational loop times it, and on a miss in real-time mode holds the last dipole. A law
@@ -11,9 +11,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bench.controller.attitude_laws import ATTITUDE_FREE_LAWS, build_attitude_law
-from bench.controller.deadline import CycleOutcome, DeadlineMonitor
+from bench.controller.attitude_laws import build_attitude_law
+from bench.controller.config import ATTITUDE_FREE_LAWS
+from bench.controller.deadline import DeadlineMonitor
 from bench.gnc.attitude_law import AttitudeControlInput
+from bench.runtime.deadline import CycleOutcome
 from bench.scenario import Scenario
 
 

@@ -1,12 +1,13 @@
-"""Which attitude law the controller runs: a registry from the scenario's law name to a builder.
+"""Which attitude law the controller runs: the builders the registry names.
 
-Adding a law is one line in ATTITUDE_LAWS: a function (scenario) -> object with
+`bench.controller.config.ATTITUDE_LAWS` maps a scenario's law name to "module:builder" (one line
+per law); a builder takes the scenario and returns an object with
 `eval(AttitudeControlInput) -> (dipole_am2, info)` (bench.gnc.attitude_law). The laws themselves
 are pure algorithms in bench.gnc; this module only reads the scenario.
 """
 from __future__ import annotations
 
-from typing import Callable
+import importlib
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -15,12 +16,9 @@ from bench.gnc import quaternion as qt
 from bench.gnc.attitude_law import (
     AttitudeLaw, AttitudeTarget, BDotDetumble, PdTracking, SlidingModeTracking, TargetState, inertial_hold,
 )
-from bench.plant.attitude_config import inertia_matrix
+from bench.controller.config import ATTITUDE_LAWS
+from bench.plant.config import inertia_matrix
 from bench.scenario import Scenario
-
-# Laws that need no attitude estimate (they run before the smoother's first fix).
-ATTITUDE_FREE_LAWS = {"bdot"}
-
 
 def dipole_limit_am2(scenario: Scenario) -> float:
     control = scenario.attitude_control
@@ -67,27 +65,21 @@ def attitude_target(scenario: Scenario) -> AttitudeTarget:
     return inertial_hold(target.q_wxyz)
 
 
-def _bdot(s: Scenario) -> AttitudeLaw:
+def bdot(s: Scenario) -> AttitudeLaw:
     return BDotDetumble(s.attitude_control.bdot_gain_am2_s_per_t, dipole_limit_am2(s))
 
 
-def _sliding_mode(s: Scenario) -> AttitudeLaw:
+def sliding_mode(s: Scenario) -> AttitudeLaw:
     c = s.attitude_control
     return SlidingModeTracking(attitude_target(s), believed_inertia(s), dipole_limit_am2(s),
                                c.sliding_gain_radps, c.convergence_gain_radps)
 
 
-def _pd(s: Scenario) -> AttitudeLaw:
+def pd(s: Scenario) -> AttitudeLaw:
     c = s.attitude_control
     return PdTracking(attitude_target(s), dipole_limit_am2(s), c.kp_nm, c.kd_nms)
 
 
-ATTITUDE_LAWS: dict[str, Callable[[Scenario], AttitudeLaw]] = {
-    "bdot": _bdot,
-    "sliding_mode": _sliding_mode,
-    "pd": _pd,
-}
-
-
 def build_attitude_law(scenario: Scenario) -> AttitudeLaw:
-    return ATTITUDE_LAWS[scenario.attitude_control.law](scenario)
+    module, _, builder = ATTITUDE_LAWS[scenario.attitude_control.law].partition(":")
+    return getattr(importlib.import_module(module), builder)(scenario)

@@ -20,7 +20,7 @@ from bench.bus import keys
 from bench.bus.schemas import AttitudeEstimate, DipoleCommand
 from bench.controller.attitude_cycle import AttitudeCycle
 from bench.controller.mtq_link import MagnetorquerLink
-from bench.node_runtime import NodeContext
+from bench.runtime.node import NodeContext
 
 
 class DipoleSender:

@@ -5,6 +5,7 @@ published as a DeadlineEvent as it happens. The monitor's summary goes to deadli
 """
 from __future__ import annotations
 
+import importlib
 import json
 import time
 
@@ -14,14 +15,13 @@ from bench.bus import keys
 from bench.bus.schemas import ThrustCommand, TranslationEstimate
 from bench.controller.cycle import ControlCycle
 from bench.controller.mtq_link import MagnetorquerLink
-from bench.node_runtime import NodeContext
+from bench.runtime.node import NodeContext
 
 
 def run(ctx: NodeContext) -> int:
     if ctx.scenario.kind == "attitude":
-        from bench.controller.attitude_node import run as run_attitude
-
-        return run_attitude(ctx)
+        # By name, as NODES finds nodes: the attitude process reuses this module's pieces.
+        return importlib.import_module("bench.controller.attitude_node").run(ctx)
     control = ControlCycle(ctx.scenario)
     mtq = MagnetorquerLink(ctx, ctx.scenario.can) if ctx.scenario.can is not None else None
     if mtq is not None:

@@ -10,7 +10,7 @@ import time
 from bench.bus import keys
 from bench.bus.schemas import AttitudeEstimate, AttitudeSensors, AttitudeTruth
 from bench.estimator.attitude_frontend import AttitudeEstimator
-from bench.node_runtime import NodeContext
+from bench.runtime.node import NodeContext
 
 
 def run(ctx: NodeContext) -> int:

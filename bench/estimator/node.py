@@ -5,6 +5,7 @@ the thrust the controller commanded at step k-1 (what the flight side knows it a
 """
 from __future__ import annotations
 
+import importlib
 import queue
 import time
 
@@ -13,7 +14,7 @@ import numpy as np
 from bench.bus import keys
 from bench.bus.schemas import RelativePosition, ThrustCommand, TranslationEstimate, TruthState
 from bench.estimator.frontend import StateEstimator
-from bench.node_runtime import NodeContext
+from bench.runtime.node import NodeContext
 
 # How long to wait for command k-1 once fix k is in. In lock-step it was sent before fix k was
 # taken, so it is in flight; in real-time a missing command means the plant held the last one.
@@ -46,9 +47,8 @@ class CommandHistory:
 
 def run(ctx: NodeContext) -> int:
     if ctx.scenario.kind == "attitude":
-        from bench.estimator.attitude_node import run as run_attitude
-
-        return run_attitude(ctx)
+        # By name, as NODES finds nodes: the attitude process reuses this module's pieces.
+        return importlib.import_module("bench.estimator.attitude_node").run(ctx)
     scenario = ctx.scenario
     estimator = StateEstimator(scenario)
     if estimator.needs_truth:

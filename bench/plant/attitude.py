@@ -20,6 +20,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from bench.gnc import quaternion as qt
+from bench.gnc.environment import cross3
 
 EARTH_RADIUS_M = 6.3712e6
 EARTH_ROTATION_RADPS = 7.2921159e-5
@@ -41,12 +42,6 @@ def quaternion_rate(q_wxyz: np.ndarray, omega_body_radps: np.ndarray) -> np.ndar
         w * q - x * r + z * p,
         w * r + x * q - y * p,
     ])
-
-
-def cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """a x b for 3-vectors; np.cross costs ~10x more per call (argument handling), and the plant
-    calls it a dozen times per step."""
-    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
 
 
 def euler_rate(omega_body_radps: np.ndarray, torque_body_nm: np.ndarray, inertia_kgm2: np.ndarray,

@@ -30,7 +30,7 @@ from bench.bus import keys
 from bench.bus.schemas import (
     AttitudeSensors, AttitudeTruth, DipoleCommand, MtqApplied, StepDone, header,
 )
-from bench.node_runtime import NodeContext
+from bench.runtime.node import NodeContext
 from bench.plant.attitude_plant import AttitudePlant
 from bench.plant.mtq_acceptance import DipoleAcceptance, board_dipole_without_bus
 from bench.plant.node import LoopBroken, RealTimeClock, StampLog, _wait_command_lockstep

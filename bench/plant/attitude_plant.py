@@ -20,8 +20,8 @@ from bench.plant.attitude import (
     AttitudeSample, AttitudeSensorSpec, AttitudeSimulation, CircularOrbit, TiltedDipole,
     magnetorquer_torque_nm, EARTH_RADIUS_M,
 )
-from bench.plant.attitude_config import AttitudePlantConfig
-from bench.plant.environment import (
+from bench.plant.config import AttitudePlantConfig
+from bench.gnc.environment import (
     EARTH_MU_M3PS2, IgrfAlongOrbit, Sgp4Orbit, gravity_gradient_torque_nm, residual_dipole_torque_nm,
 )
 

@@ -15,7 +15,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from bench.attitude_metrics import attitude_metrics, pointing_error_deg, summary_rows  # noqa: E402
+from bench.report.attitude_metrics import attitude_metrics, pointing_error_deg, summary_rows  # noqa: E402
 from bench.report.document import Figure, Section, Table  # noqa: E402
 
 PLOTS_DIR = "plots"
@@ -135,7 +135,7 @@ def attitude_section(run, plot_dir: Path) -> tuple[Section | None, dict | None]:
 def comparison_section(runs: list, plot_dir: Path) -> Section:
     """Attitude runs side by side; every run after the first is compared with the first (the clean
     reference): the excess of its pointing error (or body rate) and its loop recovery after faults."""
-    from bench.attitude_metrics import fault_effect
+    from bench.report.attitude_metrics import fault_effect
 
     reference = runs[0]
     rows = []
