@@ -85,6 +85,11 @@ def attitude_metrics(trajectory: dict, scenario: Scenario) -> dict:
         "initial_rate_dps": float(rate_dps[0]),
         "final_rate_dps": float(rate_dps[-1]),
         "time_to_detumble_s": first_time_staying_below(times, rate_dps, DETUMBLE_THRESHOLD_DPS),
+        # B-dot settles near twice the orbit rate (it follows the field), ~0.13 deg/s at 500 km:
+        # the rate may dip below the threshold long before it stays there.
+        "first_below_detumble_threshold_s": float(times[np.argmax(rate_dps < DETUMBLE_THRESHOLD_DPS)])
+        if np.any(rate_dps < DETUMBLE_THRESHOLD_DPS) else None,
+        "min_rate_dps": float(rate_dps.min()),
         "detumble_threshold_dps": DETUMBLE_THRESHOLD_DPS,
         "dipole_limit_am2": limit,
         "max_abs_dipole_applied_am2": np.abs(applied).max(axis=0).tolist(),
@@ -135,12 +140,14 @@ def summary_rows(metrics: dict) -> list[tuple[str, str]]:
     return rows
 
 
-def applied_is_commanded_or_zero(trajectory: dict, can) -> np.ndarray:
+def applied_is_commanded_or_zero(trajectory: dict, can, commanded=None) -> np.ndarray:
     """Per step: True when the dipole the plant applied is zero or what the board makes of a dipole
-    the law commanded in this run (so no frame altered on the bus moved the coils)."""
+    the law commanded in this run (so no frame altered on the bus moved the coils). `commanded`:
+    every dipole the controller published (the recording's command/dipole); the plant's own log
+    misses commands that reached it after their step in real time."""
     from bench.plant.mtq_acceptance import board_dipole_without_bus
 
-    commanded = trajectory["att_dipole_commanded_am2"]
+    commanded = trajectory["att_dipole_commanded_am2"] if commanded is None else np.asarray(commanded, float)
     expected = {tuple(board_dipole_without_bus(c, can)) for c in commanded if np.all(np.isfinite(c))}
     return np.array([not np.any(a) or tuple(a) in expected for a in trajectory["att_dipole_applied_am2"]])
 
