@@ -248,6 +248,14 @@ class TranslationSmoother:
 
     def _isam_params(self) -> gtsam.ISAM2Params:
         params = gtsam.ISAM2Params()
+        # QR, not iSAM2's default Cholesky: with a fix only every second step (or rarer) the
+        # first states are jointly so badly conditioned (condition number ~2e10: a position
+        # known to metres, a velocity prior of 10 m/s, a 600 s step) that forming the normal
+        # equations squares it past double precision and Cholesky reports an "indeterminate
+        # linear system". QR works on the Jacobian itself, whose condition number is the square
+        # root of the normal equations'. Measured: 0 failures on every measurement pattern of
+        # tests/test_estimator_translation.py (1 to 51 per 60 steps with Cholesky).
+        params.setFactorization("QR")
         gauss_newton = gtsam.ISAM2GaussNewtonParams()
         # Update every variable's delta every time (the window is small): the newest estimate is
         # then the exact least-squares solution, equal to a Kalman filter's for the linear model.
