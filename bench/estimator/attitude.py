@@ -44,6 +44,8 @@ class AttitudeEstimateResult:
     gyro_bias_covariance: np.ndarray      # (3, 3), (rad/s)^2
     failed_updates: int
     reinitialised: bool
+    # (6, 6) joint covariance of [attitude error; gyro bias], the cross terms included.
+    joint_covariance: np.ndarray | None = None
 
     @property
     def rotation(self) -> gtsam.Rot3:
@@ -55,9 +57,16 @@ class _GoodEstimate:
     seq: int
     sim_time_s: float
     rotation: gtsam.Rot3
-    rotation_cov: np.ndarray
     bias: np.ndarray
-    bias_cov: np.ndarray
+    covariance: np.ndarray    # (6, 6) joint, [attitude error (body frame); gyro bias]
+
+    @property
+    def rotation_cov(self) -> np.ndarray:
+        return self.covariance[:3, :3]
+
+    @property
+    def bias_cov(self) -> np.ndarray:
+        return self.covariance[3:, 3:]
 
 
 class AttitudeSmoother:
@@ -73,6 +82,7 @@ class AttitudeSmoother:
         self._smoother: gtsam.IncrementalFixedLagSmoother | None = None
         self._last: _GoodEstimate | None = None
         self._preintegrated: gtsam.PreintegratedAhrsMeasurements | None = None
+        self._d_rotation_d_bias = np.zeros((3, 3))
 
     def add_gyro(self, omega_radps: np.ndarray, dt_s: float) -> None:
         """One gyro sample (mean body rate over dt_s, bias included). Ignored before the first fix."""
@@ -83,6 +93,11 @@ class AttitudeSmoother:
             raise ValueError(f"gyro dt_s must be positive and finite, got {dt_s}")
         if self._preintegrated is not None:
             self._preintegrated.integrateMeasurement(omega, float(dt_s))
+            # d(deltaRij)/d(bias), as gtsam's PreintegratedRotation keeps it (delRdelBiasOmega,
+            # not exposed in Python): D <- Exp(theta)^T D - Jr(theta) dt, theta = (omega - b) dt.
+            theta = (omega - self._preintegrated.biasHat()) * dt_s
+            increment = gtsam.Rot3.Expmap(theta).matrix()
+            self._d_rotation_d_bias = increment.T @ self._d_rotation_d_bias - gtsam.Rot3.ExpmapDerivative(theta) * dt_s
 
     def update(self, seq: int, sim_time_s: float, magnetometer_t: np.ndarray | None = None,
                field_inertial_t: np.ndarray | None = None,
@@ -180,27 +195,36 @@ class AttitudeSmoother:
         self._smoother = smoother
         return result
 
+    def _predict_joint_covariance(self) -> np.ndarray:
+        """The last joint covariance carried across the preintegrated gyro interval.
+
+        With R_true = R Exp(e) and the bias error db: e_k = dR' e_{k-1} + D db + n, db_k = db + w,
+        where dR is the preintegrated rotation (the old body frame's error seen in the new body
+        frame), D = d dR / d bias and n the preintegration noise (covariance preintMeasCov).
+        """
+        pim = self._preintegrated
+        transition = np.eye(6)
+        transition[:3, :3] = pim.deltaRij().matrix().T
+        transition[:3, 3:] = self._d_rotation_d_bias
+        noise = np.zeros((6, 6))
+        noise[:3, :3] = pim.preintMeasCov()
+        noise[3:, 3:] = np.eye(3) * self.config.gyro_bias_random_walk_radps2_per_rthz**2 * pim.deltaTij()
+        cov = transition @ self._last.covariance @ transition.T + noise
+        return 0.5 * (cov + cov.T)
+
     def _restart(self, seq, sim_time_s, measurement_factors):
         """New smoother at `seq` with the last good estimate, carried by the gyro, as its prior."""
-        last, pim = self._last, self._preintegrated
         rotation, bias = self._predict_last()
-        # Attitude uncertainty grows by the preintegration noise and by the bias uncertainty
-        # integrated over the interval (first order).
-        dt_s = pim.deltaTij()
-        rotation_cov = last.rotation_cov + pim.preintMeasCov() + last.bias_cov * dt_s**2
-        bias_cov = last.bias_cov + np.eye(3) * self.config.gyro_bias_random_walk_radps2_per_rthz**2 * dt_s
-        prior_factors = [
-            gtsam.PriorFactorRot3(attitude_key(seq), rotation, gtsam.noiseModel.Gaussian.Covariance(rotation_cov)),
-            factors.prior_factor(bias_key(seq), bias, bias_cov),
-        ]
+        covariance = self._predict_joint_covariance()
+        prior = factors.joint_prior_factor([(attitude_key(seq), rotation), (bias_key(seq), bias)], covariance)
         try:
-            return self._start(seq, sim_time_s, (prior_factors, rotation, bias), measurement_factors, reinitialised=True)
+            return self._start(seq, sim_time_s, ([prior], rotation, bias), measurement_factors, reinitialised=True)
         except Exception as exc:
             self.failed_updates += 1
             log.warning("attitude smoother restart at keyframe %d failed (%d so far): %s; "
                         "publishing the gyro prediction", seq, self.failed_updates, exc)
             self._smoother = None
-            self._last = _GoodEstimate(seq, sim_time_s, rotation, rotation_cov, bias, bias_cov)
+            self._last = _GoodEstimate(seq, sim_time_s, rotation, bias, covariance)
             self._reset_preintegration()
             return self._result(self._last, reinitialised=True)
 
@@ -220,13 +244,16 @@ class AttitudeSmoother:
         stamps.insert((attitude_key(seq), float(sim_time_s)))
         stamps.insert((bias_key(seq), float(sim_time_s)))
         smoother.update(graph, guess, stamps)
-        rotation = smoother.calculateEstimateRot3(attitude_key(seq))
-        bias = np.asarray(smoother.calculateEstimateVector(bias_key(seq)), dtype=float)
-        rotation_cov = np.asarray(smoother.marginalCovariance(attitude_key(seq)), dtype=float)
-        bias_cov = np.asarray(smoother.marginalCovariance(bias_key(seq)), dtype=float)
-        if not all(np.all(np.isfinite(a)) for a in (rotation.matrix(), bias, rotation_cov, bias_cov)):
+        r_key, b_key = attitude_key(seq), bias_key(seq)
+        rotation = smoother.calculateEstimateRot3(r_key)
+        bias = np.asarray(smoother.calculateEstimateVector(b_key), dtype=float)
+        # Joint, not two marginals: a restart needs the attitude / bias correlation.
+        joint = smoother.getISAM2().jointMarginalCovariance([r_key, b_key])
+        covariance = np.block([[joint.at(r_key, r_key), joint.at(r_key, b_key)],
+                               [joint.at(b_key, r_key), joint.at(b_key, b_key)]])
+        if not all(np.all(np.isfinite(a)) for a in (rotation.matrix(), bias, covariance)):
             raise RuntimeError(f"non-finite attitude estimate at keyframe {seq}")
-        self._last = _GoodEstimate(seq, float(sim_time_s), rotation, rotation_cov, bias, bias_cov)
+        self._last = _GoodEstimate(seq, float(sim_time_s), rotation, bias, 0.5 * (covariance + covariance.T))
         self._reset_preintegration()
         return self._result(self._last, reinitialised)
 
@@ -234,6 +261,7 @@ class AttitudeSmoother:
         # Preintegrate about the newest bias estimate: the factor's first-order bias correction
         # is then applied to small deviations only.
         self._preintegrated = gtsam.PreintegratedAhrsMeasurements(self._gyro_params, self._last.bias)
+        self._d_rotation_d_bias = np.zeros((3, 3))
 
     def _result(self, good: _GoodEstimate, reinitialised: bool) -> AttitudeEstimateResult:
         q = good.rotation.toQuaternion()
@@ -244,6 +272,7 @@ class AttitudeSmoother:
             gyro_bias_radps=good.bias.copy(),
             gyro_bias_covariance=0.5 * (good.bias_cov + good.bias_cov.T),
             failed_updates=self.failed_updates, reinitialised=reinitialised,
+            joint_covariance=good.covariance.copy(),
         )
 
 

@@ -48,6 +48,32 @@ def linear_factor(terms: Sequence[tuple[int, np.ndarray]], rhs: np.ndarray, cova
     return gtsam.LinearContainerFactor(jacobian, zero_point)
 
 
+def joint_prior_factor(keys_and_means: Sequence[tuple[int, object]], covariance: np.ndarray) -> gtsam.LinearContainerFactor:
+    """A Gaussian prior on several variables together (vectors or Rot3), cross-covariances kept.
+
+    The error of each variable is its local coordinates at the mean (for a Rot3 R0: Log(R0' R),
+    the body-frame error), so this is the first-order prior gtsam's own marginal factors are.
+    """
+    whiten = whitening_matrix(covariance)
+    point = gtsam.Values()
+    args: list = []
+    column = 0
+    for key, mean in keys_and_means:
+        if isinstance(mean, gtsam.Rot3):
+            point.insert(key, mean)
+            dim = 3
+        else:
+            mean = np.asarray(mean, dtype=float)
+            point.insert(key, mean)
+            dim = mean.size
+        args += [key, whiten[:, column:column + dim]]
+        column += dim
+    if column != whiten.shape[0]:
+        raise ValueError(f"covariance is {whiten.shape[0]} square but the variables have {column} dimensions")
+    jacobian = gtsam.JacobianFactor(*args, np.zeros(column), gtsam.noiseModel.Unit.Create(column))
+    return gtsam.LinearContainerFactor(jacobian, point)
+
+
 def prior_factor(key: int, mean: np.ndarray, covariance: np.ndarray) -> gtsam.LinearContainerFactor:
     mean = np.asarray(mean, dtype=float)
     return linear_factor([(key, np.eye(mean.size))], mean, covariance)
