@@ -285,3 +285,67 @@ def test_nees_after_an_injected_failure_within_the_same_bounds():
     nees = _nees_monte_carlo(JOINT, NOISE_M, RUNS, STEPS, fail_at=5)
     ok, inside, mean = _consistent(nees)
     assert ok, f"average NEES {mean:.2f} after a restart, {inside:.0%} of steps inside the 95 % bounds"
+
+
+def _run_with_outlier(config: TranslationSmootherConfig, outlier_m: float, steps: int = 40, at: int = 20):
+    """Estimates of a smoother fed fixes with one outlier of `outlier_m` (along x) at step `at`."""
+    smoother, (a, b) = TranslationSmoother(config, PARAMS), PARAMS.discrete_si()
+    rng = np.random.default_rng(21)
+    x, results, truth = PARAMS.initial_state_m_mps("A"), [], []
+    for k in range(steps):
+        fix = x[:3] + rng.normal(0.0, NOISE_M, 3) + (np.array([outlier_m, 0.0, 0.0]) if k == at else 0.0)
+        results.append(smoother.update(k, 600.0 * k, fix, np.zeros(3)))
+        truth.append(x)
+        x = a @ x
+    return results, np.array(truth)
+
+
+@pytest.mark.parametrize("options, bound_sigma", [
+    (dict(gate_probability=0.9999), 1.5), (dict(robust_loss="huber"), 3.0), (dict(robust_loss="cauchy"), 1.0),
+], ids=["gate", "huber", "cauchy"])
+def test_a_1_km_outlier_does_not_move_the_estimate(options, bound_sigma):
+    # Without protection a single 1 km fix drags the estimate by ~200 m (over 10 sigma). The
+    # chi-square gate rejects it (what is left is the lost fix, about 1 sigma); Huber bounds its influence to the threshold
+    # (3 sigma of residual, hence a shift of ~2.5 sigma here); Cauchy's weight falls as 1/r^2.
+    plain, truth = _run_with_outlier(TranslationSmootherConfig(), 1000.0)
+    clean, _ = _run_with_outlier(TranslationSmootherConfig(**options), 0.0)
+    protected, _ = _run_with_outlier(TranslationSmootherConfig(**options), 1000.0)
+    sigma = np.sqrt(np.diag(clean[20].covariance))[:3]
+    assert np.max(np.abs(plain[20].state_m_mps[:3] - clean[20].state_m_mps[:3]) / sigma) > 10.0
+    for k in range(20, 40):
+        shift = np.abs(protected[k].state_m_mps[:3] - clean[k].state_m_mps[:3]) / sigma
+        assert np.all(shift < bound_sigma), (k, shift)
+    assert protected[20].nis > 1000.0 and clean[20].nis < 20.0
+    if "gate_probability" in options:
+        assert protected[20].measurement_rejected and protected[-1].rejected_measurements == 1
+        assert not any(r.measurement_rejected for r in clean)
+
+
+def test_a_late_measurement_is_applied_at_its_sensing_time():
+    # The fix of step 10 arrives after step 13: applied to x_10 inside the window, the newest
+    # estimate is the one of a smoother that had it on time (the model is linear: exactly).
+    config = TranslationSmootherConfig(lag_steps=10)
+    on_time, late = TranslationSmoother(config, PARAMS), TranslationSmoother(config, PARAMS)
+    a, b = PARAMS.discrete_si()
+    rng = np.random.default_rng(4)
+    x, thrust = PARAMS.initial_state_m_mps("A"), np.zeros(3)
+    fixes = {}
+    for k in range(20):
+        fixes[k] = x[:3] + rng.normal(0.0, NOISE_M, 3)
+        expected = on_time.update(k, 600.0 * k, fixes[k], thrust)
+        got = late.update(k, 600.0 * k, None if k == 10 else fixes[k], thrust)
+        if k == 13:
+            got = late.add_late_measurement(10, fixes[10])
+            assert got.seq == 13 and got.nis is not None
+        if k >= 13:
+            sigma = np.sqrt(np.diag(expected.covariance))
+            assert np.max(np.abs(got.state_m_mps - expected.state_m_mps) / sigma) < 1e-6, k
+            np.testing.assert_allclose(got.covariance / np.outer(sigma, sigma),
+                                       expected.covariance / np.outer(sigma, sigma), atol=1e-7)
+        thrust = rng.uniform(-0.2, 0.2, 3)
+        x = a @ x + b @ thrust
+    assert late.late_measurements_applied == 1
+    # Older than the window (lag 10 steps): dropped and counted, the estimate untouched.
+    assert late.add_late_measurement(2, fixes[2]) is None and late.late_measurements_dropped == 1
+    with pytest.raises(ValueError, match="not late"):
+        late.add_late_measurement(25, fixes[2])

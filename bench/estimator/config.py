@@ -14,6 +14,7 @@ NonNegative = Annotated[float, msgspec.Meta(ge=0)]
 PositiveInt = Annotated[int, msgspec.Meta(ge=1)]
 # A believed radius off by 50 % or more is not an estimation problem, it is a different orbit.
 RelativeError = Annotated[float, msgspec.Meta(gt=-0.5, lt=0.5)]
+Probability = Annotated[float, msgspec.Meta(gt=0, lt=1)]
 
 
 class TranslationSmootherConfig(msgspec.Struct, forbid_unknown_fields=True):
@@ -41,6 +42,13 @@ class TranslationSmootherConfig(msgspec.Struct, forbid_unknown_fields=True):
     believed_radius_error: RelativeError = 0.0
     estimate_mean_motion: bool = False
     mean_motion_prior_rel_std: Positive = 0.03
+    # Innovation gate: a measurement whose NIS against the prediction exceeds the chi-square
+    # quantile of this probability (3 degrees of freedom) is not used. None: no gate.
+    gate_probability: Probability | None = None
+    # Robust measurement noise (gtsam's m-estimators): "huber" or "cauchy" down-weight residuals
+    # beyond robust_threshold_sigma (norm of the whitened residual); "none" is least squares.
+    robust_loss: Literal["none", "huber", "cauchy"] = "none"
+    robust_threshold_sigma: Positive = 3.0
 
 
 class AttitudeSmootherConfig(msgspec.Struct, forbid_unknown_fields=True):

@@ -142,11 +142,29 @@ def range_bearing_jacobian(position_m: np.ndarray) -> np.ndarray:
     ])
 
 
-def range_bearing_factor(key: int, measured: np.ndarray, range_std_m: float,
-                         bearing_std_rad: float) -> gtsam.CustomFactor:
-    """Range, azimuth, elevation of the chaser's relative position (the state's first three)."""
+def position_factor(key: int, measured_m: np.ndarray, noise: gtsam.noiseModel.Base) -> gtsam.CustomFactor:
+    """The relative position (the state's first three) with any gtsam noise model, robust ones too.
+
+    The plain Gaussian case is cheaper as `linear_factor`; gtsam's m-estimators reweight only
+    noise-model factors, hence this one (one Python callback per linearisation).
+    """
+    measured_m = np.asarray(measured_m, dtype=float).copy()
+    jacobian = np.hstack([np.eye(3), np.zeros((3, 3))])
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians) -> np.ndarray:
+        if jacobians is not None:
+            jacobians[0] = jacobian
+        return values.atVector(key)[:3] - measured_m
+
+    return gtsam.CustomFactor(noise, [key], error)
+
+
+def range_bearing_factor(key: int, measured: np.ndarray, noise: gtsam.noiseModel.Base) -> gtsam.CustomFactor:
+    """Range, azimuth, elevation of the chaser's relative position (the state's first three).
+
+    noise: sigmas [range m, bearing rad, bearing rad], possibly inside a gtsam robust model.
+    """
     measured = np.asarray(measured, dtype=float).copy()
-    sigmas = np.array([range_std_m, bearing_std_rad, bearing_std_rad])
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians) -> np.ndarray:
         position = values.atVector(key)[:3]
@@ -156,4 +174,4 @@ def range_bearing_factor(key: int, measured: np.ndarray, range_std_m: float,
             jacobians[0] = np.hstack([range_bearing_jacobian(position), np.zeros((3, 3))])
         return residual
 
-    return gtsam.CustomFactor(gtsam.noiseModel.Diagonal.Sigmas(sigmas), [key], error)
+    return gtsam.CustomFactor(noise, [key], error)

@@ -22,6 +22,7 @@ from dataclasses import dataclass, replace
 
 import gtsam
 import numpy as np
+from scipy.stats import chi2
 
 from bench.estimator import factors
 from bench.estimator.config import TranslationSmootherConfig
@@ -57,6 +58,13 @@ class TranslationEstimateResult:
     mean_motion_std_radps: float | None
     failed_updates: int                # failed gtsam updates so far (each one re-initialised)
     reinitialised: bool                # this update restarted the smoother from the last good estimate
+    # Normalised innovation squared of this step's measurement against the prediction (None
+    # without a measurement or on the first fix), its degrees of freedom, whether the gate
+    # rejected the measurement, and how many measurements the gate has rejected so far.
+    nis: float | None = None
+    nis_dof: int = 0
+    measurement_rejected: bool = False
+    rejected_measurements: int = 0
 
     def covariance_row_major(self) -> list[float]:
         """The 36 numbers of TranslationEstimate.covariance."""
@@ -102,8 +110,14 @@ class TranslationSmoother:
         self.believed_mean_motion_radps = self.believed_params.mean_motion
         self.model = CwhMotionModel(params.mass_kg, params.time_step_s, config.process_noise_psd_m2ps3)
         self.failed_updates = 0
+        self.rejected_measurements = 0
+        self.late_measurements_applied = 0
+        self.late_measurements_dropped = 0     # older than the window: too late to use
+        self._gate = (None if config.gate_probability is None
+                      else {dof: float(chi2.ppf(config.gate_probability, dof)) for dof in (3,)})
         self._smoother: gtsam.IncrementalFixedLagSmoother | None = None
         self._last: _GoodEstimate | None = None
+        self._innovation: tuple[float | None, int, bool] = (None, 0, False)
 
     @property
     def estimates_mean_motion(self) -> bool:
@@ -131,6 +145,7 @@ class TranslationSmoother:
         if self._last is not None and seq <= self._last.seq:
             raise ValueError(f"seq must increase: got {seq} after {self._last.seq}")
 
+        self._innovation = (None, 0, False)
         if self._last is None:
             if measurement is None:
                 return None
@@ -142,10 +157,12 @@ class TranslationSmoother:
                             seq, self.failed_updates, exc)
                 self._last = None
                 return None
+        predicted = self._predict_last(seq, thrust)
+        measurement = self._check_innovation(measurement, predicted)
         if self._smoother is None:
             return self._restart(seq, sim_time_s, thrust, measurement)
 
-        graph, guess = self._step_factors(seq, thrust, measurement)
+        graph, guess = self._step_factors(seq, thrust, measurement, predicted)
         try:
             return self._apply(self._smoother, seq, sim_time_s, graph, guess)
         except Exception as exc:        # gtsam raises RuntimeError subclasses; never let one out
@@ -154,6 +171,47 @@ class TranslationSmoother:
                         "the estimate of step %d", seq, self.failed_updates, exc, self._last.seq)
             self._smoother = None
             return self._restart(seq, sim_time_s, thrust, measurement)
+
+    def add_late_measurement(self, sensed_seq: int, position_m: np.ndarray | None = None,
+                             position_noise_std_m: float | None = None, *,
+                             range_bearing: np.ndarray | None = None) -> TranslationEstimateResult | None:
+        """A measurement sensed at step `sensed_seq` that arrives after later steps were added.
+
+        Applied at its sensing time (on that step's state) when the step is still inside the
+        smoother's window, and the newest estimate returned; otherwise it is dropped, counted
+        (`late_measurements_dropped`) and None returned. Gated like an on-time measurement, with
+        the NIS taken against the smoothed state of that step (which has not seen it).
+        """
+        if self._last is not None and sensed_seq > self._last.seq:
+            raise ValueError(f"sensed_seq {sensed_seq} is not late: the newest step is {self._last.seq}")
+        measurement = self._measurement_factor_builder(sensed_seq, position_m, position_noise_std_m, range_bearing)
+        key = state_key(sensed_seq)
+        if measurement is None:
+            return None
+        if self._smoother is None or key not in self._smoother.timestamps():
+            self.late_measurements_dropped += 1
+            log.warning("measurement of step %d arrived outside the smoother's window (newest step %s); dropped",
+                        sensed_seq, None if self._last is None else self._last.seq)
+            return None
+        smoothed = Gaussian(np.asarray(self._smoother.calculateEstimateVector(key), dtype=float),
+                            np.asarray(self._smoother.marginalCovariance(key), dtype=float))
+        measurement = self._check_innovation(measurement, smoothed)
+        if measurement is None:
+            return self._result(self._last.seq, self._newest_time_s, self._last, reinitialised=False)
+        graph = gtsam.NonlinearFactorGraph()
+        graph.add(measurement.factor(key))
+        try:
+            result = self._apply(self._smoother, self._last.seq, self._newest_time_s, graph, gtsam.Values(),
+                                 measured_key=key)
+        except Exception as exc:
+            # The smoother may be half-updated: the next step restarts from the last good estimate.
+            self.failed_updates += 1
+            log.warning("late measurement of step %d failed in gtsam (%d failures so far): %s",
+                        sensed_seq, self.failed_updates, exc)
+            self._smoother = None
+            return None
+        self.late_measurements_applied += 1
+        return result
 
     # ---- factor construction ------------------------------------------------------------------
 
@@ -174,19 +232,36 @@ class TranslationSmoother:
             std = self.config.position_noise_std_m if position_noise_std_m is None else position_noise_std_m
             if not (np.isfinite(std) and std > 0):
                 raise ValueError(f"position_noise_std_m must be positive and finite, got {std}")
-            whiten = np.eye(3) / std     # isotropic: no factorisation needed
-            return _Measurement(
-                lambda key: factors.linear_factor([(key, POSITION_MATRIX)], position, whiten=whiten),
-                position,
-            )
+            if self._robust_loss() is None:
+                whiten = np.eye(3) / std     # isotropic: no factorisation needed
+                factor = lambda key: factors.linear_factor([(key, POSITION_MATRIX)], position, whiten=whiten)  # noqa: E731
+            else:
+                noise = gtsam.noiseModel.Robust.Create(self._robust_loss(), gtsam.noiseModel.Isotropic.Sigma(3, std))
+                factor = lambda key: factors.position_factor(key, position, noise)  # noqa: E731
+            return _Measurement(factor, position, _relpos_residual(position), np.full(3, std**2))
         rb = _vector("range_bearing", range_bearing, 3)
         if rb[0] <= 0:
             raise ValueError(f"range_bearing range must be positive, got {rb[0]} m")
-        return _Measurement(
-            lambda key: factors.range_bearing_factor(
-                key, rb, self.config.range_noise_std_m, self.config.bearing_noise_std_rad),
-            _position_from_range_bearing(rb),
-        )
+        sigmas = np.array([self.config.range_noise_std_m, self.config.bearing_noise_std_rad,
+                           self.config.bearing_noise_std_rad])
+        noise = gtsam.noiseModel.Diagonal.Sigmas(sigmas)
+        if self._robust_loss() is not None:
+            noise = gtsam.noiseModel.Robust.Create(self._robust_loss(), noise)
+        return _Measurement(lambda key: factors.range_bearing_factor(key, rb, noise),
+                            _position_from_range_bearing(rb), _range_bearing_residual(rb), sigmas**2)
+
+    def _robust_loss(self):
+        """gtsam's m-estimator for the measurement factors, or None for plain least squares.
+
+        Its threshold is on the whitened residual's norm (sigma units): a 3-D Gaussian residual
+        has a norm below 3 in 97 % of samples, so the default 3 leaves those at full weight.
+        """
+        loss, k = self.config.robust_loss, self.config.robust_threshold_sigma
+        if loss == "huber":
+            return gtsam.noiseModel.mEstimator.Huber.Create(k)
+        if loss == "cauchy":
+            return gtsam.noiseModel.mEstimator.Cauchy.Create(k)
+        return None
 
     def _motion_factor(self, seq: int, n_steps: int, thrust: np.ndarray):
         previous, key = state_key(seq - n_steps), state_key(seq)
@@ -196,14 +271,27 @@ class TranslationSmoother:
         m = self.model.discrete(self.believed_mean_motion_radps, n_steps)
         return factors.cwh_motion_factor(previous, key, thrust, m)
 
-    def _step_factors(self, seq: int, thrust: np.ndarray, measurement: "_Measurement | None"):
+    def _step_factors(self, seq: int, thrust: np.ndarray, measurement: "_Measurement | None", predicted: Gaussian):
         n_steps = seq - self._last.seq
         graph = gtsam.NonlinearFactorGraph()
         graph.add(self._motion_factor(seq, n_steps, thrust))
         if measurement is not None:
             graph.add(measurement.factor(state_key(seq)))
-        guess = self._predict_last(seq, thrust).mean[:6]
-        return graph, guess
+        return graph, predicted.mean[:6]
+
+    def _check_innovation(self, measurement: "_Measurement | None", predicted: Gaussian) -> "_Measurement | None":
+        """NIS of the measurement against the prediction; None in its place if the gate rejects it."""
+        if measurement is None:
+            return None
+        nis = measurement.nis(predicted.mean[:6], predicted.covariance[:6, :6])
+        dof = measurement.dof
+        rejected = self._gate is not None and nis > self._gate[dof]
+        self._innovation = (nis, dof, rejected)
+        if rejected:
+            self.rejected_measurements += 1
+            log.info("measurement of step rejected by the innovation gate: NIS %.1f > %.1f", nis, self._gate[dof])
+            return None
+        return measurement
 
     def _predict_last(self, seq: int, thrust: np.ndarray) -> Gaussian:
         """The last good joint estimate ([x] or [x; delta]) carried to step `seq` (first order in delta)."""
@@ -310,7 +398,7 @@ class TranslationSmoother:
 
     # ---- solving ------------------------------------------------------------------------------
 
-    def _apply(self, smoother, seq, sim_time_s, graph, guess, reinitialised: bool = False):
+    def _apply(self, smoother, seq, sim_time_s, graph, guess, reinitialised: bool = False, measured_key=None):
         if not isinstance(guess, gtsam.Values):
             values = gtsam.Values()
             values.insert(state_key(seq), np.asarray(guess, dtype=float))
@@ -325,21 +413,23 @@ class TranslationSmoother:
             # above the relinearisation thresholds (their first linearisation point, a prediction,
             # can be kilometres off early on), take more, up to a bound.
             for _ in range(_MAX_EXTRA_GAUSS_NEWTON_STEPS):
-                if not self._newest_step_is_large(smoother, seq):
+                if not self._newest_step_is_large(smoother, seq, measured_key):
                     break
                 smoother.update()
         good = self._read_estimate(smoother, seq)
         self._last = good
+        self._newest_time_s = float(sim_time_s)
         return self._result(seq, sim_time_s, good, reinitialised)
 
-    def _newest_step_is_large(self, smoother, seq: int) -> bool:
+    def _newest_step_is_large(self, smoother, seq: int, measured_key=None) -> bool:
         """Would another Gauss-Newton step relinearise a variable whose linearisation matters?
 
         The newest state enters its motion factor linearly, so only a range/bearing factor cares
         where it is linearised; delta enters every motion factor nonlinearly.
         """
         delta = smoother.getDelta()
-        if self.config.sensor == "range_bearing" and np.any(np.abs(delta.at(state_key(seq))) > _STATE_RELINEARISE):
+        key = state_key(seq) if measured_key is None else measured_key
+        if self.config.sensor == "range_bearing" and np.any(np.abs(delta.at(key)) > _STATE_RELINEARISE):
             return True
         return self.estimates_mean_motion and abs(delta.at(MEAN_MOTION_KEY)[0]) > _DELTA_RELINEARISE[0]
 
@@ -368,6 +458,8 @@ class TranslationSmoother:
             state_m_mps=good.state.mean.copy(), covariance=good.state.covariance.copy(),
             mean_motion_radps=n_mean, mean_motion_std_radps=n_std,
             failed_updates=self.failed_updates, reinitialised=reinitialised,
+            nis=self._innovation[0], nis_dof=self._innovation[1], measurement_rejected=self._innovation[2],
+            rejected_measurements=self.rejected_measurements,
         )
 
 
@@ -375,6 +467,30 @@ class TranslationSmoother:
 class _Measurement:
     factor: object                 # key -> gtsam factor
     position_guess_m: np.ndarray   # where the measurement puts the chaser (initial guess only)
+    residual: object               # state -> (measured - predicted measurement, d h / d state)
+    variances: np.ndarray          # the measurement noise variances believed (diagonal)
+
+    @property
+    def dof(self) -> int:
+        return self.variances.size
+
+    def nis(self, state: np.ndarray, covariance: np.ndarray) -> float:
+        """Normalised innovation squared nu' S^-1 nu, S = H P H' + R (first order in h)."""
+        innovation, h = self.residual(state)
+        s = h @ covariance @ h.T + np.diag(self.variances)
+        return float(innovation @ np.linalg.solve(s, innovation))
+
+
+def _relpos_residual(position: np.ndarray):
+    return lambda state: (position - state[:3], POSITION_MATRIX)
+
+
+def _range_bearing_residual(rb: np.ndarray):
+    def residual(state):
+        nu = rb - factors.range_bearing(state[:3])
+        nu[1] = (nu[1] + np.pi) % (2.0 * np.pi) - np.pi    # azimuth wraps
+        return nu, np.hstack([factors.range_bearing_jacobian(state[:3]), np.zeros((3, 3))])
+    return residual
 
 
 def _vector(name: str, value, size: int) -> np.ndarray:
