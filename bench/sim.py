@@ -19,13 +19,12 @@ def simulate_in_process(scenario: Scenario) -> tuple[dict[str, np.ndarray], dict
     plant = TranslationPlant.from_scenario(scenario)
     estimator = StateEstimator(scenario)
     control = ControlCycle(scenario)
-    noise_std_m = scenario.plant.relpos_sensor.noise_std_m
     thrust_n = np.zeros(3)
     estimates = []
     for k in range(scenario.n_steps):
         position_m = plant.measure_position_m()
         estimate = estimator.step(k, plant.sim_time_s, truth_m_mps=plant.state_m_mps, position_m=position_m,
-                                  position_noise_std_m=noise_std_m, thrust_commanded_n=thrust_n)
+                                  thrust_commanded_n=thrust_n)
         thrust_n = control.run(estimate.state_m_mps, estimate.mean_motion_radps).thrust_n
         estimates.append(estimate.state_m_mps)
         plant.apply(thrust_n)

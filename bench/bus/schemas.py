@@ -70,6 +70,11 @@ class TranslationEstimate(Message, tag="estimate_translation"):
     state_m_mps: Vec6
     covariance: Cov6 | None = None          # row-major 6x6, SI units
     mean_motion_radps: float | None = None  # set when the estimator also estimates the orbit
+    # Normalised innovation squared of this step's measurement against the prediction (None
+    # without one), its degrees of freedom, and whether the innovation gate rejected it.
+    nis: float | None = None
+    nis_dof: NonNegInt = 0
+    measurement_rejected: bool = False
 
 
 class ThrustCommand(Message, tag="thrust"):

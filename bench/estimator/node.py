@@ -2,6 +2,11 @@
 
 truth mode: ground truth passed through. smoother mode: the relative-position fix of step k plus
 the thrust the controller commanded at step k-1 (what the flight side knows it asked for).
+
+Reads: sense/relpos (RelativePosition) and command/thrust (ThrustCommand), or truth (TruthState)
+in truth mode. Writes: estimate/translation (TranslationEstimate, with the measurement's NIS and
+whether the innovation gate rejected it). A fix that arrives after a later one (late) is applied
+at its sensing step inside the smoother's window and published with the next step's estimate.
 """
 from __future__ import annotations
 
@@ -60,16 +65,20 @@ def run(ctx: NodeContext) -> int:
         k = hdr.seq
         if history is None:
             estimate = estimator.step(k, hdr.sim_time_s, truth_m_mps=sample.state_m_mps)
+        elif estimator.is_late(k):
+            # Applied at its sensing step; the controller gets it in the next step's estimate.
+            estimator.step(k, hdr.sim_time_s, position_m=sample.position_m)
+            continue
         else:
             thrust_n = history.thrust_for(k - 1, command_wait_s) if k > 0 else np.zeros(3)
-            estimate = estimator.step(k, hdr.sim_time_s, position_m=sample.position_m,
-                                      position_noise_std_m=sample.noise_std_m, thrust_commanded_n=thrust_n)
+            estimate = estimator.step(k, hdr.sim_time_s, position_m=sample.position_m, thrust_commanded_n=thrust_n)
         if estimate is None:
             continue
         hdr = hdr.stamped("estimated", time.monotonic_ns())
         covariance = None if estimate.covariance is None else estimate.covariance.ravel().tolist()
         ctx.publish(keys.ESTIMATE_TRANSLATION, TranslationEstimate(
-            hdr, estimate.state_m_mps.tolist(), covariance, estimate.mean_motion_radps))
+            hdr, estimate.state_m_mps.tolist(), covariance, estimate.mean_motion_radps,
+            estimate.nis, estimate.nis_dof, estimate.measurement_rejected))
     if estimator.failed_updates:
         ctx.log.warning("smoother updates failed and were re-initialised: %d", estimator.failed_updates)
     return 0

@@ -28,6 +28,7 @@ from bench.estimator import factors
 from bench.estimator.config import TranslationSmootherConfig
 from bench.estimator.kalman import POSITION_MATRIX, Gaussian, predict
 from bench.estimator.motion_model import CwhMotionModel
+from bench.plant.config import RelativePositionSensorConfig
 from bench.plant.cwh import RendezvousParams
 
 log = logging.getLogger(__name__)
@@ -108,6 +109,8 @@ class TranslationSmoother:
             params, target_radius_m=params.target_radius_m * (1.0 + config.believed_radius_error)
         )
         self.believed_mean_motion_radps = self.believed_params.mean_motion
+        self.position_noise_std_m = (RelativePositionSensorConfig().noise_std_m if config.position_noise_std_m is None
+                                     else config.position_noise_std_m)
         self.model = CwhMotionModel(params.mass_kg, params.time_step_s, config.process_noise_psd_m2ps3)
         self.failed_updates = 0
         self.rejected_measurements = 0
@@ -127,6 +130,11 @@ class TranslationSmoother:
     def is_nonlinear(self) -> bool:
         """Unknown mean motion or range/bearing: relinearise and iterate, the model is not linear."""
         return self.config.estimate_mean_motion or self.config.sensor == "range_bearing"
+
+    @property
+    def newest_seq(self) -> int | None:
+        """The step of the newest estimate (None before the first fix)."""
+        return None if self._last is None else self._last.seq
 
     # ---- public -------------------------------------------------------------------------------
 
@@ -229,7 +237,7 @@ class TranslationSmoother:
             return None
         if sensor == "relpos":
             position = _vector("position_m", position_m, 3)
-            std = self.config.position_noise_std_m if position_noise_std_m is None else position_noise_std_m
+            std = self.position_noise_std_m if position_noise_std_m is None else position_noise_std_m
             if not (np.isfinite(std) and std > 0):
                 raise ValueError(f"position_noise_std_m must be positive and finite, got {std}")
             if self._robust_loss() is None:
