@@ -79,13 +79,6 @@ def _check_semantics(s: Scenario) -> None:
                 f"plant.initial_condition: unknown initial condition {s.plant.initial_condition!r} "
                 f"(known: {', '.join(sorted(known))}; or give plant.initial_state_m_mps)"
             )
-    if s.estimator.mode == "smoother" and s.estimator.translation.sensor != "relpos":
-        # The plant process publishes relative-position fixes only; the smoother's range/bearing
-        # model is exercised in-process (tests) until the plant grows that sensor.
-        raise ScenarioError(
-            "estimator.translation.sensor: the plant publishes relative-position fixes only; "
-            "use sensor = \"relpos\""
-        )
     if len(s.controller.q_diag) != 6:
         raise ScenarioError(f"controller.q_diag: needs 6 weights, got {len(s.controller.q_diag)}")
     if len(s.controller.r_diag) != 3:

@@ -23,8 +23,11 @@ def simulate_in_process(scenario: Scenario) -> tuple[dict[str, np.ndarray], dict
     estimates = []
     for k in range(scenario.n_steps):
         position_m = plant.measure_position_m()
-        estimate = estimator.step(k, plant.sim_time_s, truth_m_mps=plant.state_m_mps, position_m=position_m,
-                                  thrust_commanded_n=thrust_n)
+        # Drawn every step as the plant process does, so both keep the same noise sequence.
+        range_bearing = plant.measure_range_bearing()
+        measured = dict(range_bearing=range_bearing) if estimator.sensor == "range_bearing" else dict(position_m=position_m)
+        estimate = estimator.step(k, plant.sim_time_s, truth_m_mps=plant.state_m_mps, thrust_commanded_n=thrust_n,
+                                  **measured)
         thrust_n = control.run(estimate.state_m_mps, estimate.mean_motion_radps).thrust_n
         estimates.append(estimate.state_m_mps)
         plant.apply(thrust_n)

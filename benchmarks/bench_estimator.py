@@ -26,6 +26,7 @@ from bench.estimator.factors import range_bearing  # noqa: E402
 from bench.estimator.motion_model import CwhMotionModel  # noqa: E402
 from bench.estimator.translation import TranslationSmoother  # noqa: E402
 from bench.plant.attitude import AttitudeSensorSpec, AttitudeSimulation  # noqa: E402
+from bench.plant.config import RangeBearingSensorConfig  # noqa: E402
 from bench.plant.cwh import RendezvousParams  # noqa: E402
 
 PARAMS = RendezvousParams.from_reference()
@@ -70,8 +71,8 @@ def translation_data(seed: int = 1):
         x = a @ x + b @ u
     xs = np.array(xs)
     fixes = xs[:, :3] + rng.normal(0.0, NOISE_M, (STEPS, 3))
-    rb_std = TranslationSmootherConfig()
-    rb_std = np.array([rb_std.range_noise_std_m, rb_std.bearing_noise_std_rad, rb_std.bearing_noise_std_rad])
+    rb = RangeBearingSensorConfig()
+    rb_std = np.array([rb.range_noise_std_m, rb.bearing_noise_std_rad, rb.bearing_noise_std_rad])
     range_bearings = np.array([range_bearing(x[:3]) for x in xs]) + rng.normal(0.0, 1.0, (STEPS, 3)) * rb_std
     return fixes, range_bearings, np.array(thrusts)
 

@@ -76,7 +76,7 @@ def _nees_monte_carlo(config: TranslationSmootherConfig, true_noise_m: float, ru
                 r = smoother.update(k, 600.0 * k, fix, thrust)
             else:
                 rb = range_bearing(x[:3]) + rng.normal(0.0, 1.0, 3) * [
-                    config.range_noise_std_m, config.bearing_noise_std_rad, config.bearing_noise_std_rad]
+                    smoother.range_noise_std_m, smoother.bearing_noise_std_rad, smoother.bearing_noise_std_rad]
                 r = smoother.update(k, 600.0 * k, None, thrust, range_bearing=rb)
             err = x - r.state_m_mps
             nees[run, k] = err @ np.linalg.solve(r.covariance, err)

@@ -60,6 +60,13 @@ class RelativePosition(Message, tag="relpos"):
     noise_std_m: float
 
 
+class RangeBearing(Message, tag="range_bearing"):
+    """Noisy range, azimuth atan2(y, x) and elevation asin(z / r) of the chaser in LVLH."""
+    range_m: Annotated[float, msgspec.Meta(gt=0)]
+    azimuth_rad: float
+    elevation_rad: float
+
+
 class TruthState(Message, tag="truth"):
     """Ground truth; read by the truth-mode estimator, the recorder and reports only."""
     state_m_mps: Vec6

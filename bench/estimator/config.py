@@ -35,8 +35,9 @@ class TranslationSmootherConfig(msgspec.Struct, forbid_unknown_fields=True):
     # "relpos": Cartesian relative position; "range_bearing": range, azimuth and elevation derived
     # from it (a radar or camera-like sensor), with the noise levels below.
     sensor: Literal["relpos", "range_bearing"] = "relpos"
-    range_noise_std_m: Positive = 10.0
-    bearing_noise_std_rad: Positive = 1.0e-4
+    # Believed range/bearing noise; None: the plant's range/bearing sensor's.
+    range_noise_std_m: Positive | None = None
+    bearing_noise_std_rad: Positive | None = None
     # Uncertain target orbit (seed 001, third case): the smoother's model uses the believed radius
     # R_true * (1 + believed_radius_error) and, if estimate_mean_motion, estimates the mean motion
     # jointly with the state, starting from the believed value with this relative 1-sigma.

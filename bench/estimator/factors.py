@@ -14,6 +14,7 @@ import gtsam
 import numpy as np
 
 from bench.estimator.motion_model import CwhMotionModel, DiscreteModel
+from bench.gnc.range_bearing import range_bearing, range_bearing_jacobian, wrap_angle_rad  # noqa: F401 (re-exported)
 
 
 def whitening_matrix(covariance: np.ndarray) -> np.ndarray:
@@ -121,27 +122,6 @@ def cwh_motion_factor_unknown_mean_motion(
     return gtsam.CustomFactor(unit, [previous_key, key, mean_motion_key], error)
 
 
-def range_bearing(position_m: np.ndarray) -> np.ndarray:
-    """[range m, azimuth rad (atan2(y, x)), elevation rad (asin(z / range))] of a relative position."""
-    x, y, z = position_m
-    rng = float(np.linalg.norm(position_m))
-    return np.array([rng, np.arctan2(y, x), np.arcsin(z / rng)])
-
-
-def range_bearing_jacobian(position_m: np.ndarray) -> np.ndarray:
-    """d[range, azimuth, elevation]/d position, 3x3."""
-    x, y, z = position_m
-    rho2 = x * x + y * y
-    rho = np.sqrt(rho2)
-    r2 = rho2 + z * z
-    r = np.sqrt(r2)
-    return np.array([
-        [x / r, y / r, z / r],
-        [-y / rho2, x / rho2, 0.0],
-        [-x * z / (r2 * rho), -y * z / (r2 * rho), rho / r2],
-    ])
-
-
 def position_factor(key: int, measured_m: np.ndarray, noise: gtsam.noiseModel.Base) -> gtsam.CustomFactor:
     """The relative position (the state's first three) with any gtsam noise model, robust ones too.
 
@@ -169,7 +149,7 @@ def range_bearing_factor(key: int, measured: np.ndarray, noise: gtsam.noiseModel
     def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians) -> np.ndarray:
         position = values.atVector(key)[:3]
         residual = range_bearing(position) - measured
-        residual[1] = (residual[1] + np.pi) % (2.0 * np.pi) - np.pi    # azimuth wraps
+        residual[1] = wrap_angle_rad(residual[1])    # azimuth wraps
         if jacobians is not None:
             jacobians[0] = np.hstack([range_bearing_jacobian(position), np.zeros((3, 3))])
         return residual

@@ -49,7 +49,12 @@ class StateEstimator:
         newest = None if self.smoother is None else self.smoother.newest_seq
         return newest is not None and seq <= newest
 
-    def step(self, seq: int, sim_time_s: float, *, truth_m_mps=None, position_m=None,
+    @property
+    def sensor(self) -> str | None:
+        """The measurement the smoother uses ("relpos" or "range_bearing"); None in truth mode."""
+        return None if self.smoother is None else self.smoother.config.sensor
+
+    def step(self, seq: int, sim_time_s: float, *, truth_m_mps=None, position_m=None, range_bearing=None,
              thrust_commanded_n=None) -> StateEstimate | None:
         """The estimate at step `seq`; None only before the smoother's first fix.
 
@@ -59,11 +64,14 @@ class StateEstimator:
         if self.smoother is None:
             return StateEstimate(np.array(truth_m_mps, dtype=float), None, None)
         position = None if position_m is None else np.asarray(position_m)
+        rb = None if range_bearing is None else np.asarray(range_bearing)
         if self.is_late(seq):
-            result = None if position is None else self.smoother.add_late_measurement(seq, position)
+            result = None
+            if position is not None or rb is not None:
+                result = self.smoother.add_late_measurement(seq, position, range_bearing=rb)
         else:
             thrust = np.zeros(3) if thrust_commanded_n is None else np.asarray(thrust_commanded_n, dtype=float)
-            result = self.smoother.update(seq, sim_time_s, position, thrust)
+            result = self.smoother.update(seq, sim_time_s, position, thrust, range_bearing=rb)
         if result is None:
             return None
         return StateEstimate(result.state_m_mps, result.covariance, result.mean_motion_radps,

@@ -3,8 +3,8 @@
 truth mode: ground truth passed through. smoother mode: the relative-position fix of step k plus
 the thrust the controller commanded at step k-1 (what the flight side knows it asked for).
 
-Reads: sense/relpos (RelativePosition) and command/thrust (ThrustCommand), or truth (TruthState)
-in truth mode. Writes: estimate/translation (TranslationEstimate, with the measurement's NIS and
+Reads: sense/relpos (RelativePosition) or sense/range_bearing (RangeBearing), whichever sensor
+the smoother uses, and command/thrust (ThrustCommand); truth (TruthState) in truth mode. Writes: estimate/translation (TranslationEstimate, with the measurement's NIS and
 whether the innovation gate rejected it). A fix that arrives after a later one (late) is applied
 at its sensing step inside the smoother's window and published with the next step's estimate.
 """
@@ -16,7 +16,7 @@ import time
 import numpy as np
 
 from bench.bus import keys
-from bench.bus.schemas import RelativePosition, ThrustCommand, TranslationEstimate, TruthState
+from bench.bus.schemas import RangeBearing, RelativePosition, ThrustCommand, TranslationEstimate, TruthState
 from bench.estimator.frontend import StateEstimator
 from bench.node_runtime import NodeContext
 
@@ -55,6 +55,9 @@ def run(ctx: NodeContext) -> int:
     if estimator.needs_truth:
         samples = ctx.subscribe_queue(keys.TRUTH, TruthState)
         history = None
+    elif estimator.sensor == "range_bearing":
+        samples = ctx.subscribe_queue(keys.SENSE_RANGE_BEARING, RangeBearing)
+        history = CommandHistory(ctx.subscribe_queue(keys.COMMAND_THRUST, ThrustCommand))
     else:
         samples = ctx.subscribe_queue(keys.SENSE_RELPOS, RelativePosition)
         history = CommandHistory(ctx.subscribe_queue(keys.COMMAND_THRUST, ThrustCommand))
@@ -65,13 +68,15 @@ def run(ctx: NodeContext) -> int:
         k = hdr.seq
         if history is None:
             estimate = estimator.step(k, hdr.sim_time_s, truth_m_mps=sample.state_m_mps)
-        elif estimator.is_late(k):
-            # Applied at its sensing step; the controller gets it in the next step's estimate.
-            estimator.step(k, hdr.sim_time_s, position_m=sample.position_m)
-            continue
         else:
+            measured = (dict(range_bearing=[sample.range_m, sample.azimuth_rad, sample.elevation_rad])
+                        if isinstance(sample, RangeBearing) else dict(position_m=sample.position_m))
+            if estimator.is_late(k):
+                # Applied at its sensing step; the controller gets it in the next step's estimate.
+                estimator.step(k, hdr.sim_time_s, **measured)
+                continue
             thrust_n = history.thrust_for(k - 1, command_wait_s) if k > 0 else np.zeros(3)
-            estimate = estimator.step(k, hdr.sim_time_s, position_m=sample.position_m, thrust_commanded_n=thrust_n)
+            estimate = estimator.step(k, hdr.sim_time_s, thrust_commanded_n=thrust_n, **measured)
         if estimate is None:
             continue
         hdr = hdr.stamped("estimated", time.monotonic_ns())

@@ -28,7 +28,8 @@ from bench.estimator import factors
 from bench.estimator.config import TranslationSmootherConfig
 from bench.estimator.kalman import POSITION_MATRIX, Gaussian, predict
 from bench.estimator.motion_model import CwhMotionModel
-from bench.plant.config import RelativePositionSensorConfig
+from bench.gnc.range_bearing import position_from_range_bearing, wrap_angle_rad
+from bench.plant.config import RangeBearingSensorConfig, RelativePositionSensorConfig
 from bench.plant.cwh import RendezvousParams
 
 log = logging.getLogger(__name__)
@@ -109,8 +110,10 @@ class TranslationSmoother:
             params, target_radius_m=params.target_radius_m * (1.0 + config.believed_radius_error)
         )
         self.believed_mean_motion_radps = self.believed_params.mean_motion
-        self.position_noise_std_m = (RelativePositionSensorConfig().noise_std_m if config.position_noise_std_m is None
-                                     else config.position_noise_std_m)
+        # Beliefs left unset: the plant's default sensors (OnboardBeliefs fills them from a scenario).
+        self.position_noise_std_m = _or(config.position_noise_std_m, RelativePositionSensorConfig().noise_std_m)
+        self.range_noise_std_m = _or(config.range_noise_std_m, RangeBearingSensorConfig().range_noise_std_m)
+        self.bearing_noise_std_rad = _or(config.bearing_noise_std_rad, RangeBearingSensorConfig().bearing_noise_std_rad)
         self.model = CwhMotionModel(params.mass_kg, params.time_step_s, config.process_noise_psd_m2ps3)
         self.failed_updates = 0
         self.rejected_measurements = 0
@@ -250,13 +253,12 @@ class TranslationSmoother:
         rb = _vector("range_bearing", range_bearing, 3)
         if rb[0] <= 0:
             raise ValueError(f"range_bearing range must be positive, got {rb[0]} m")
-        sigmas = np.array([self.config.range_noise_std_m, self.config.bearing_noise_std_rad,
-                           self.config.bearing_noise_std_rad])
+        sigmas = np.array([self.range_noise_std_m, self.bearing_noise_std_rad, self.bearing_noise_std_rad])
         noise = gtsam.noiseModel.Diagonal.Sigmas(sigmas)
         if self._robust_loss() is not None:
             noise = gtsam.noiseModel.Robust.Create(self._robust_loss(), noise)
         return _Measurement(lambda key: factors.range_bearing_factor(key, rb, noise),
-                            _position_from_range_bearing(rb), _range_bearing_residual(rb), sigmas**2)
+                            position_from_range_bearing(rb), _range_bearing_residual(rb), sigmas**2)
 
     def _robust_loss(self):
         """gtsam's m-estimator for the measurement factors, or None for plain least squares.
@@ -496,7 +498,7 @@ def _relpos_residual(position: np.ndarray):
 def _range_bearing_residual(rb: np.ndarray):
     def residual(state):
         nu = rb - factors.range_bearing(state[:3])
-        nu[1] = (nu[1] + np.pi) % (2.0 * np.pi) - np.pi    # azimuth wraps
+        nu[1] = wrap_angle_rad(nu[1])    # azimuth wraps
         return nu, np.hstack([factors.range_bearing_jacobian(state[:3]), np.zeros((3, 3))])
     return residual
 
@@ -513,8 +515,5 @@ def _vector(name: str, value, size: int) -> np.ndarray:
     return v
 
 
-def _position_from_range_bearing(rb: np.ndarray) -> np.ndarray:
-    rng, azimuth, elevation = rb
-    return rng * np.array([np.cos(elevation) * np.cos(azimuth),
-                           np.cos(elevation) * np.sin(azimuth),
-                           np.sin(elevation)])
+def _or(value, default):
+    return default if value is None else value

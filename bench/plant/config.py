@@ -14,6 +14,13 @@ class RelativePositionSensorConfig(msgspec.Struct, forbid_unknown_fields=True):
     noise_std_m: NonNegative = 10.0
 
 
+class RangeBearingSensorConfig(msgspec.Struct, forbid_unknown_fields=True):
+    # A radar- or camera-like sensor: range, azimuth atan2(y, x) and elevation asin(z / r) of the
+    # chaser in the target's LVLH frame, each with white Gaussian noise.
+    range_noise_std_m: NonNegative = 10.0
+    bearing_noise_std_rad: NonNegative = 1.0e-4
+
+
 class PlantConfig(msgspec.Struct, forbid_unknown_fields=True):
     # "cwh": linear CWH, exact discretisation; "nonlinear": two-body chaser and target (seed 001).
     dynamics: Literal["cwh", "nonlinear"] = "cwh"
@@ -25,3 +32,4 @@ class PlantConfig(msgspec.Struct, forbid_unknown_fields=True):
     target_radius_m: Positive = 7.0e6
     time_step_s: Positive = 600.0
     relpos_sensor: RelativePositionSensorConfig = msgspec.field(default_factory=RelativePositionSensorConfig)
+    range_bearing_sensor: RangeBearingSensorConfig = msgspec.field(default_factory=RangeBearingSensorConfig)

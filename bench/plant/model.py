@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from bench.gnc.range_bearing import range_bearing
 from bench.plant.cwh import RendezvousParams
 from bench.plant.dynamics import propagate
 from bench.scenario import Scenario
@@ -26,11 +27,25 @@ class RelativePositionSensor:
 
 
 @dataclass
+class RangeBearingSensor:
+    """Range, azimuth and elevation of the relative position with white Gaussian noise."""
+
+    range_noise_std_m: float
+    bearing_noise_std_rad: float
+    rng: np.random.Generator
+
+    def measure(self, position_m: np.ndarray) -> np.ndarray:
+        sigmas = np.array([self.range_noise_std_m, self.bearing_noise_std_rad, self.bearing_noise_std_rad])
+        return range_bearing(position_m) + sigmas * self.rng.standard_normal(3)
+
+
+@dataclass
 class TranslationPlant:
     params: RendezvousParams
     model: str
     state_m_mps: np.ndarray
     sensor: RelativePositionSensor
+    range_bearing_sensor: RangeBearingSensor | None = None
     step_index: int = 0
     states_m_mps: list = field(default_factory=list)
     thrusts_n: list = field(default_factory=list)
@@ -41,7 +56,11 @@ class TranslationPlant:
         # One generator per sensor, seeded from the scenario: runs repeat to the last bit.
         rng = np.random.default_rng([scenario.run.seed, 1])
         sensor = RelativePositionSensor(scenario.plant.relpos_sensor.noise_std_m, rng)
-        plant = cls(scenario.params(), scenario.plant.dynamics, x0, sensor)
+        rb = scenario.plant.range_bearing_sensor
+        # Its own generator: adding this sensor leaves the relative-position noise bit-identical.
+        rb_sensor = RangeBearingSensor(rb.range_noise_std_m, rb.bearing_noise_std_rad,
+                                       np.random.default_rng([scenario.run.seed, 2]))
+        plant = cls(scenario.params(), scenario.plant.dynamics, x0, sensor, rb_sensor)
         plant.states_m_mps.append(x0.copy())
         return plant
 
@@ -51,6 +70,10 @@ class TranslationPlant:
 
     def measure_position_m(self) -> np.ndarray:
         return self.sensor.measure(self.state_m_mps[:3])
+
+    def measure_range_bearing(self) -> np.ndarray:
+        """[range m, azimuth rad, elevation rad] of the chaser, with the sensor's noise."""
+        return self.range_bearing_sensor.measure(self.state_m_mps[:3])
 
     def apply(self, thrust_n: np.ndarray) -> None:
         """Hold thrust over one step and advance the true state."""
