@@ -6,8 +6,12 @@ inertial) and the gyro bias b_k (rad/s). Factors:
   `AHRSFactor` (R_{k-1}, R_k, b_{k-1}): it fixes all three degrees of freedom of R_k;
 - bias random walk b_k - b_{k-1} ~ N(0, sigma_bw^2 dt): linear, so a whitened JacobianFactor; it
   fixes b_k. With these two, every new key is fully constrained whatever else arrives;
-- `MagFactor1` for the magnetometer against the on-board field model (two degrees of freedom);
-- a Rot3 prior for a star-tracker fix (three degrees of freedom).
+- `MagFactor1` for the magnetometer against the on-board field model (two degrees of freedom),
+  with the believed bias and scale factor; or, with `estimate_magnetometer_calibration`, a factor
+  on the attitude and one constant calibration variable m = [bias (uT); scale - 1] (its timestamp
+  refreshed every update so it never leaves the window), which has a prior from the beliefs;
+- a Rot3 prior for a star-tracker fix (three degrees of freedom), its covariance larger about the
+  star tracker's boresight than across it.
 The smoother starts at the first star-tracker fix (the magnetometer alone cannot fix attitude).
 A failed gtsam update is logged, counted, and the smoother restarts from the last good estimate
 carried forward by the gyro; bad input raises ValueError naming the problem.
@@ -34,6 +38,9 @@ def bias_key(seq: int) -> int:
     return gtsam.symbol("b", seq)
 
 
+MAGNETOMETER_CALIBRATION_KEY = gtsam.symbol("m", 0)
+
+
 @dataclass(frozen=True)
 class AttitudeEstimateResult:
     seq: int
@@ -46,6 +53,9 @@ class AttitudeEstimateResult:
     reinitialised: bool
     # (6, 6) joint covariance of [attitude error; gyro bias], the cross terms included.
     joint_covariance: np.ndarray | None = None
+    # The magnetometer calibration, when it is estimated: bias (body frame, T) and scale factor.
+    magnetometer_bias_t: np.ndarray | None = None
+    magnetometer_scale: float | None = None
 
     @property
     def rotation(self) -> gtsam.Rot3:
@@ -58,7 +68,8 @@ class _GoodEstimate:
     sim_time_s: float
     rotation: gtsam.Rot3
     bias: np.ndarray
-    covariance: np.ndarray    # (6, 6) joint, [attitude error (body frame); gyro bias]
+    covariance: np.ndarray    # joint, [attitude error (body frame); gyro bias; calibration if estimated]
+    calibration: np.ndarray | None = None    # [magnetometer bias uT; scale - 1] when estimated
 
     @property
     def rotation_cov(self) -> np.ndarray:
@@ -66,7 +77,7 @@ class _GoodEstimate:
 
     @property
     def bias_cov(self) -> np.ndarray:
-        return self.covariance[3:, 3:]
+        return self.covariance[3:6, 3:6]
 
 
 class AttitudeSmoother:
@@ -78,11 +89,17 @@ class AttitudeSmoother:
         self._gyro_params = gtsam.PreintegratedRotationParams()
         self._gyro_params.setGyroscopeCovariance(np.eye(3) * config.gyro_noise_density_radps_per_rthz**2)
         self._magnetometer_noise = gtsam.noiseModel.Isotropic.Sigma(3, config.magnetometer_noise_std_t)
-        self._star_tracker_noise = gtsam.noiseModel.Isotropic.Sigma(3, config.star_tracker_noise_std_rad)
+        self._star_tracker_noise = gtsam.noiseModel.Gaussian.Covariance(star_tracker_covariance(
+            config.star_tracker_noise_std_rad, config.star_tracker_boresight_noise_std_rad,
+            config.star_tracker_boresight_body))
         self._smoother: gtsam.IncrementalFixedLagSmoother | None = None
         self._last: _GoodEstimate | None = None
         self._preintegrated: gtsam.PreintegratedAhrsMeasurements | None = None
         self._d_rotation_d_bias = np.zeros((3, 3))
+
+    @property
+    def estimates_magnetometer_calibration(self) -> bool:
+        return self.config.estimate_magnetometer_calibration
 
     def add_gyro(self, omega_radps: np.ndarray, dt_s: float) -> None:
         """One gyro sample (mean body rate over dt_s, bias included). Ignored before the first fix."""
@@ -155,8 +172,13 @@ class AttitudeSmoother:
             strength = float(np.linalg.norm(model))
             if strength == 0.0:
                 raise ValueError("field_inertial_t is zero: no direction to compare with")
-            out.append(gtsam.MagFactor1(attitude_key(seq), measured, strength, gtsam.Unit3(model), np.zeros(3),
-                                        self._magnetometer_noise))
+            if self.estimates_magnetometer_calibration:
+                out.append(factors.magnetometer_calibrated_factor(
+                    attitude_key(seq), MAGNETOMETER_CALIBRATION_KEY, measured, model, self._magnetometer_noise))
+            else:
+                out.append(gtsam.MagFactor1(attitude_key(seq), measured, self.config.magnetometer_scale * strength,
+                                            gtsam.Unit3(model), np.asarray(self.config.magnetometer_bias_t, dtype=float),
+                                            self._magnetometer_noise))
         if star_tracker_wxyz is not None:
             out.append(gtsam.PriorFactorRot3(attitude_key(seq), _rotation("star_tracker_wxyz", star_tracker_wxyz),
                                              self._star_tracker_noise))
@@ -171,8 +193,16 @@ class AttitudeSmoother:
     def _first_prior(self, seq: int, star_tracker_wxyz) -> list:
         # The star-tracker fix (a measurement factor) fixes R_0; the bias needs its prior.
         bias_var = self.config.initial_gyro_bias_std_radps**2
-        return [factors.prior_factor(bias_key(seq), np.zeros(3), np.eye(3) * bias_var)], \
-            _rotation("star_tracker_wxyz", star_tracker_wxyz), np.zeros(3)
+        priors = [factors.prior_factor(bias_key(seq), np.zeros(3), np.eye(3) * bias_var)]
+        calibration = None
+        if self.estimates_magnetometer_calibration:
+            c = self.config
+            calibration = np.array([*np.asarray(c.magnetometer_bias_t) / factors.MAGNETOMETER_BIAS_UNIT_T,
+                                    c.magnetometer_scale - 1.0])
+            sigmas = np.array([c.magnetometer_bias_prior_std_t / factors.MAGNETOMETER_BIAS_UNIT_T] * 3
+                              + [c.magnetometer_scale_prior_std])
+            priors.append(factors.prior_factor(MAGNETOMETER_CALIBRATION_KEY, calibration, np.diag(sigmas**2)))
+        return priors, _rotation("star_tracker_wxyz", star_tracker_wxyz), np.zeros(3), calibration
 
     def _predict_last(self) -> tuple[gtsam.Rot3, np.ndarray]:
         """Last estimate carried across the preintegrated gyro interval (the new keys' guess)."""
@@ -183,13 +213,15 @@ class AttitudeSmoother:
     # ---- starting and restarting --------------------------------------------------------------
 
     def _start(self, seq, sim_time_s, prior, measurement_factors, reinitialised: bool = False):
-        prior_factors, rotation_guess, bias_guess = prior
+        prior_factors, rotation_guess, bias_guess, calibration_guess = prior
         graph = gtsam.NonlinearFactorGraph()
         for f in [*prior_factors, *measurement_factors]:
             graph.add(f)
         guess = gtsam.Values()
         guess.insert(attitude_key(seq), rotation_guess)
         guess.insert(bias_key(seq), np.asarray(bias_guess, dtype=float))
+        if calibration_guess is not None:
+            guess.insert(MAGNETOMETER_CALIBRATION_KEY, np.asarray(calibration_guess, dtype=float))
         smoother = gtsam.IncrementalFixedLagSmoother(self.config.lag_s, self._isam_params())
         result = self._apply(smoother, seq, sim_time_s, graph, guess, reinitialised)
         self._smoother = smoother
@@ -203,28 +235,34 @@ class AttitudeSmoother:
         frame), D = d dR / d bias and n the preintegration noise (covariance preintMeasCov).
         """
         pim = self._preintegrated
-        transition = np.eye(6)
+        size = self._last.covariance.shape[0]      # the calibration, if estimated, is constant
+        transition = np.eye(size)
         transition[:3, :3] = pim.deltaRij().matrix().T
-        transition[:3, 3:] = self._d_rotation_d_bias
-        noise = np.zeros((6, 6))
+        transition[:3, 3:6] = self._d_rotation_d_bias
+        noise = np.zeros((size, size))
         noise[:3, :3] = pim.preintMeasCov()
-        noise[3:, 3:] = np.eye(3) * self.config.gyro_bias_random_walk_radps2_per_rthz**2 * pim.deltaTij()
+        noise[3:6, 3:6] = np.eye(3) * self.config.gyro_bias_random_walk_radps2_per_rthz**2 * pim.deltaTij()
         cov = transition @ self._last.covariance @ transition.T + noise
         return 0.5 * (cov + cov.T)
 
     def _restart(self, seq, sim_time_s, measurement_factors):
         """New smoother at `seq` with the last good estimate, carried by the gyro, as its prior."""
         rotation, bias = self._predict_last()
+        calibration = self._last.calibration
         covariance = self._predict_joint_covariance()
-        prior = factors.joint_prior_factor([(attitude_key(seq), rotation), (bias_key(seq), bias)], covariance)
+        variables = [(attitude_key(seq), rotation), (bias_key(seq), bias)]
+        if calibration is not None:
+            variables.append((MAGNETOMETER_CALIBRATION_KEY, calibration))
+        prior = factors.joint_prior_factor(variables, covariance)
         try:
-            return self._start(seq, sim_time_s, ([prior], rotation, bias), measurement_factors, reinitialised=True)
+            return self._start(seq, sim_time_s, ([prior], rotation, bias, calibration), measurement_factors,
+                               reinitialised=True)
         except Exception as exc:
             self.failed_updates += 1
             log.warning("attitude smoother restart at keyframe %d failed (%d so far): %s; "
                         "publishing the gyro prediction", seq, self.failed_updates, exc)
             self._smoother = None
-            self._last = _GoodEstimate(seq, sim_time_s, rotation, bias, covariance)
+            self._last = _GoodEstimate(seq, sim_time_s, rotation, bias, covariance, calibration)
             self._reset_preintegration()
             return self._result(self._last, reinitialised=True)
 
@@ -243,17 +281,24 @@ class AttitudeSmoother:
         stamps = gtsam.FixedLagSmootherKeyTimestampMap()
         stamps.insert((attitude_key(seq), float(sim_time_s)))
         stamps.insert((bias_key(seq), float(sim_time_s)))
+        if self.estimates_magnetometer_calibration:
+            stamps.insert((MAGNETOMETER_CALIBRATION_KEY, float(sim_time_s)))   # keep it in the window
         smoother.update(graph, guess, stamps)
         r_key, b_key = attitude_key(seq), bias_key(seq)
         rotation = smoother.calculateEstimateRot3(r_key)
         bias = np.asarray(smoother.calculateEstimateVector(b_key), dtype=float)
-        # Joint, not two marginals: a restart needs the attitude / bias correlation.
-        joint = smoother.getISAM2().jointMarginalCovariance([r_key, b_key])
-        covariance = np.block([[joint.at(r_key, r_key), joint.at(r_key, b_key)],
-                               [joint.at(b_key, r_key), joint.at(b_key, b_key)]])
+        # Joint, not two marginals: a restart needs the attitude / bias (/ calibration) correlation.
+        keys = [r_key, b_key]
+        calibration = None
+        if self.estimates_magnetometer_calibration:
+            keys.append(MAGNETOMETER_CALIBRATION_KEY)
+            calibration = np.asarray(smoother.calculateEstimateVector(MAGNETOMETER_CALIBRATION_KEY), dtype=float)
+        joint = smoother.getISAM2().jointMarginalCovariance(keys)
+        covariance = np.block([[joint.at(i, j) for j in keys] for i in keys])
         if not all(np.all(np.isfinite(a)) for a in (rotation.matrix(), bias, covariance)):
             raise RuntimeError(f"non-finite attitude estimate at keyframe {seq}")
-        self._last = _GoodEstimate(seq, float(sim_time_s), rotation, bias, 0.5 * (covariance + covariance.T))
+        self._last = _GoodEstimate(seq, float(sim_time_s), rotation, bias, 0.5 * (covariance + covariance.T),
+                                   calibration)
         self._reset_preintegration()
         return self._result(self._last, reinitialised)
 
@@ -272,7 +317,9 @@ class AttitudeSmoother:
             gyro_bias_radps=good.bias.copy(),
             gyro_bias_covariance=0.5 * (good.bias_cov + good.bias_cov.T),
             failed_updates=self.failed_updates, reinitialised=reinitialised,
-            joint_covariance=good.covariance.copy(),
+            joint_covariance=good.covariance[:6, :6].copy(),
+            magnetometer_bias_t=None if good.calibration is None else good.calibration[:3] * factors.MAGNETOMETER_BIAS_UNIT_T,
+            magnetometer_scale=None if good.calibration is None else 1.0 + float(good.calibration[3]),
         )
 
 
@@ -291,3 +338,15 @@ def _rotation(name: str, q_wxyz) -> gtsam.Rot3:
     if abs(norm - 1.0) > 1e-3:
         raise ValueError(f"{name} must be a unit quaternion, got norm {norm:.6f}")
     return gtsam.Rot3.Quaternion(*(q / norm))
+
+
+def star_tracker_covariance(cross_std_rad: float, boresight_std_rad: float, boresight_body) -> np.ndarray:
+    """Covariance of a star tracker's body-frame attitude error: sigma^2 across the boresight
+    axis a, sigma_b^2 about it: sigma^2 (I - a a') + sigma_b^2 a a'."""
+    axis = np.asarray(boresight_body, dtype=float)
+    norm = np.linalg.norm(axis)
+    if not (np.all(np.isfinite(axis)) and norm > 0):
+        raise ValueError(f"star_tracker_boresight_body must be a non-zero vector, got {boresight_body!r}")
+    axis = axis / norm
+    along = np.outer(axis, axis)
+    return cross_std_rad**2 * (np.eye(3) - along) + boresight_std_rad**2 * along

@@ -15,6 +15,7 @@ PositiveInt = Annotated[int, msgspec.Meta(ge=1)]
 # A believed radius off by 50 % or more is not an estimation problem, it is a different orbit.
 RelativeError = Annotated[float, msgspec.Meta(gt=-0.5, lt=0.5)]
 Probability = Annotated[float, msgspec.Meta(gt=0, lt=1)]
+Vec3 = Annotated[list[float], msgspec.Meta(min_length=3, max_length=3)]
 
 
 class TranslationSmootherConfig(msgspec.Struct, forbid_unknown_fields=True):
@@ -62,7 +63,18 @@ class AttitudeSmootherConfig(msgspec.Struct, forbid_unknown_fields=True):
     gyro_bias_random_walk_radps2_per_rthz: Positive = 1.0e-6
     initial_gyro_bias_std_radps: Positive = 1.0e-3
     magnetometer_noise_std_t: Positive = 1.0e-7
+    # Magnetometer calibration believed: measured = scale * B_body + bias + noise. With
+    # estimate_magnetometer_calibration the bias and scale are estimated (one constant variable)
+    # from these as the prior mean with the prior sigmas below.
+    magnetometer_bias_t: Vec3 = msgspec.field(default_factory=lambda: [0.0, 0.0, 0.0])
+    magnetometer_scale: Positive = 1.0
+    estimate_magnetometer_calibration: bool = False
+    magnetometer_bias_prior_std_t: Positive = 5.0e-6
+    magnetometer_scale_prior_std: Positive = 0.02
+    # Star tracker: error across the boresight (per axis) and about it, boresight in body axes.
     star_tracker_noise_std_rad: Positive = 1.0e-4
+    star_tracker_boresight_noise_std_rad: Positive = 8.0e-4
+    star_tracker_boresight_body: Vec3 = msgspec.field(default_factory=lambda: [0.0, 0.0, 1.0])
 
 
 class EstimatorConfig(msgspec.Struct, forbid_unknown_fields=True):

@@ -14,6 +14,7 @@ import gtsam
 import numpy as np
 
 from bench.estimator.motion_model import CwhMotionModel, DiscreteModel
+from bench.gnc.quaternion import skew
 from bench.gnc.range_bearing import range_bearing, range_bearing_jacobian, wrap_angle_rad  # noqa: F401 (re-exported)
 
 
@@ -155,3 +156,33 @@ def range_bearing_factor(key: int, measured: np.ndarray, noise: gtsam.noiseModel
         return residual
 
     return gtsam.CustomFactor(noise, [key], error)
+
+
+# The calibration variable holds the magnetometer bias in microtesla, not tesla: whitened by a
+# 1e-7 T noise, a bias column in tesla would be 1e7 against ~300 for the attitude columns, a
+# needlessly ill-conditioned system; in microtesla it is 10.
+MAGNETOMETER_BIAS_UNIT_T = 1.0e-6
+
+
+def magnetometer_calibrated_factor(rotation_key: int, calibration_key: int, measured_t: np.ndarray,
+                                   field_inertial_t: np.ndarray, noise: gtsam.noiseModel.Base) -> gtsam.CustomFactor:
+    """measured = (1 + c[3]) R' B_inertial + c[:3] * 1 uT + noise, with R and c = [bias uT; scale - 1] variables.
+
+    gtsam's MagFactor1 is this model with the bias and scale known; MagFactor2/3 estimate them for
+    a known rotation (and are not in gtsam's Python wrapper). Here both are unknown. Jacobian in
+    R's right perturbation R Exp(theta): (R Exp(theta))' B = R' B + [R' B]x theta.
+    """
+    measured_t = np.asarray(measured_t, dtype=float).copy()
+    field_inertial_t = np.asarray(field_inertial_t, dtype=float).copy()
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians) -> np.ndarray:
+        calibration = values.atVector(calibration_key)
+        body = values.atRot3(rotation_key).unrotate(field_inertial_t)
+        scale = 1.0 + calibration[3]
+        if jacobians is not None:
+            jacobians[0] = scale * skew(body)
+            jacobians[1] = np.hstack([np.eye(3) * MAGNETOMETER_BIAS_UNIT_T, body.reshape(3, 1)])
+        return scale * body + calibration[:3] * MAGNETOMETER_BIAS_UNIT_T - measured_t
+
+    return gtsam.CustomFactor(noise, [rotation_key, calibration_key], error)
+
