@@ -293,8 +293,8 @@ class AttitudeSmoother:
         if self.estimates_magnetometer_calibration:
             keys.append(MAGNETOMETER_CALIBRATION_KEY)
             calibration = np.asarray(smoother.calculateEstimateVector(MAGNETOMETER_CALIBRATION_KEY), dtype=float)
-        joint = smoother.getISAM2().jointMarginalCovariance(keys)
-        covariance = np.block([[joint.at(i, j) for j in keys] for i in keys])
+        # fullMatrix() is in the query keys' order (checked against its blocks, tests).
+        covariance = np.asarray(smoother.getISAM2().jointMarginalCovariance(keys).fullMatrix())
         if not all(np.all(np.isfinite(a)) for a in (rotation.matrix(), bias, covariance)):
             raise RuntimeError(f"non-finite attitude estimate at keyframe {seq}")
         self._last = _GoodEstimate(seq, float(sim_time_s), rotation, bias, 0.5 * (covariance + covariance.T),

@@ -36,6 +36,10 @@ class TranslationSmootherConfig(msgspec.Struct, forbid_unknown_fields=True):
     # "relpos": Cartesian relative position; "range_bearing": range, azimuth and elevation derived
     # from it (a radar or camera-like sensor), with the noise levels below.
     sensor: Literal["relpos", "range_bearing"] = "relpos"
+    # "prediction": each range/bearing fix is one linear factor, linearised (iterated-EKF) about
+    # the state's prediction and never relinearised (fast: no Python callback per update);
+    # "every_update": gtsam's nonlinear factor, relinearised while the state moves.
+    range_bearing_linearisation: Literal["prediction", "every_update"] = "prediction"
     # Believed range/bearing noise; None: the plant's range/bearing sensor's.
     range_noise_std_m: Positive | None = None
     bearing_noise_std_rad: Positive | None = None
