@@ -11,7 +11,7 @@ from scipy.stats import chi2
 from test_estimator_attitude import INERTIA, _run, _within_bounds
 
 from bench.estimator import factors
-from bench.estimator.attitude import star_tracker_covariance
+from bench.estimator.attitude import AttitudeSmoother, star_tracker_covariance
 from bench.estimator.config import AttitudeSmootherConfig
 from bench.plant.attitude import AttitudeSensorSpec, AttitudeSimulation, body_to_inertial
 
@@ -114,3 +114,54 @@ def test_a_biased_magnetometer_is_caught_and_estimated():
     covariance = smoother._last.covariance[6:, 6:] * np.outer(unit, unit)
     assert error @ np.linalg.solve(covariance, error) < chi2.ppf(0.999, 4)
     assert np.linalg.norm(error[:3]) < 0.2e-6
+
+
+def _nees_and_nis(config: AttitudeSmootherConfig, spec_of_seed, runs: int = RUNS):
+    """Per run: time-averaged attitude NEES and the NIS values (with their dof) of its keyframes."""
+    out = []
+    for seed in range(runs):
+        rng = np.random.default_rng(seed)
+        sim = AttitudeSimulation(INERTIA, Rotation.random(random_state=seed).as_quat(scalar_first=True),
+                                 rng.normal(0.0, 0.02, 3), spec_of_seed(seed), seed=seed)
+        smoother = AttitudeSmoother(config)
+        nees, nis, dof, keyframe = [], [], [], 0
+        for _ in range(TICKS):
+            s = sim.step()
+            smoother.add_gyro(s.gyro_radps, sim.dt_s)
+            if s.magnetometer_t is None and s.star_tracker_wxyz is None:
+                continue
+            keyframe += 1
+            r = smoother.update(keyframe, s.time_s, s.magnetometer_t, s.field_inertial_t, s.star_tracker_wxyz)
+            if r is None:
+                continue
+            e = gtsam.Rot3.Logmap(r.rotation.between(gtsam.Rot3.Quaternion(*sim.truth().q_wxyz)))
+            nees.append(e @ np.linalg.solve(r.attitude_covariance_rad2, e))
+            if r.nis is not None:
+                nis.append(r.nis)
+                dof.append(r.nis_dof)
+        out.append((np.mean(nees), np.array(nis), np.array(dof)))
+    return out
+
+
+@pytest.mark.parametrize("case", ["believed calibration", "estimated calibration"])
+def test_attitude_nees_and_nis_time_averages_within_bounds(case):
+    # As tests/test_estimator_consistency.py for translation: the mean of the runs' time-averaged
+    # NEES inside the 95 % bounds of runs x 3 dof; each run's time-averaged NIS (white
+    # innovations) inside the 95 % bounds of its total dof in at least 85 % of the runs.
+    if case == "believed calibration":
+        config, spec_of_seed = AttitudeSmootherConfig(), lambda seed: AttitudeSensorSpec()
+    else:
+        config = AttitudeSmootherConfig(estimate_magnetometer_calibration=True)
+        spec_of_seed = lambda seed: _drawn_calibration(config, seed)  # noqa: E731
+    runs = _nees_and_nis(config, spec_of_seed)
+    nees = np.array([r[0] for r in runs])
+    low, high = chi2.ppf([0.025, 0.975], RUNS * 3) / RUNS
+    assert low <= nees.mean() <= high, f"{case}: time-averaged NEES {nees.mean():.2f}, bounds [{low:.2f}, {high:.2f}]"
+    inside = []
+    for _, nis, dof in runs:
+        run_low, run_high = chi2.ppf([0.025, 0.975], dof.sum())
+        inside.append(run_low <= nis.sum() <= run_high)
+    assert np.mean(inside) >= 0.85, f"{case}: {np.mean(inside):.0%} of the runs' NIS inside the 95 % bounds"
+    total = np.concatenate([r[1] for r in runs]).sum()
+    total_dof = np.concatenate([r[2] for r in runs]).sum()
+    assert chi2.ppf(0.025, total_dof) <= total <= chi2.ppf(0.975, total_dof), f"{case}: mean NIS per dof {total / total_dof:.3f}"

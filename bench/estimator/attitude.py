@@ -23,9 +23,11 @@ from dataclasses import dataclass
 
 import gtsam
 import numpy as np
+from scipy.linalg import block_diag
 
 from bench.estimator import factors
 from bench.estimator.config import AttitudeSmootherConfig
+from bench.gnc.quaternion import skew
 
 log = logging.getLogger(__name__)
 
@@ -56,6 +58,10 @@ class AttitudeEstimateResult:
     # The magnetometer calibration, when it is estimated: bias (body frame, T) and scale factor.
     magnetometer_bias_t: np.ndarray | None = None
     magnetometer_scale: float | None = None
+    # Normalised innovation squared of this keyframe's measurements (magnetometer and/or star
+    # tracker, stacked) against the gyro prediction, and its degrees of freedom (3 per sensor).
+    nis: float | None = None
+    nis_dof: int = 0
 
     @property
     def rotation(self) -> gtsam.Rot3:
@@ -89,9 +95,11 @@ class AttitudeSmoother:
         self._gyro_params = gtsam.PreintegratedRotationParams()
         self._gyro_params.setGyroscopeCovariance(np.eye(3) * config.gyro_noise_density_radps_per_rthz**2)
         self._magnetometer_noise = gtsam.noiseModel.Isotropic.Sigma(3, config.magnetometer_noise_std_t)
-        self._star_tracker_noise = gtsam.noiseModel.Gaussian.Covariance(star_tracker_covariance(
+        self._star_tracker_covariance = star_tracker_covariance(
             config.star_tracker_noise_std_rad, config.star_tracker_boresight_noise_std_rad,
-            config.star_tracker_boresight_body))
+            config.star_tracker_boresight_body)
+        self._star_tracker_noise = gtsam.noiseModel.Gaussian.Covariance(self._star_tracker_covariance)
+        self._nis: tuple[float | None, int] = (None, 0)
         self._smoother: gtsam.IncrementalFixedLagSmoother | None = None
         self._last: _GoodEstimate | None = None
         self._preintegrated: gtsam.PreintegratedAhrsMeasurements | None = None
@@ -122,6 +130,7 @@ class AttitudeSmoother:
         """A keyframe at `seq`: the measured body-frame field with the model's inertial field, and/or
         a star-tracker quaternion (body to inertial). None until the first star-tracker fix."""
         measurement_factors = self._measurement_factors(seq, magnetometer_t, field_inertial_t, star_tracker_wxyz)
+        self._nis = (None, 0)
         if self._last is None:
             if star_tracker_wxyz is None:
                 return None
@@ -138,6 +147,7 @@ class AttitudeSmoother:
         if self._preintegrated.deltaTij() <= 0.0:
             raise ValueError(f"no gyro samples between keyframe {self._last.seq} and {seq}: "
                              "the new attitude would be unconstrained")
+        self._nis = self._innovation(magnetometer_t, field_inertial_t, star_tracker_wxyz)
         if self._smoother is None:
             return self._restart(seq, sim_time_s, measurement_factors)
 
@@ -183,6 +193,45 @@ class AttitudeSmoother:
             out.append(gtsam.PriorFactorRot3(attitude_key(seq), _rotation("star_tracker_wxyz", star_tracker_wxyz),
                                              self._star_tracker_noise))
         return out
+
+    def _innovation(self, magnetometer_t, field_inertial_t, star_tracker_wxyz) -> tuple[float | None, int]:
+        """NIS of this keyframe's measurements against the gyro prediction (first order).
+
+        Errors are in the smoother's variables: attitude e (R_true = R Exp(e)), gyro bias, and the
+        magnetometer calibration when it is estimated; the prediction's joint covariance is the
+        restart's (`_predict_joint_covariance`).
+        """
+        rows, innovations, noise = [], [], []
+        rotation, _ = self._predict_last()
+        covariance = self._predict_joint_covariance()
+        size = covariance.shape[0]
+        if magnetometer_t is not None:
+            field = np.asarray(field_inertial_t, dtype=float)
+            body = rotation.unrotate(field)
+            c = self._last.calibration
+            if c is None:
+                scale, bias_t = self.config.magnetometer_scale, np.asarray(self.config.magnetometer_bias_t, dtype=float)
+            else:
+                scale, bias_t = 1.0 + c[3], c[:3] * factors.MAGNETOMETER_BIAS_UNIT_T
+            h = np.zeros((3, size))
+            h[:, :3] = scale * skew(body)
+            if c is not None:
+                h[:, 6:9] = np.eye(3) * factors.MAGNETOMETER_BIAS_UNIT_T
+                h[:, 9] = body
+            rows.append(h)
+            innovations.append(np.asarray(magnetometer_t, dtype=float) - (scale * body + bias_t))
+            noise.append(np.eye(3) * self.config.magnetometer_noise_std_t**2)
+        if star_tracker_wxyz is not None:
+            h = np.zeros((3, size))
+            h[:, :3] = np.eye(3)
+            rows.append(h)
+            innovations.append(gtsam.Rot3.Logmap(rotation.between(_rotation("star_tracker_wxyz", star_tracker_wxyz))))
+            noise.append(self._star_tracker_covariance)
+        if not rows:
+            return None, 0
+        h, innovation = np.vstack(rows), np.concatenate(innovations)
+        s = h @ covariance @ h.T + block_diag(*noise)
+        return float(innovation @ np.linalg.solve(s, innovation)), innovation.size
 
     def _bias_walk_factor(self, previous: int, seq: int):
         # Isotropic: the whitening is 1 / (sigma_bw sqrt(dt)), no factorisation needed.
@@ -320,6 +369,7 @@ class AttitudeSmoother:
             joint_covariance=good.covariance[:6, :6].copy(),
             magnetometer_bias_t=None if good.calibration is None else good.calibration[:3] * factors.MAGNETOMETER_BIAS_UNIT_T,
             magnetometer_scale=None if good.calibration is None else 1.0 + float(good.calibration[3]),
+            nis=self._nis[0], nis_dof=self._nis[1],
         )
 
 
@@ -350,3 +400,4 @@ def star_tracker_covariance(cross_std_rad: float, boresight_std_rad: float, bore
     axis = axis / norm
     along = np.outer(axis, axis)
     return cross_std_rad**2 * (np.eye(3) - along) + boresight_std_rad**2 * along
+
