@@ -26,8 +26,9 @@ import zenoh
 from bench.bus import keys
 from bench.bus.schemas import ProcessStats, StepDone, decode, MalformedMessage
 from bench.bus.session import SessionConfigError, SessionOptions, free_loopback_port, loopback_endpoint, open_session
-from bench.metrics import trajectory_metrics
-from bench.node_runtime import NODES, node_options, run_node
+from bench.report.run_metrics import trajectory_metrics
+from bench.runtime.node import NODES, node_options, run_node
+from bench.runtime.process import start_node
 from bench.scenario import Scenario, ScenarioError, builtin_names, load_scenario
 
 EXIT_BAD_INPUT = 2
@@ -73,16 +74,7 @@ class Child:
 def _spawn(name: str, run_id: str, scenario_path: Path, hub: str, run_dir: Path, peers: list[str],
            zenoh_config: str | None) -> Child:
     log_path = run_dir / "logs" / f"{name}.log"
-    cmd = [sys.executable, "-m", "bench.cli", "node", name, "--run-id", run_id, "--scenario", str(scenario_path),
-           "--connect", hub, "--run-dir", str(run_dir)]
-    if peers:
-        cmd += ["--wait-for", ",".join(peers)]
-    if zenoh_config:
-        cmd += ["--zenoh-config", zenoh_config]
-    log_file = open(log_path, "w")
-    process = subprocess.Popen(cmd, stdout=log_file, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
-    log_file.close()
-    return Child(name, process, log_path)
+    return Child(name, start_node(name, run_id, scenario_path, hub, run_dir, log_path, peers, zenoh_config), log_path)
 
 
 def _stop_children(children: list[Child], grace_s: float = SHUTDOWN_GRACE_S) -> None:

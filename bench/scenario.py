@@ -16,8 +16,8 @@ import msgspec
 from bench.bus.can.config import CanConfig
 from bench.controller.config import ControllerConfig
 from bench.estimator.config import EstimatorConfig
+from bench.gnc.cwh import RendezvousParams
 from bench.plant.config import PlantConfig
-from bench.plant.cwh import RendezvousParams
 
 BUILTIN_PACKAGE = "bench.scenarios"
 
@@ -37,6 +37,25 @@ class RunConfig(msgspec.Struct, forbid_unknown_fields=True):
     command_timeout_s: Annotated[float, msgspec.Meta(gt=0)] = 10.0
 
 
+class OnboardConfig(msgspec.Struct, forbid_unknown_fields=True):
+    """What the flight side (estimator and controller alike) believes about the world.
+
+    The defaults believe the plant's truth ([plant]); a belief that differs is a scenario.
+    """
+
+    # The target orbit radius believed on board is the plant's R (1 + believed_radius_error)
+    # (seed 001, third case). Off by 50 % or more is a different orbit, not an estimation problem.
+    believed_radius_error: Annotated[float, msgspec.Meta(gt=-0.5, lt=0.5)] = 0.0
+    # Sensor noise believed on board; None: the plant's ([plant.relpos_sensor],
+    # [plant.range_bearing_sensor]). A measurement message's own noise field is never used.
+    relpos_noise_std_m: Annotated[float, msgspec.Meta(gt=0)] | None = None
+    range_noise_std_m: Annotated[float, msgspec.Meta(gt=0)] | None = None
+    bearing_noise_std_rad: Annotated[float, msgspec.Meta(gt=0)] | None = None
+    # White acceleration believed to act on the chaser (m^2/s^3). The linear CWH plant has none,
+    # so neither does the default belief; set it for the nonlinear plant or a mistuned case.
+    process_noise_psd_m2ps3: Annotated[float, msgspec.Meta(ge=0)] = 0.0
+
+
 class Scenario(msgspec.Struct, forbid_unknown_fields=True):
     name: str
     description: str = ""
@@ -44,6 +63,7 @@ class Scenario(msgspec.Struct, forbid_unknown_fields=True):
     plant: PlantConfig = msgspec.field(default_factory=PlantConfig)
     estimator: EstimatorConfig = msgspec.field(default_factory=EstimatorConfig)
     controller: ControllerConfig = msgspec.field(default_factory=ControllerConfig)
+    onboard: OnboardConfig = msgspec.field(default_factory=OnboardConfig)
     can: CanConfig | None = None
 
     def params(self) -> RendezvousParams:
@@ -58,6 +78,11 @@ class Scenario(msgspec.Struct, forbid_unknown_fields=True):
         if self.run.steps is not None:
             overrides["n_steps"] = self.run.steps
         return RendezvousParams.from_reference(**overrides)
+
+    def onboard_params(self) -> RendezvousParams:
+        """The params as the flight side believes them ([onboard]): what estimator and controller
+        build their models on. The plant flies `params()`."""
+        return self.params().with_radius_error(self.onboard.believed_radius_error)
 
     @property
     def n_steps(self) -> int:

@@ -9,7 +9,7 @@ from scipy.stats import chi2
 
 from bench.estimator.beliefs import OnboardBeliefs
 from bench.estimator.config import TranslationSmootherConfig
-from bench.plant.cwh import RendezvousParams
+from bench.gnc.cwh import RendezvousParams
 from bench.plant.model import TranslationPlant
 from bench.scenario import parse_scenario
 from bench.sim import simulate_in_process
@@ -17,8 +17,8 @@ from bench.sim import simulate_in_process
 PARAMS = RendezvousParams.from_reference()
 
 
-def _scenario(translation: dict, plant: dict | None = None):
-    return parse_scenario({"name": "t", "run": {"steps": 40}, "plant": plant or {},
+def _scenario(translation: dict, plant: dict | None = None, onboard: dict | None = None):
+    return parse_scenario({"name": "t", "run": {"steps": 40}, "plant": plant or {}, "onboard": onboard or {},
                            "estimator": {"mode": "smoother", "translation": translation}})
 
 
@@ -28,18 +28,28 @@ def test_default_beliefs_are_the_plants_truth():
     assert beliefs.target_radius_m == PARAMS.target_radius_m
 
 
+def test_onboard_beliefs_and_the_estimators_own_override():
+    onboard = {"relpos_noise_std_m": 3.0, "process_noise_psd_m2ps3": 1e-12, "believed_radius_error": 0.01}
+    beliefs = OnboardBeliefs.from_scenario(_scenario({}, onboard=onboard))
+    assert (beliefs.relpos_noise_std_m, beliefs.process_noise_psd_m2ps3) == (3.0, 1e-12)
+    assert beliefs.target_radius_m == pytest.approx(1.01 * PARAMS.target_radius_m)
+    assert OnboardBeliefs.from_scenario(_scenario({"position_noise_std_m": 5.0}, onboard=onboard)).relpos_noise_std_m == 5.0
+
+
 @pytest.mark.parametrize("belief, min_change_m", [
     # The plant's sensor has 10 m. Believing 3 m changes the fixes' weight against the velocity
     # prior only (no process noise: the fixes are all equally weighted among themselves), a
     # small change to the estimate; the covariance it reports is ~11 times too small.
     ({"position_noise_std_m": 3.0}, 1e-3),
+    ({"onboard": {"relpos_noise_std_m": 3.0}}, 1e-3),
     # Believing in process noise the CWH plant does not have discounts old fixes: a large change.
     ({"process_noise_psd_m2ps3": 1e-9}, 1.0),
 ])
 def test_a_mistuned_belief_changes_the_run(belief, min_change_m):
     # Before, the noise level in the measurement message overrode the belief: bit-identical runs.
     tuned, _ = simulate_in_process(_scenario({}))
-    mistuned, _ = simulate_in_process(_scenario(belief))
+    onboard = belief.pop("onboard", None)
+    mistuned, _ = simulate_in_process(_scenario(belief, onboard=onboard))
     np.testing.assert_array_equal(tuned["state_m_mps"][0], mistuned["state_m_mps"][0])
     assert np.max(np.abs(tuned["estimate_m_mps"] - mistuned["estimate_m_mps"])) > min_change_m
     assert not np.array_equal(tuned["thrust_n"], mistuned["thrust_n"])

@@ -15,7 +15,7 @@ from bench.estimator.factors import range_bearing
 from bench.estimator.motion_model import CwhMotionModel
 from bench.estimator import translation
 from bench.estimator.translation import TranslationSmoother
-from bench.plant.cwh import RendezvousParams
+from bench.gnc.cwh import RendezvousParams
 from bench.report.plots import estimator_error
 from estimator_loop import run_closed_loop
 
@@ -24,7 +24,7 @@ NOISE_M = 10.0
 
 
 def _model(config: TranslationSmootherConfig):
-    return CwhMotionModel(PARAMS.mass_kg, PARAMS.time_step_s, config.process_noise_psd_m2ps3).discrete(PARAMS.mean_motion)
+    return CwhMotionModel(PARAMS.mass_kg, PARAMS.time_step_s, config.process_noise_psd_m2ps3 or 0.0).discrete(PARAMS.mean_motion)
 
 
 @pytest.mark.parametrize("lag_steps, every", [(200, 1), (4, 1), (10, 3)])
@@ -56,7 +56,7 @@ def test_newest_estimate_equals_kalman_filter(lag_steps, every):
 
 
 def _nees_monte_carlo(config: TranslationSmootherConfig, true_noise_m: float, runs: int, steps: int,
-                      fail_at: int | None = None):
+                      fail_at: int | None = None, believed_radius_error: float = 0.0):
     """Per-step NEES of runs of a truth drawn from the smoother's own model (prior and Q).
 
     fail_at: gtsam's update fails at this step of every run (the smoother restarts).
@@ -65,7 +65,7 @@ def _nees_monte_carlo(config: TranslationSmootherConfig, true_noise_m: float, ru
     nees = np.zeros((runs, steps))
     for run in range(runs):
         rng = np.random.default_rng(1000 + run)
-        smoother = TranslationSmoother(config, PARAMS)
+        smoother = TranslationSmoother(config, PARAMS.with_radius_error(believed_radius_error))
         x = PARAMS.initial_state_m_mps("A").copy()
         x[3:] = rng.normal(0.0, config.initial_velocity_std_mps, 3)
         thrust = np.zeros(3)
@@ -100,23 +100,23 @@ def _consistent(nees: np.ndarray, dof: int = 6) -> tuple[bool, float, float]:
 RUNS, STEPS = 50, 25
 
 
-@pytest.mark.parametrize("case, config", [
-    ("relative position", TranslationSmootherConfig(lag_steps=10)),
-    ("range/bearing", TranslationSmootherConfig(lag_steps=10, sensor="range_bearing")),
+@pytest.mark.parametrize("case, config, believed_radius_error", [
+    ("relative position", TranslationSmootherConfig(lag_steps=10), 0.0),
+    ("range/bearing", TranslationSmootherConfig(lag_steps=10, sensor="range_bearing"), 0.0),
     # The truth's orbit radius is 1 % off the believed one; the mean motion is estimated jointly.
-    ("joint mean motion", TranslationSmootherConfig(lag_steps=10, believed_radius_error=0.01, estimate_mean_motion=True)),
+    ("joint mean motion", TranslationSmootherConfig(lag_steps=10, estimate_mean_motion=True), 0.01),
 ])
-def test_nees_within_chi_square_bounds(case, config):
-    ok, inside, mean = _consistent(_nees_monte_carlo(config, NOISE_M, RUNS, STEPS))
+def test_nees_within_chi_square_bounds(case, config, believed_radius_error):
+    ok, inside, mean = _consistent(_nees_monte_carlo(config, NOISE_M, RUNS, STEPS, believed_radius_error))
     assert ok, f"{case}: average NEES {mean:.2f}, {inside:.0%} of steps inside the 95 % bounds"
 
 
-@pytest.mark.parametrize("case, config", [
-    ("believes 3 m, sensor has 10 m", TranslationSmootherConfig(position_noise_std_m=3.0, lag_steps=10)),
-    ("orbit radius 1 % off, not estimated", TranslationSmootherConfig(believed_radius_error=0.01, lag_steps=10)),
+@pytest.mark.parametrize("case, config, believed_radius_error", [
+    ("believes 3 m, sensor has 10 m", TranslationSmootherConfig(position_noise_std_m=3.0, lag_steps=10), 0.0),
+    ("orbit radius 1 % off, not estimated", TranslationSmootherConfig(lag_steps=10), 0.01),
 ])
-def test_nees_check_catches_an_overconfident_smoother(case, config):
-    ok, _, mean = _consistent(_nees_monte_carlo(config, NOISE_M, 20, STEPS))
+def test_nees_check_catches_an_overconfident_smoother(case, config, believed_radius_error):
+    ok, _, mean = _consistent(_nees_monte_carlo(config, NOISE_M, 20, STEPS, believed_radius_error))
     assert not ok and mean > 6.0, case
 
 
@@ -215,12 +215,12 @@ def test_default_rendezvous_meets_terminal_conditions_with_smoother_in_the_loop(
 
 
 def test_one_percent_radius_error_breaks_the_rendezvous_unless_mean_motion_is_estimated():
-    wrong = TranslationSmootherConfig(believed_radius_error=0.01)
-    assert not _meets_terminal_conditions(run_closed_loop(PARAMS, wrong, NOISE_M, seed=1))
+    wrong = TranslationSmootherConfig()
+    assert not _meets_terminal_conditions(run_closed_loop(PARAMS, wrong, NOISE_M, seed=1, believed_radius_error=0.01))
 
-    joint = TranslationSmootherConfig(believed_radius_error=0.01, estimate_mean_motion=True)
-    smoother_params = TranslationSmoother(joint, PARAMS)
-    result = run_closed_loop(PARAMS, joint, NOISE_M, seed=1)
+    joint = TranslationSmootherConfig(estimate_mean_motion=True)
+    smoother_params = TranslationSmoother(joint, PARAMS.with_radius_error(0.01))
+    result = run_closed_loop(PARAMS, joint, NOISE_M, seed=1, believed_radius_error=0.01)
     assert _meets_terminal_conditions(result), result.terminal_errors()
     assert result.failed_updates == 0
     believed_error = abs(smoother_params.believed_mean_motion_radps / PARAMS.mean_motion - 1.0)
@@ -235,9 +235,9 @@ def test_one_percent_radius_error_breaks_the_rendezvous_unless_mean_motion_is_es
 @pytest.mark.parametrize("sensor", ["relpos", "range_bearing"])
 @pytest.mark.parametrize("joint", [False, True], ids=["known orbit", "joint mean motion"])
 def test_no_failed_updates_on_any_measurement_pattern(every, sensor, joint):
-    config = TranslationSmootherConfig(measurement_every_steps=every, sensor=sensor, estimate_mean_motion=joint,
-                                       believed_radius_error=0.01 if joint else 0.0)
-    smoother, (a, _) = TranslationSmoother(config, PARAMS), PARAMS.discrete_si()
+    config = TranslationSmootherConfig(measurement_every_steps=every, sensor=sensor, estimate_mean_motion=joint)
+    smoother = TranslationSmoother(config, PARAMS.with_radius_error(0.01 if joint else 0.0))
+    a, _ = PARAMS.discrete_si()
     rng = np.random.default_rng(1)
     x = PARAMS.initial_state_m_mps("A")
     for k in range(60):
@@ -251,7 +251,12 @@ def test_no_failed_updates_on_any_measurement_pattern(every, sensor, joint):
     assert smoother.failed_updates == 0
 
 
-JOINT = TranslationSmootherConfig(lag_steps=10, believed_radius_error=0.01, estimate_mean_motion=True)
+JOINT = TranslationSmootherConfig(lag_steps=10, estimate_mean_motion=True)
+JOINT_RADIUS_ERROR = 0.01     # the flight side believes the orbit radius 1 % off (the truth's)
+
+
+def _believed_params(config: TranslationSmootherConfig):
+    return PARAMS.with_radius_error(JOINT_RADIUS_ERROR if config.estimate_mean_motion else 0.0)
 
 
 @pytest.mark.parametrize("case, config", [("known orbit", TranslationSmootherConfig(lag_steps=10)),
@@ -262,7 +267,7 @@ def test_restart_keeps_the_joint_covariance(case, config):
     # the restarted smoother must go on as if nothing had happened: exactly for the linear model,
     # to first order in delta (measured: within 0.011 sigma and 0.4 % of the covariance;
     # dropping the cross-covariance gave 4-13 % of sigma and 10-22 % of the covariance).
-    intact, restarted = TranslationSmoother(config, PARAMS), TranslationSmoother(config, PARAMS)
+    intact, restarted = TranslationSmoother(config, _believed_params(config)), TranslationSmoother(config, _believed_params(config))
     a, b = PARAMS.discrete_si()
     rng = np.random.default_rng(3)
     x, thrust = PARAMS.initial_state_m_mps("A"), np.zeros(3)
@@ -284,7 +289,7 @@ def test_restart_keeps_the_joint_covariance(case, config):
 
 def test_nees_after_an_injected_failure_within_the_same_bounds():
     # Every run's update fails at step 5, while the state / mean-motion correlation is strongest.
-    nees = _nees_monte_carlo(JOINT, NOISE_M, RUNS, STEPS, fail_at=5)
+    nees = _nees_monte_carlo(JOINT, NOISE_M, RUNS, STEPS, fail_at=5, believed_radius_error=JOINT_RADIUS_ERROR)
     ok, inside, mean = _consistent(nees)
     assert ok, f"average NEES {mean:.2f} after a restart, {inside:.0%} of steps inside the 95 % bounds"
 
@@ -356,7 +361,7 @@ def test_a_late_measurement_is_applied_at_its_sensing_time():
 def test_joint_marginal_full_matrix_is_in_query_order():
     # The smoothers read gtsam's JointMarginal.fullMatrix() as [first key; second key]: check it
     # against the blocks at(), in both orders.
-    smoother = TranslationSmoother(JOINT, PARAMS)
+    smoother = TranslationSmoother(JOINT, _believed_params(JOINT))
     x = PARAMS.initial_state_m_mps("A")
     for k in range(5):
         smoother.update(k, 600.0 * k, x[:3], np.zeros(3))
@@ -368,7 +373,7 @@ def test_joint_marginal_full_matrix_is_in_query_order():
 
 
 def _rb_run(config: TranslationSmootherConfig, steps: int = 80):
-    smoother, (a, b) = TranslationSmoother(config, PARAMS), PARAMS.discrete_si()
+    smoother, (a, b) = TranslationSmoother(config, _believed_params(config)), PARAMS.discrete_si()
     rng = np.random.default_rng(17)
     x, thrust, out = PARAMS.initial_state_m_mps("A"), np.zeros(3), []
     for k in range(steps):
@@ -386,7 +391,7 @@ def test_fast_factors_leave_the_estimates_unchanged(joint, monkeypatch):
     # relinearised only beyond 10 m / 10 mm/s when every measurement is linear in them. Reference:
     # gtsam's nonlinear factors with the 0.1 m / 0.1 mm/s thresholds. Stated tolerance: 0.03 sigma
     # of the state, 0.01 sigma of the mean motion (measured: 0.0004 and 0.017 / 0.004).
-    options = dict(sensor="range_bearing", estimate_mean_motion=joint, believed_radius_error=0.01 if joint else 0.0)
+    options = dict(sensor="range_bearing", estimate_mean_motion=joint)
     fast = _rb_run(TranslationSmootherConfig(**options))
     monkeypatch.setattr(translation, "_STATE_RELINEARISE_LINEAR_MEASUREMENTS", translation._STATE_RELINEARISE)
     reference = _rb_run(TranslationSmootherConfig(range_bearing_linearisation="every_update", **options))

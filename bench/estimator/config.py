@@ -1,7 +1,8 @@
 """Scenario section [estimator]: which estimator, and what the smoothers assume about the world.
 
-The numbers here are the estimator's *beliefs* (assumed noise levels, believed orbit radius). The
-truth the plant simulates is configured in [plant]; a mistuned estimator is a legitimate scenario.
+The numbers here are the estimator's *beliefs* (assumed noise levels). What the whole flight side
+believes about the orbit, which the controller shares, is in [onboard] (bench.scenario); the
+truth the plant simulates is in [plant]. A mistuned estimator is a legitimate scenario.
 """
 from __future__ import annotations
 
@@ -12,8 +13,6 @@ import msgspec
 Positive = Annotated[float, msgspec.Meta(gt=0)]
 NonNegative = Annotated[float, msgspec.Meta(ge=0)]
 PositiveInt = Annotated[int, msgspec.Meta(ge=1)]
-# A believed radius off by 50 % or more is not an estimation problem, it is a different orbit.
-RelativeError = Annotated[float, msgspec.Meta(gt=-0.5, lt=0.5)]
 Probability = Annotated[float, msgspec.Meta(gt=0, lt=1)]
 Vec3 = Annotated[list[float], msgspec.Meta(min_length=3, max_length=3)]
 
@@ -22,14 +21,14 @@ class TranslationSmootherConfig(msgspec.Struct, forbid_unknown_fields=True):
     # Fixed-lag window in plant steps: the smoother keeps the states of the last lag_steps steps.
     lag_steps: PositiveInt = 20
     # Spectral density of a white acceleration the smoother believes acts on the chaser (Van Loan
-    # discretisation over each step). The plant's linear CWH has none, so neither does the
-    # default belief (an assumed 1e-9 m^2/s^3, ~0.8 mm/s of velocity random walk per 600 s step,
-    # made the in-loop NEES 3.2 instead of 6); set it for the nonlinear plant or a mistuned case.
-    process_noise_psd_m2ps3: NonNegative = 0.0
+    # discretisation over each step). None: the flight side's belief ([onboard]), whose default
+    # is none, as the linear CWH plant has none (an assumed 1e-9 m^2/s^3, ~0.8 mm/s of velocity
+    # random walk per 600 s step, made the in-loop NEES 3.2 instead of 6).
+    process_noise_psd_m2ps3: NonNegative | None = None
     # Prior on the initial relative velocity (the first position fix gives the position).
     initial_velocity_std_mps: Positive = 10.0
-    # Relative-position noise the flight side believes; None: the plant's sensor noise (a
-    # well-tuned flight side). The noise level a message carries is never used: it is truth.
+    # Relative-position noise the estimator believes; None: [onboard]'s belief, else the plant's
+    # sensor noise (a well-tuned flight side). The noise level a message carries is never used.
     position_noise_std_m: Positive | None = None
     # Use one relative-position fix every this many plant steps (a slower sensor).
     measurement_every_steps: PositiveInt = 1
@@ -40,13 +39,11 @@ class TranslationSmootherConfig(msgspec.Struct, forbid_unknown_fields=True):
     # the state's prediction and never relinearised (fast: no Python callback per update);
     # "every_update": gtsam's nonlinear factor, relinearised while the state moves.
     range_bearing_linearisation: Literal["prediction", "every_update"] = "prediction"
-    # Believed range/bearing noise; None: the plant's range/bearing sensor's.
+    # Believed range/bearing noise; None: [onboard]'s belief, else the plant's sensor's.
     range_noise_std_m: Positive | None = None
     bearing_noise_std_rad: Positive | None = None
-    # Uncertain target orbit (seed 001, third case): the smoother's model uses the believed radius
-    # R_true * (1 + believed_radius_error) and, if estimate_mean_motion, estimates the mean motion
-    # jointly with the state, starting from the believed value with this relative 1-sigma.
-    believed_radius_error: RelativeError = 0.0
+    # Uncertain target orbit (seed 001, third case): estimate the mean motion jointly with the
+    # state, starting from the believed value ([onboard]) with this relative 1-sigma.
     estimate_mean_motion: bool = False
     mean_motion_prior_rel_std: Positive = 0.03
     # Innovation gate: a measurement whose NIS against the prediction exceeds the chi-square

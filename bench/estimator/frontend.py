@@ -33,8 +33,8 @@ class StateEstimator:
         self.smoother = None
         if self.mode == "smoother":
             beliefs = OnboardBeliefs.from_scenario(scenario)
-            config = beliefs.translation_config(scenario.estimator.translation, scenario.plant.target_radius_m)
-            self.smoother = TranslationSmoother(config, scenario.params())
+            self.smoother = TranslationSmoother(beliefs.translation_config(scenario.estimator.translation),
+                                                scenario.onboard_params())
 
     @property
     def needs_truth(self) -> bool:

@@ -28,9 +28,9 @@ from bench.estimator import factors
 from bench.estimator.config import TranslationSmootherConfig
 from bench.estimator.kalman import POSITION_MATRIX, Gaussian, predict
 from bench.estimator.motion_model import CwhMotionModel
+from bench.gnc.cwh import RendezvousParams
 from bench.gnc.range_bearing import position_from_range_bearing, wrap_angle_rad
 from bench.plant.config import RangeBearingSensorConfig, RelativePositionSensorConfig
-from bench.plant.cwh import RendezvousParams
 
 log = logging.getLogger(__name__)
 
@@ -108,21 +108,19 @@ class _GoodEstimate:
 class TranslationSmoother:
     """update(seq, sim_time_s, position_m | None, thrust_applied_n) -> TranslationEstimateResult | None.
 
-    `params` are the scenario's true parameters; the smoother's model uses the believed orbit
-    radius params.target_radius_m * (1 + config.believed_radius_error).
+    `params` are what the flight side believes (`Scenario.onboard_params()`): the smoother's
+    model uses their orbit radius, and never sees the plant's.
     """
 
     def __init__(self, config: TranslationSmootherConfig, params: RendezvousParams):
         self.config = config
-        self.believed_params = replace(
-            params, target_radius_m=params.target_radius_m * (1.0 + config.believed_radius_error)
-        )
+        self.believed_params = params
         self.believed_mean_motion_radps = self.believed_params.mean_motion
         # Beliefs left unset: the plant's default sensors (OnboardBeliefs fills them from a scenario).
         self.position_noise_std_m = _or(config.position_noise_std_m, RelativePositionSensorConfig().noise_std_m)
         self.range_noise_std_m = _or(config.range_noise_std_m, RangeBearingSensorConfig().range_noise_std_m)
         self.bearing_noise_std_rad = _or(config.bearing_noise_std_rad, RangeBearingSensorConfig().bearing_noise_std_rad)
-        self.model = CwhMotionModel(params.mass_kg, params.time_step_s, config.process_noise_psd_m2ps3)
+        self.model = CwhMotionModel(params.mass_kg, params.time_step_s, _or(config.process_noise_psd_m2ps3, 0.0))
         self.failed_updates = 0
         self.rejected_measurements = 0
         self.late_measurements_applied = 0

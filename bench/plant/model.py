@@ -9,8 +9,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from bench.gnc.cwh import RendezvousParams
 from bench.gnc.range_bearing import range_bearing
-from bench.plant.cwh import RendezvousParams
 from bench.plant.dynamics import propagate
 from bench.scenario import Scenario
 

@@ -16,6 +16,7 @@ from bench.report.deadlines import DeadlineResult, deadlines
 from bench.report.document import Document, Figure, Section, Table, fmt, write
 from bench.report.estimation import AXES, estimation_error
 from bench.report.latency import LatencyResult, latency
+from bench.report.run_metrics import trajectory_metrics
 from bench.report.rundata import RunData, load_run
 
 PLOTS_DIR = "plots"
