@@ -107,7 +107,7 @@ RUNS, STEPS = 50, 25
     ("joint mean motion", TranslationSmootherConfig(lag_steps=10, estimate_mean_motion=True), 0.01),
 ])
 def test_nees_within_chi_square_bounds(case, config, believed_radius_error):
-    ok, inside, mean = _consistent(_nees_monte_carlo(config, NOISE_M, RUNS, STEPS, believed_radius_error))
+    ok, inside, mean = _consistent(_nees_monte_carlo(config, NOISE_M, RUNS, STEPS, believed_radius_error=believed_radius_error))
     assert ok, f"{case}: average NEES {mean:.2f}, {inside:.0%} of steps inside the 95 % bounds"
 
 
@@ -116,7 +116,7 @@ def test_nees_within_chi_square_bounds(case, config, believed_radius_error):
     ("orbit radius 1 % off, not estimated", TranslationSmootherConfig(lag_steps=10), 0.01),
 ])
 def test_nees_check_catches_an_overconfident_smoother(case, config, believed_radius_error):
-    ok, _, mean = _consistent(_nees_monte_carlo(config, NOISE_M, 20, STEPS, believed_radius_error))
+    ok, _, mean = _consistent(_nees_monte_carlo(config, NOISE_M, 20, STEPS, believed_radius_error=believed_radius_error))
     assert not ok and mean > 6.0, case
 
 

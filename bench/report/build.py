@@ -10,7 +10,6 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.metrics import trajectory_metrics
 from bench.report import canbus, plots
 from bench.report.deadlines import DeadlineResult, deadlines
 from bench.report.document import Document, Figure, Section, Table, fmt, write
