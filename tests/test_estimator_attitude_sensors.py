@@ -165,3 +165,36 @@ def test_attitude_nees_and_nis_time_averages_within_bounds(case):
     total = np.concatenate([r[1] for r in runs]).sum()
     total_dof = np.concatenate([r[2] for r in runs]).sum()
     assert chi2.ppf(0.025, total_dof) <= total <= chi2.ppf(0.975, total_dof), f"{case}: mean NIS per dof {total / total_dof:.3f}"
+
+
+def test_the_gate_rejects_a_wild_star_tracker_fix():
+    # One star-tracker fix 5 degrees off (a misidentified star pattern): used, it drags the
+    # attitude by degrees; gated, the keyframe's measurements are rejected and the gyro carries on.
+    def corrupt(sample):
+        if sample.star_tracker_wxyz is not None and sample.time_s == 20.0:
+            wrong = Rotation.from_quat(sample.star_tracker_wxyz, scalar_first=True) * Rotation.from_rotvec([0.087, 0, 0])
+            sample.star_tracker_wxyz = wrong.as_quat(scalar_first=True)
+        return sample
+
+    results = {}
+    for gate in (None, 0.9999):
+        sim = AttitudeSimulation(INERTIA, Rotation.random(random_state=6).as_quat(scalar_first=True),
+                                 [0.01, -0.02, 0.015], AttitudeSensorSpec(), seed=6)
+        smoother = AttitudeSmoother(AttitudeSmootherConfig(gate_probability=gate))
+        keyframe, worst, rejected = 0, 0.0, []
+        for _ in range(300):
+            s = corrupt(sim.step())
+            smoother.add_gyro(s.gyro_radps, sim.dt_s)
+            if s.magnetometer_t is None and s.star_tracker_wxyz is None:
+                continue
+            keyframe += 1
+            r = smoother.update(keyframe, s.time_s, s.magnetometer_t, s.field_inertial_t, s.star_tracker_wxyz)
+            if r is None:
+                continue
+            rejected.append(r.measurement_rejected)
+            if s.time_s >= 20.0:
+                e = gtsam.Rot3.Logmap(r.rotation.between(gtsam.Rot3.Quaternion(*sim.truth().q_wxyz)))
+                worst = max(worst, float(e @ np.linalg.solve(r.attitude_covariance_rad2, e)))
+        results[gate] = (worst, sum(rejected), smoother.failed_updates)
+    assert results[None][0] > 1000.0 and results[None][1] == 0
+    assert results[0.9999][0] < chi2.ppf(0.9999, 3) and results[0.9999][1] == 1 and results[0.9999][2] == 0

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 from scipy.linalg import block_diag
+from scipy.stats import chi2
 
 from bench.estimator import factors
 from bench.estimator.config import AttitudeSmootherConfig
@@ -62,6 +63,7 @@ class AttitudeEstimateResult:
     # tracker, stacked) against the gyro prediction, and its degrees of freedom (3 per sensor).
     nis: float | None = None
     nis_dof: int = 0
+    measurement_rejected: bool = False    # the innovation gate rejected this keyframe's measurements
 
     @property
     def rotation(self) -> gtsam.Rot3:
@@ -100,6 +102,8 @@ class AttitudeSmoother:
             config.star_tracker_boresight_body)
         self._star_tracker_noise = gtsam.noiseModel.Gaussian.Covariance(self._star_tracker_covariance)
         self._nis: tuple[float | None, int] = (None, 0)
+        self._rejected = False
+        self.rejected_measurements = 0
         self._smoother: gtsam.IncrementalFixedLagSmoother | None = None
         self._last: _GoodEstimate | None = None
         self._preintegrated: gtsam.PreintegratedAhrsMeasurements | None = None
@@ -130,7 +134,7 @@ class AttitudeSmoother:
         """A keyframe at `seq`: the measured body-frame field with the model's inertial field, and/or
         a star-tracker quaternion (body to inertial). None until the first star-tracker fix."""
         measurement_factors = self._measurement_factors(seq, magnetometer_t, field_inertial_t, star_tracker_wxyz)
-        self._nis = (None, 0)
+        self._nis, self._rejected = (None, 0), False
         if self._last is None:
             if star_tracker_wxyz is None:
                 return None
@@ -148,6 +152,15 @@ class AttitudeSmoother:
             raise ValueError(f"no gyro samples between keyframe {self._last.seq} and {seq}: "
                              "the new attitude would be unconstrained")
         self._nis = self._innovation(magnetometer_t, field_inertial_t, star_tracker_wxyz)
+        self._rejected = False
+        nis, dof = self._nis
+        if self.config.gate_probability is not None and nis is not None and nis > chi2.ppf(self.config.gate_probability, dof):
+            # The gyro alone still constrains the new keys (AHRS and bias-walk factors).
+            self._rejected = True
+            self.rejected_measurements += 1
+            log.info("attitude keyframe %d: measurements rejected by the innovation gate (NIS %.1f, %d dof)",
+                     seq, nis, dof)
+            measurement_factors = []
         if self._smoother is None:
             return self._restart(seq, sim_time_s, measurement_factors)
 
@@ -369,7 +382,7 @@ class AttitudeSmoother:
             joint_covariance=good.covariance[:6, :6].copy(),
             magnetometer_bias_t=None if good.calibration is None else good.calibration[:3] * factors.MAGNETOMETER_BIAS_UNIT_T,
             magnetometer_scale=None if good.calibration is None else 1.0 + float(good.calibration[3]),
-            nis=self._nis[0], nis_dof=self._nis[1],
+            nis=self._nis[0], nis_dof=self._nis[1], measurement_rejected=self._rejected,
         )
 
 

@@ -76,6 +76,9 @@ class AttitudeSmootherConfig(msgspec.Struct, forbid_unknown_fields=True):
     star_tracker_noise_std_rad: Positive = 1.0e-4
     star_tracker_boresight_noise_std_rad: Positive = 8.0e-4
     star_tracker_boresight_body: Vec3 = msgspec.field(default_factory=lambda: [0.0, 0.0, 1.0])
+    # Innovation gate on each keyframe's measurements together (chi-square quantile of this
+    # probability, 3 dof per sensor); None: no gate.
+    gate_probability: Probability | None = None
 
 
 class EstimatorConfig(msgspec.Struct, forbid_unknown_fields=True):
