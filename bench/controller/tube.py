@@ -79,6 +79,7 @@ class MPC_TUBE(CondensedMPC):
             raise ValueError(f"K_tube must be {model.nu}x{model.nx}, got {self.K_tube.shape}")
         Q, R = check_weights(Q, R, model.nx, model.nu)
         _, P = dlqr(model.A, model.B, Q, R)
+        self.terminal_set, self.tube = terminal_set, tube
         # The tube rows are ~1e-4 in scaled units and K_tube ~ 1e3: unpreconditioned, or with the
         # duality-gap test, proxsuite hit its iteration limit or declared infeasibility on a third
         # of the cycles; with Ruiz scaling, residuals at 1e-7 and a strict infeasibility certificate
