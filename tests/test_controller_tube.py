@@ -80,3 +80,10 @@ def test_warm_started_tube_mpc_matches_quadprog_at_every_step_of_the_task_32_loo
             np.testing.assert_allclose(U[:, k], v0 + ctrl.K_tube @ (x - z0), atol=1e-6, err_msg=f"step {k}")
             assert infos[k]["objective"] == pytest.approx(obj, rel=1e-9, abs=1e-9)
     assert ctrl.solver.paths.get("active_set", 0) > 0        # the exact active-set path is exercised
+
+
+def test_tube_plan_starts_with_the_applied_input(design):
+    mz, ctrl = design
+    u, info = ctrl.eval(mz.initial_state_a)
+    assert info["u_plan"].shape == (50, 1)
+    np.testing.assert_array_equal(info["u_plan"][0], u)
