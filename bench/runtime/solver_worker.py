@@ -57,11 +57,13 @@ def _layout(nx: int, nu: int, plan_rows: int) -> np.dtype:
     ])
 
 
-def _worker_main(factory, shm_name, dtype_descr, request, response, stress=None) -> None:
+def _worker_main(factory, shm_name, dtype_descr, request, response, stress=None, priority=0) -> None:
     shm = shared_memory.SharedMemory(name=shm_name)
     rec = np.ndarray((1,), dtype=np.dtype(dtype_descr), buffer=shm.buf)[0]
     try:
         law = factory()
+        if priority > 0:
+            set_realtime_priority(priority)
         rec["ready"] = 1
         plan_cap = rec["plan"].shape[0]
         cycle = 0
@@ -176,6 +178,8 @@ class WorkerLaw:
     factory() -> law; nx, nu: state and input sizes; plan_rows: the longest plan kept.
     hard_limit_s: an outstanding request older than this gets its worker killed and restarted.
     stress: a StressInjector applied in the worker after each eval (a slow solver on purpose).
+    worker_priority: SCHED_FIFO priority of the worker once its law is built (0: default
+    scheduler); set it below the flight thread's, so the flight side still acts at its deadline.
     """
 
     factory: Callable
@@ -184,6 +188,7 @@ class WorkerLaw:
     plan_rows: int = 64
     hard_limit_s: float = 1.0
     stress: object | None = None
+    worker_priority: int = 0
     clock_ns: Callable[[], int] = time.monotonic_ns
     stats: WorkerStats = field(default_factory=WorkerStats)
 
@@ -205,7 +210,8 @@ class WorkerLaw:
         rec["ready"] = 0
         request, response = self._ctx.Semaphore(0), self._ctx.Semaphore(0)
         proc = self._ctx.Process(target=_worker_main, daemon=True, name="solver-worker",
-                                 args=(factory, shm.name, self._dtype.descr, request, response, self.stress))
+                                 args=(factory, shm.name, self._dtype.descr, request, response, self.stress,
+                                       self.worker_priority))
         proc.start()
         return _Worker(proc, shm, rec, request, response)
 
