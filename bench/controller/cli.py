@@ -36,7 +36,7 @@ def add_commands(subparsers) -> None:
     p.set_defaults(func=_compare)
 
     p = subparsers.add_parser("mpc-studies", help="seed 003 tasks 21 (horizon), 24 (S and v), 32 (tube vs MPC_TS)")
-    p.add_argument("studies", nargs="*", choices=["horizon", "soft", "tube"], help="default: all three")
+    p.add_argument("studies", nargs="*", metavar="STUDY", help="horizon, soft, tube (default: all three)")
     p.add_argument("--sequences", type=int, default=20, help="sampled disturbance sequences for the tube study")
     p.add_argument("--out", type=Path, default=None, help="also write the tables as markdown into this file")
     p.set_defaults(func=_mpc_studies)
@@ -106,6 +106,9 @@ def _mpc_studies(args) -> int:
     if args.sequences < 1:
         return _bad_input(f"--sequences must be >= 1, got {args.sequences}")
     args.studies = args.studies or ["horizon", "soft", "tube"]
+    unknown = [s for s in args.studies if s not in ("horizon", "soft", "tube")]
+    if unknown:
+        return _bad_input(f"unknown study {unknown[0]!r}: choose from horizon, soft, tube")
     titles = {
         "horizon": ("Task 21: MPC (17), MPC_TE (18), MPC_TS (19) from A, Q*, R*, N = 40 .. 20", mpc_studies.horizon_study, 33),
         "soft": ("Task 24: MPC_TS_SC (20) from C, N = 30, S = s I and v", mpc_studies.soft_constraint_study, 9),

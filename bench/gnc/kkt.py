@@ -19,10 +19,11 @@ below 1e-9, duality gap 2426, first input 0.27 N off.
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import lu_factor, lu_solve
+from scipy.linalg import LinAlgWarning, lu_factor, lu_solve
 
 # Relative tolerances of the certificate (constraint values in this bench's scaled units are
 # ~1e-4 to 1; rounding of the KKT solve leaves ~1e-13).
@@ -93,11 +94,16 @@ class ActiveSetQP:
         kkt[:n_f, n_f:] = Ca_free.T
         kkt[n_f:, :n_f] = Ca_free
         # A singular KKT matrix (dependent active rows) means the guess cannot be certified this way.
-        singular = m > n_f or (m > 0 and np.linalg.matrix_rank(Ca_free) < m)
-        if singular:
-            entry = None
-        else:
-            entry = (lu_factor(kkt, check_finite=False), free, fixed, rows, Ca)
+        entry = None
+        if not (m > n_f or (m > 0 and np.linalg.matrix_rank(Ca_free) < m)):
+            # A free variable without curvature and without an active row (a soft constraint's
+            # t_i off its bound) also makes the KKT matrix singular: check the pivots, quietly.
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", LinAlgWarning)
+                lu = lu_factor(kkt, check_finite=False)
+            pivots = np.abs(np.diag(lu[0]))
+            if pivots.size == 0 or pivots.min() > 1e-14 * pivots.max():
+                entry = (lu, free, fixed, rows, Ca)
         if len(self._factors) >= MAX_CACHED_FACTORS:
             self._factors.pop(next(iter(self._factors)))
         self._factors[key] = entry

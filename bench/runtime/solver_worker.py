@@ -57,7 +57,7 @@ def _layout(nx: int, nu: int, plan_rows: int) -> np.dtype:
     ])
 
 
-def _worker_main(factory, shm_name, dtype_descr, request, response, stress=None, priority=0) -> None:
+def _worker_main(factory, shm_name, dtype_descr, request, response, stress=None, priority=0, unpack=None) -> None:
     shm = shared_memory.SharedMemory(name=shm_name)
     rec = np.ndarray((1,), dtype=np.dtype(dtype_descr), buffer=shm.buf)[0]
     try:
@@ -74,7 +74,7 @@ def _worker_main(factory, shm_name, dtype_descr, request, response, stress=None,
                 return
             x = np.array(rec["x"])
             try:
-                u, info = law.eval(x)
+                u, info = law.eval(x if unpack is None else unpack(x))
                 if stress is not None:
                     stress.apply(cycle)
                 rec["u"] = np.asarray(u, dtype=float).reshape(-1)
@@ -178,6 +178,9 @@ class WorkerLaw:
     factory() -> law; nx, nu: state and input sizes; plan_rows: the longest plan kept.
     hard_limit_s: an outstanding request older than this gets its worker killed and restarted.
     stress: a StressInjector applied in the worker after each eval (a slow solver on purpose).
+    unpack: turns the state vector into the law's input in the worker (a picklable function), for
+    laws whose input is a record, e.g. an attitude law's AttitudeControlInput packed as
+    [t, q_wxyz, omega, B] (11 floats); None: the law takes the vector.
     worker_priority: SCHED_FIFO priority of the worker once its law is built (0: default
     scheduler); set it below the flight thread's, so the flight side still acts at its deadline.
     """
@@ -189,6 +192,7 @@ class WorkerLaw:
     hard_limit_s: float = 1.0
     stress: object | None = None
     worker_priority: int = 0
+    unpack: Callable | None = None
     clock_ns: Callable[[], int] = time.monotonic_ns
     stats: WorkerStats = field(default_factory=WorkerStats)
 
@@ -211,7 +215,7 @@ class WorkerLaw:
         request, response = self._ctx.Semaphore(0), self._ctx.Semaphore(0)
         proc = self._ctx.Process(target=_worker_main, daemon=True, name="solver-worker",
                                  args=(factory, shm.name, self._dtype.descr, request, response, self.stress,
-                                       self.worker_priority))
+                                       self.worker_priority, self.unpack))
         proc.start()
         return _Worker(proc, shm, rec, request, response)
 

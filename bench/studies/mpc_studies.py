@@ -93,18 +93,18 @@ def tube_study(n_sequences=20, n_steps=None, seed=0, q_z=(300.0, 0.1), r_z=1.0, 
             X, U, infos = simulate_uncertain(mz.initial_state_a, ctrl, w, mz)
             key = (label, name)
             st = stats.setdefault(key, {"runs": 0, "infeasible QPs": 0, "runs with a state violation": 0,
-                                        "runs with an input violation": 0, "max |z| / z_max": 0.0,
-                                        "max |u| / u_max": 0.0, "J_u": [], "|z| final km": []})
+                                        "runs with an input violation": 0, "max abs z / z_max": 0.0,
+                                        "max abs u / u_max": 0.0, "J_u": [], "abs z final km": []})
             z_ratio = float(np.max(np.abs(X[0])) / z_max)
             u_ratio = float(np.max(np.abs(U)) / u_max)
             st["runs"] += 1
             st["infeasible QPs"] += sum(not i["ctrl_feas"] for i in infos)
             st["runs with a state violation"] += z_ratio > 1 + 1e-9
             st["runs with an input violation"] += u_ratio > 1 + 1e-6
-            st["max |z| / z_max"] = max(st["max |z| / z_max"], z_ratio)
-            st["max |u| / u_max"] = max(st["max |u| / u_max"], u_ratio)
+            st["max abs z / z_max"] = max(st["max abs z / z_max"], z_ratio)
+            st["max abs u / u_max"] = max(st["max abs u / u_max"], u_ratio)
             st["J_u"].append(float(np.sum(U * U)))
-            st["|z| final km"].append(float(abs(X[0, -1]) * 1e3))
+            st["abs z final km"].append(float(abs(X[0, -1]) * 1e3))
         if progress:
             progress(1)
     rows = []
@@ -113,6 +113,6 @@ def tube_study(n_sequences=20, n_steps=None, seed=0, q_z=(300.0, 0.1), r_z=1.0, 
                      "infeasible QPs": st["infeasible QPs"],
                      "runs with a state violation": st["runs with a state violation"],
                      "runs with an input violation": st["runs with an input violation"],
-                     "max |z| / z_max": st["max |z| / z_max"], "max |u| / u_max": st["max |u| / u_max"],
-                     "mean J_u N^2": float(np.mean(st["J_u"])), "mean |z| final km": float(np.mean(st["|z| final km"]))})
+                     "max abs z / z_max": st["max abs z / z_max"], "max abs u / u_max": st["max abs u / u_max"],
+                     "mean J_u N^2": float(np.mean(st["J_u"])), "mean abs z final km": float(np.mean(st["abs z final km"]))})
     return rows
