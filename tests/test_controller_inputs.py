@@ -72,6 +72,8 @@ def test_factory_builds_every_controller_type(params):
         assert u.shape == (3,) and set(info) >= {"ctrl_feas", "objective", "solve_time", "iterations", "status"}
         assert info["ctrl_feas"], (kind, info["status"])
         assert np.all(np.abs(u) <= 1 + 1e-6)
+        if kind != "lqr":            # every MPC returns its plan, for the shifted-plan fallback
+            assert info["u_plan"].shape == (30, 3) and np.array_equal(info["u_plan"][0], u), kind
 
 
 def test_traj_constraints_on_a_hand_made_trajectory(params):

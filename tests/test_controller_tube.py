@@ -78,7 +78,8 @@ def test_warm_started_tube_mpc_matches_quadprog_at_every_step_of_the_task_32_loo
                                                          terminal_set=ctrl.terminal_set, tube=ctrl.tube)
             assert status == "solved" and infos[k]["ctrl_feas"], (k, infos[k]["status"])
             np.testing.assert_allclose(U[:, k], v0 + ctrl.K_tube @ (x - z0), atol=1e-6, err_msg=f"step {k}")
-            assert infos[k]["objective"] == pytest.approx(obj, rel=1e-9, abs=1e-9)
+            # quadprog carries a 1e-9 Hessian regularisation (mpc_reference.py): objectives to 1e-7
+            assert infos[k]["objective"] == pytest.approx(obj, rel=1e-7)
     assert ctrl.solver.paths.get("active_set", 0) > 0        # the exact active-set path is exercised
 
 
