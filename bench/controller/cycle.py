@@ -62,6 +62,7 @@ class ControlCycle:
                                         "model_updates": self.law.model_updates}
         if self.worker is not None:
             out["solver_worker"] = self.worker.stats.summary()
+            out["stress_injected_cycles"] = self.worker.stats.stress_injected     # applied in the worker
             out["realtime_priority_granted"] = self.realtime_priority_granted
         return out
 

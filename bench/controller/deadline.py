@@ -231,7 +231,7 @@ class DeadlineMonitor:
         if evaluate is not None:
             # A law in a worker process (WorkerLaw): it answers by the deadline or not at all.
             deadline_ns = start_ns + int(self.budget_s * 1e9) if self.apply_fallback else None
-            result = evaluate(x, deadline_ns)
+            result = evaluate(x, deadline_ns, cycle_index)
         else:
             result = compute(x)
             self.stress.apply(cycle_index)

@@ -49,15 +49,16 @@ _STOP = -1
 
 # Integer and float slots of the shared block (plain ndarray views: a structured record's field
 # access cost ~4 us each, 60-70 us per cycle on both sides).
-REQ_SEQ, RESP_SEQ, READY, ERROR, PLAN_ROWS, CTRL_FEAS, ITERATIONS = range(7)
+REQ_SEQ, RESP_SEQ, READY, ERROR, PLAN_ROWS, CTRL_FEAS, ITERATIONS, CYCLE = range(8)
+N_INTS = 8
 OBJECTIVE, SOLVE_TIME = range(2)
 
 
 class _SharedBlock:
-    """Views on one shared-memory block: ints[7], floats[2], x[nx], u[nu], plan[rows, nu], status."""
+    """Views on one shared-memory block: ints[8], floats[2], x[nx], u[nu], plan[rows, nu], status."""
 
     def __init__(self, buf, nx: int, nu: int, plan_rows: int):
-        sizes = [("ints", np.int64, (7,)), ("floats", np.float64, (2,)), ("x", np.float64, (nx,)),
+        sizes = [("ints", np.int64, (N_INTS,)), ("floats", np.float64, (2,)), ("x", np.float64, (nx,)),
                  ("u", np.float64, (nu,)), ("plan", np.float64, (plan_rows, nu)), ("status", np.uint8, (STATUS_BYTES,))]
         offset = 0
         for name, dtype, shape in sizes:
@@ -67,7 +68,7 @@ class _SharedBlock:
 
     @staticmethod
     def nbytes(nx: int, nu: int, plan_rows: int) -> int:
-        return 8 * (7 + 2 + nx + nu + plan_rows * nu) + STATUS_BYTES
+        return 8 * (N_INTS + 2 + nx + nu + plan_rows * nu) + STATUS_BYTES
 
     def set_status(self, text: str) -> None:
         raw = text.encode(errors="replace")[:STATUS_BYTES]
@@ -91,7 +92,6 @@ def _worker_main(factory, shm_name, shape, request, response, stress=None, prior
             set_realtime_priority(priority)
         blk.ints[READY] = 1
         plan_cap = blk.plan.shape[0]
-        cycle = 0
         while True:
             request.acquire()
             seq = int(blk.ints[REQ_SEQ])
@@ -100,8 +100,8 @@ def _worker_main(factory, shm_name, shape, request, response, stress=None, prior
             x = blk.x.copy()
             try:
                 u, info = law.eval(x if unpack is None else unpack(x))
-                if stress is not None:
-                    stress.apply(cycle)
+                if stress is not None:               # on the controller's cycle index
+                    stress.apply(int(blk.ints[CYCLE]))
                 blk.u[:] = np.asarray(u, dtype=float).reshape(-1)
                 plan = info.get(PLAN_INFO_KEY)
                 rows = 0
@@ -121,7 +121,6 @@ def _worker_main(factory, shm_name, shape, request, response, stress=None, prior
                 blk.ints[CTRL_FEAS] = 0
                 blk.ints[PLAN_ROWS] = 0
                 blk.set_status(f"{type(exc).__name__}: {exc}")
-            cycle += 1
             blk.ints[RESP_SEQ] = seq
             response.release()
     finally:
@@ -165,6 +164,7 @@ class WorkerStats:
     restarts: int = 0              # workers killed at the hard limit
     replacements: int = 0          # laws swapped by replace()
     errors: int = 0                # the law raised inside the worker
+    stress_injected: int = 0       # requests the stress made slow on purpose (StressInjector)
 
     def summary(self) -> dict:
         return dict(self.__dict__)
@@ -290,8 +290,10 @@ class WorkerLaw:
         if (self.clock_ns() - sent_ns) / 1e9 > self.hard_limit_s or not self._worker.process.is_alive():
             self._restart()
 
-    def evaluate(self, x: np.ndarray, deadline_ns: int | None) -> tuple[np.ndarray, dict] | None:
-        """(u, info) if the law answers by deadline_ns (None: wait as long as it takes), else None."""
+    def evaluate(self, x: np.ndarray, deadline_ns: int | None,
+                 cycle_index: int | None = None) -> tuple[np.ndarray, dict] | None:
+        """(u, info) if the law answers by deadline_ns (None: wait as long as it takes), else None.
+        cycle_index: the controller's cycle (the stress schedule follows it; default the request count)."""
         self._collect_late()
         self._swap_if_ready()
         if self._outstanding is not None:
@@ -306,6 +308,10 @@ class WorkerLaw:
         self._seq += 1
         blk = w.blk
         blk.x[:] = x
+        cycle = self._seq - 1 if cycle_index is None else int(cycle_index)
+        blk.ints[CYCLE] = cycle
+        if self.stress is not None and self.stress.active and self.stress.config.is_stressed(cycle):
+            self.stats.stress_injected += 1
         blk.ints[REQ_SEQ] = self._seq
         self._outstanding = (self._seq, self.clock_ns())
         self.stats.requests += 1
