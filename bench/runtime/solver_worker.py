@@ -92,8 +92,12 @@ def _worker_main(factory, shm_name, shape, request, response, stress=None, prior
             set_realtime_priority(priority)
         blk.ints[READY] = 1
         plan_cap = blk.plan.shape[0]
+        parent = os.getppid()
         while True:
-            request.acquire()
+            if not request.acquire(timeout=1.0):
+                if os.getppid() != parent:       # the flight process died (SIGKILL): do not linger
+                    return
+                continue
             seq = int(blk.ints[REQ_SEQ])
             if seq == _STOP:
                 return
