@@ -83,7 +83,8 @@ class _SharedBlock:
             setattr(self, name, None)
 
 
-def _worker_main(factory, shm_name, shape, request, response, stress=None, priority=0, unpack=None) -> None:
+def _worker_main(factory, shm_name, shape, request, response, stress=None, priority=0, unpack=None,
+                 parent_pid=None) -> None:
     shm = shared_memory.SharedMemory(name=shm_name)
     blk = _SharedBlock(shm.buf, *shape)
     try:
@@ -92,7 +93,7 @@ def _worker_main(factory, shm_name, shape, request, response, stress=None, prior
             set_realtime_priority(priority)
         blk.ints[READY] = 1
         plan_cap = blk.plan.shape[0]
-        parent = os.getppid()
+        parent = os.getppid() if parent_pid is None else parent_pid   # passed in: no race with its death
         while True:
             if not request.acquire(timeout=1.0):
                 if os.getppid() != parent:       # the flight process died (SIGKILL): do not linger
@@ -243,7 +244,7 @@ class WorkerLaw:
         request, response = self._ctx.Semaphore(0), self._ctx.Semaphore(0)
         proc = self._ctx.Process(target=_worker_main, daemon=True, name="solver-worker",
                                  args=(factory, shm.name, self._shape, request, response, self.stress,
-                                       self.worker_priority, self.unpack))
+                                       self.worker_priority, self.unpack, os.getpid()))
         proc.start()
         return _Worker(proc, shm, blk, request, response)
 
