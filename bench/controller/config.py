@@ -51,7 +51,15 @@ class DeadlineConfig(msgspec.Struct, forbid_unknown_fields=True):
     # Wall-clock budget from the estimate's arrival to the command being ready. The default is
     # half the step period of real-time mode at its default rate (10 steps per wall second).
     budget_s: PositiveSeconds = 0.05
+    # "shifted_plan" replays the last on-time plan shifted by the cycles missed, then falls back
+    # to LQR (to "hold" if no LQR law is given).
     fallback: FallbackPolicy = "hold"
+    # Real-time mode runs the law in a worker process (bench/runtime/solver_worker.py); a request
+    # outstanding this long gets its worker killed and restarted.
+    hard_limit_s: PositiveSeconds = 2.0
+    # Real-time mode: SCHED_FIFO priority of the controller's cycle thread (0: default scheduler).
+    # Without it the fallback left up to 8 ms late on the loaded bench machine (solver_worker.py).
+    realtime_priority: Annotated[int, msgspec.Meta(ge=0, le=99)] = 10
     stress: StressConfig = msgspec.field(default_factory=StressConfig)
 
 

@@ -75,7 +75,14 @@ class SplitController:
         u = np.empty(3)
         u[list(IN_PLANE_INPUTS)] = u_in
         u[list(Z_INPUTS)] = u_z
+        plan = None
+        if "u_plan" in info_in and "u_plan" in info_z:      # both solved: the joint plan, shortest horizon
+            rows = min(len(info_in["u_plan"]), len(info_z["u_plan"]))
+            plan = np.empty((rows, 3))
+            plan[:, list(IN_PLANE_INPUTS)] = info_in["u_plan"][:rows]
+            plan[:, list(Z_INPUTS)] = info_z["u_plan"][:rows]
         return u, {
+            **({"u_plan": plan} if plan is not None else {}),
             "ctrl_feas": info_in["ctrl_feas"] and info_z["ctrl_feas"],
             "objective": info_in["objective"] + info_z["objective"],
             "solve_time": time.perf_counter() - start,
