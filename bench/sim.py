@@ -24,7 +24,7 @@ def simulate_in_process(scenario: Scenario) -> tuple[dict[str, np.ndarray], dict
     estimates = []
     for k in range(scenario.n_steps):
         position_m = plant.measure_position_m()
-        estimate = estimator.step(k, plant.sim_time_s, truth_m_mps=plant.state_m_mps, position_m=position_m,
+        estimate = estimator.step(k, plant.sim_time_s, truth_m_mps=plant.navigation_state_m_mps, position_m=position_m,
                                   position_noise_std_m=noise_std_m, thrust_commanded_n=thrust_n)
         thrust_n = control.run(estimate.state_m_mps, estimate.mean_motion_radps).thrust_n
         estimates.append(estimate.state_m_mps)
