@@ -14,6 +14,7 @@ from bench.controller.lqr import LQR, dlqr
 from bench.controller.mpc import MPC, MPC_TE, MPC_TS, MPC_TS_SC
 from bench.controller.sets import lqr_max_pi
 from bench.controller.tube import design_tube_mpc
+from bench.gnc.lqt import TrackingLQT
 from bench.plant.cwh import RendezvousParams, Z_INPUTS, Z_STATES, z_subsystem
 
 IN_PLANE_STATES = (0, 1, 3, 4)
@@ -40,6 +41,11 @@ def build_controller(cfg: ControllerConfig, params: RendezvousParams):
     model = params.scaled
     if cfg.type == "lqr":
         return LQR(Q, R, model.A, model.B)
+    if cfg.type == "lqt":
+        _, p_inf = dlqr(model.A, model.B, Q, R)
+        # Reference velocities per step -> the scaled velocity unit (km/s from Mm per step).
+        velocity_per_step = model.scaling[3] / model.scaling[0] / params.time_step_s
+        return TrackingLQT(Q, R, p_inf, model.A, model.B, params.n_steps, cfg.lqt_glide_fraction, velocity_per_step)
     if cfg.type == "mpc":
         return MPC(Q, R, cfg.horizon, model)
     if cfg.type == "mpc_te":

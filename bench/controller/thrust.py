@@ -34,7 +34,11 @@ class ThrustLaw:
     def _build(self, params: RendezvousParams) -> None:
         self.params = params
         self.scaled = params.scaled
+        previous = getattr(self, "controller", None)
         self.controller = build_controller(self.config, params)
+        if previous is not None and hasattr(self.controller, "continue_from"):
+            # A law with a clock and a plan (LQT) keeps them across a model update.
+            self.controller.continue_from(previous)
 
     def update_model(self, mean_motion_radps: float | None) -> bool:
         """Rebuild on an estimated mean motion that moved past the dead band; True if rebuilt."""
