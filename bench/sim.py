@@ -22,13 +22,19 @@ def simulate_in_process(scenario: Scenario) -> tuple[dict[str, np.ndarray], dict
     noise_std_m = scenario.plant.relpos_sensor.noise_std_m
     thrust_n = np.zeros(3)
     estimates = []
+    cycles = {"solve_time_s": [], "solver_iterations": [], "ctrl_feasible": []}   # per controller cycle
     for k in range(scenario.n_steps):
         position_m = plant.measure_position_m()
         estimate = estimator.step(k, plant.sim_time_s, truth_m_mps=plant.navigation_state_m_mps, position_m=position_m,
                                   position_noise_std_m=noise_std_m, thrust_commanded_n=thrust_n)
-        thrust_n = control.run(estimate.state_m_mps, estimate.mean_motion_radps).thrust_n
+        outcome = control.run(estimate.state_m_mps, estimate.mean_motion_radps)
+        thrust_n = outcome.thrust_n
+        cycles["solve_time_s"].append(float(outcome.info.get("solve_time", np.nan)))
+        cycles["solver_iterations"].append(int(outcome.info.get("iterations", 0)))
+        cycles["ctrl_feasible"].append(bool(outcome.info.get("ctrl_feas", True)))
         estimates.append(estimate.state_m_mps)
         plant.apply(thrust_n)
     trajectory = plant.trajectory()
     trajectory["estimate_m_mps"] = np.array(estimates)
+    trajectory.update({name: np.array(values) for name, values in cycles.items()})
     return trajectory, trajectory_metrics(trajectory["state_m_mps"], trajectory["thrust_n"], plant.params)

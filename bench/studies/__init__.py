@@ -1,0 +1,1 @@
+"""Studies that run many scenarios and compare: seed 003 studies, seed 001 campaigns."""
