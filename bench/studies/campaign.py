@@ -51,6 +51,8 @@ import msgspec
 import numpy as np
 
 from bench.scenario import ScenarioError, load_scenario, parse_scenario, scenario_to_toml_dict
+from bench.sim import simulate_in_process
+from bench.studies.campaign_metrics import run_metrics
 
 AXES = ("controllers", "dynamics", "knowledge", "initial_conditions", "faults")
 CELL_COLUMNS = ("controller", "dynamics", "knowledge", "initial_conditions", "fault")
@@ -158,7 +160,7 @@ def _apply_samples(scenario: dict, samples: dict, seed: int, axis_value: str) ->
     position_std = float(samples.get("sample_position_std_m", 0.0))
     velocity_std = float(samples.get("sample_velocity_std_mps", 0.0))
     if position_std or velocity_std:
-        parsed = parse_scenario(scenario)
+        parsed = parse_scenario(scenario, scenario["name"])
         x0 = parsed.initial_state_m_mps()
         # Drawn per seed and initial-condition set only: every cell sees the same dispersed states.
         rng = _stream(seed, f"initial_state/{axis_value}")
@@ -190,13 +192,12 @@ def expand(spec: CampaignSpec) -> list[Case]:
                 scenario = _merge(scenario, fields)
                 if draws:
                     samples[axis] = (draws, name)
-            scenario = _merge(scenario, {"run": {"seed": seed}})
-            # Draws go last: the initial condition set's base state may come from any patch.
-            for axis, (draws, name) in samples.items():
-                scenario = _apply_samples(scenario, draws, seed, f"{axis}.{name}")
             case_id = "/".join([*cell.values(), f"seed{seed}"])
-            scenario["name"] = f"{spec.name}/{case_id}"
+            scenario = _merge(scenario, {"name": f"{spec.name}/{case_id}", "run": {"seed": seed}})
             try:
+                # Draws go last: the initial condition set's base state may come from any patch.
+                for axis, (draws, name) in samples.items():
+                    scenario = _apply_samples(scenario, draws, seed, f"{axis}.{name}")
                 scenario = scenario_to_toml_dict(parse_scenario(scenario, f"case {case_id}"))
             except ScenarioError as exc:
                 raise CampaignError(str(exc)) from None
@@ -213,9 +214,6 @@ class CaseTimeout(BaseException):
 
 
 def _run_in_process(scenario) -> dict:
-    from bench.sim import simulate_in_process
-    from bench.studies.campaign_metrics import run_metrics
-
     trajectory, _ = simulate_in_process(scenario)
     return run_metrics(trajectory["state_m_mps"], trajectory["thrust_n"], scenario.params(),
                        trajectory["solve_time_s"], trajectory["solver_iterations"], trajectory["ctrl_feasible"])
@@ -228,7 +226,6 @@ def _run_processes(scenario) -> dict:
     from bench.bus import keys
     from bench.launcher import run_bench
     from bench.report.rundata import load_run
-    from bench.studies.campaign_metrics import run_metrics
 
     run_id = keys.check_run_id(f"campaign-{zlib.crc32(scenario.name.encode()):08x}-{os.getpid()}")
     with tempfile.TemporaryDirectory(prefix="bench-campaign-") as runs_dir:
@@ -246,6 +243,7 @@ def _run_processes(scenario) -> dict:
 
 
 def _runner(mode: str) -> Callable:
+    """The case function (imported before the case's clock starts: imports take seconds)."""
     if mode == "in-process":
         return _run_in_process
     if mode == "processes":
@@ -283,9 +281,10 @@ def run_case(case: Case) -> dict:
            "scenario_json": json.dumps(case.scenario, sort_keys=True), "status": "ok", "error": ""}
     start = time.perf_counter()
     try:
+        runner = _runner(case.mode)
+        scenario = parse_scenario(case.scenario, case.case_id)
         with _Alarm(case.timeout_s):
-            scenario = parse_scenario(case.scenario, case.case_id)
-            row.update(_runner(case.mode)(scenario))
+            row.update(runner(scenario))
     except CaseTimeout:
         row.update(status="timeout", error=f"timed out after {case.timeout_s:g} s")
     except Exception as exc:            # a case's failure is a row, whatever it was
@@ -300,7 +299,6 @@ def run_case(case: Case) -> dict:
 def _schema():
     import pyarrow as pa
 
-    from bench.studies.campaign_metrics import run_metrics
     from bench.plant.cwh import RendezvousParams
 
     sample = run_metrics(np.zeros((2, 6)), np.zeros((1, 3)), RendezvousParams.from_reference(), [0.0], [0], [True])
@@ -420,8 +418,9 @@ def run_ray(cases: list[Case], workers: int, on_row: Callable[[dict], None], add
         if address:
             ray.init(address=address, log_to_driver=False)
         else:
-            ray.init(num_cpus=workers, object_store_memory=RAY_OBJECT_STORE_BYTES, include_dashboard=False,
-                     log_to_driver=False)
+            # address="local": a new cluster of our own, never one somebody else started on this host.
+            ray.init(address="local", num_cpus=workers, object_store_memory=RAY_OBJECT_STORE_BYTES,
+                     include_dashboard=False, log_to_driver=False)
         started_here = True
     try:
         # max_retries=0: a case that kills its worker is a failed row, not a silent re-run.
