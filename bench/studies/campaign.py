@@ -468,6 +468,8 @@ def run_campaign(spec: CampaignSpec, out: Path, *, engine: str = "local", worker
     cases = list(cases) if cases is not None else expand(spec)
     done = {r["case_id"]: r["status"] for r in read_rows(out)}
     todo = [c for c in cases if c.case_id not in done or (retry_failed and done[c.case_id] != "ok")]
+    # Seed-major order: a campaign stopped early has the same number of seeds in every cell.
+    todo.sort(key=lambda c: (c.seed, c.index))
     out.parent.mkdir(parents=True, exist_ok=True)
     writer = ResultsWriter(out, flush_every)
     failed = 0

@@ -144,6 +144,10 @@ def box_plots(summaries: list[CellSummary], out_dir: Path) -> list[Path]:
         ax.boxplot([d if d.size else [np.nan] for d in data], showfliers=True)
         ax.set_xticks(range(1, len(labels) + 1), labels, fontsize=6, rotation=90)
         ax.set_ylabel(label)
+        if metric == "final_position_error_m":
+            from bench.plant.cwh import RendezvousParams
+
+            ax.axhline(RendezvousParams.from_reference().max_final_position_m, color="k", ls="--", lw=0.8)
         if metric in ("final_position_error_m", "solve_time_p99_ms") and any(d.size and d.max() > 0 for d in data):
             ax.set_yscale("log")
         ax.set_title(f"{label} per cell (runs that finished)")
