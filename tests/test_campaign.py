@@ -151,7 +151,6 @@ def test_a_row_reruns_exactly_from_its_scenario():
     case = expand(parse_spec(SMALL))[5]
     first, second = run_case(case), run_case(case)
     assert first["status"] == "ok"
-    from bench.scenario import parse_scenario
     import json
 
     rebuilt = type(case)(**{**case.__dict__, "scenario": json.loads(first["scenario_json"])})
