@@ -26,8 +26,9 @@ import zenoh
 from bench.bus import keys
 from bench.bus.schemas import ProcessStats, StepDone, decode, MalformedMessage
 from bench.bus.session import SessionConfigError, SessionOptions, free_loopback_port, loopback_endpoint, open_session
-from bench.metrics import trajectory_metrics
-from bench.node_runtime import NODES, node_options, run_node
+from bench.report.run_metrics import trajectory_metrics
+from bench.runtime.node import NODES, node_options, run_node
+from bench.runtime.process import start_node
 from bench.scenario import Scenario, ScenarioError, builtin_names, load_scenario
 
 EXIT_BAD_INPUT = 2
@@ -73,16 +74,7 @@ class Child:
 def _spawn(name: str, run_id: str, scenario_path: Path, hub: str, run_dir: Path, peers: list[str],
            zenoh_config: str | None) -> Child:
     log_path = run_dir / "logs" / f"{name}.log"
-    cmd = [sys.executable, "-m", "bench.cli", "node", name, "--run-id", run_id, "--scenario", str(scenario_path),
-           "--connect", hub, "--run-dir", str(run_dir)]
-    if peers:
-        cmd += ["--wait-for", ",".join(peers)]
-    if zenoh_config:
-        cmd += ["--zenoh-config", zenoh_config]
-    log_file = open(log_path, "w")
-    process = subprocess.Popen(cmd, stdout=log_file, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
-    log_file.close()
-    return Child(name, process, log_path)
+    return Child(name, start_node(name, run_id, scenario_path, hub, run_dir, log_path, peers, zenoh_config), log_path)
 
 
 def _stop_children(children: list[Child], grace_s: float = SHUTDOWN_GRACE_S) -> None:
@@ -326,6 +318,32 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
         _stop_children(children)
         stats_subscriber.undeclare()
         session.close()
+
+
+def campaign_case(scenario: Scenario) -> dict:
+    """One campaign row's metrics from a full multi-process run in a scratch directory
+    (`bench campaign`, mode "processes"); a run that does not finish raises, naming the logs."""
+    import contextlib
+    import io
+    import tempfile
+    import zlib
+
+    from bench.report.rundata import load_run
+    from bench.studies.campaign_metrics import run_metrics
+
+    run_id = keys.check_run_id(f"campaign-{zlib.crc32(scenario.name.encode()):08x}-{os.getpid()}")
+    with tempfile.TemporaryDirectory(prefix="bench-campaign-") as runs_dir:
+        with contextlib.redirect_stdout(io.StringIO()):           # the run's summary table
+            code, run_dir = run_bench(scenario, run_id, Path(runs_dir), None, show_progress=False, write_report=False)
+        if code != 0:
+            logs = sorted((run_dir / "logs").glob("*.log"))
+            tail = " | ".join(f"{p.stem}: {p.read_text().strip().splitlines()[-1:]}" for p in logs if p.stat().st_size)
+            raise RuntimeError(f"bench run exited with {code}: {tail}")
+        run = load_run(run_dir)
+        commands = [m.body for m in run.on(keys.COMMAND_THRUST) if not m.body.get("fallback")]
+        return run_metrics(run.trajectory["state_m_mps"], run.trajectory["thrust_n"], scenario.params(),
+                           [c["solve_time_s"] for c in commands], [c.get("iterations", 0) for c in commands],
+                           [c["ctrl_feasible"] for c in commands])
 
 
 def cmd_run(args) -> int:

@@ -9,9 +9,10 @@ import numpy as np
 
 from bench.controller.cycle import ControlCycle
 from bench.estimator.frontend import StateEstimator
-from bench.metrics import trajectory_metrics
 from bench.plant.model import TranslationPlant
+from bench.report.run_metrics import trajectory_metrics
 from bench.scenario import Scenario
+from bench.studies.campaign_metrics import run_metrics
 
 
 def simulate_in_process(scenario: Scenario) -> tuple[dict[str, np.ndarray], dict]:
@@ -38,3 +39,10 @@ def simulate_in_process(scenario: Scenario) -> tuple[dict[str, np.ndarray], dict
     trajectory["estimate_m_mps"] = np.array(estimates)
     trajectory.update({name: np.array(values) for name, values in cycles.items()})
     return trajectory, trajectory_metrics(trajectory["state_m_mps"], trajectory["thrust_n"], plant.params)
+
+
+def campaign_case(scenario: Scenario) -> dict:
+    """One campaign row's metrics from an in-process run (`bench campaign`, mode "in-process")."""
+    trajectory, _ = simulate_in_process(scenario)
+    return run_metrics(trajectory["state_m_mps"], trajectory["thrust_n"], scenario.params(),
+                       trajectory["solve_time_s"], trajectory["solver_iterations"], trajectory["ctrl_feasible"])

@@ -2,7 +2,7 @@
 run, made to raise, hang or take a while on chosen seeds."""
 import time
 
-from bench.studies.campaign import _run_in_process
+from bench.sim import campaign_case as _run_in_process
 
 
 def flaky_case(scenario):

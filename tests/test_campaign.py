@@ -162,7 +162,7 @@ def test_a_row_reruns_exactly_from_its_scenario():
 
 
 def test_run_metrics_fuel_norms_time_to_rendezvous_and_divergence():
-    from bench.plant.cwh import RendezvousParams
+    from bench.gnc.cwh import RendezvousParams
 
     params = RendezvousParams.from_reference()
     dt = params.time_step_s

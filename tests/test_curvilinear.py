@@ -4,7 +4,7 @@ import pytest
 
 from bench.plant.curvilinear import (cartesian_to_curvilinear, curvilinear_to_cartesian,
                                      position_to_curvilinear_m, thrust_to_lvlh)
-from bench.plant.cwh import RendezvousParams
+from bench.gnc.cwh import RendezvousParams
 from bench.plant.dynamics import propagate
 
 R = 7.0e6

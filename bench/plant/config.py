@@ -5,6 +5,9 @@ from typing import Annotated, Literal
 
 import msgspec
 
+from bench.data import load_reference
+
+MODEL = load_reference()["model"]     # the defaults below are the reference's (seed 003)
 Positive = Annotated[float, msgspec.Meta(gt=0)]
 NonNegative = Annotated[float, msgspec.Meta(ge=0)]
 State6 = Annotated[list[float], msgspec.Meta(min_length=6, max_length=6)]
@@ -20,10 +23,10 @@ class PlantConfig(msgspec.Struct, forbid_unknown_fields=True):
     # A name from the reference (A, B, C) or an explicit state in m and m/s.
     initial_condition: str = "A"
     initial_state_m_mps: State6 | None = None
-    mass_kg: Positive = 300.0
-    gravitational_parameter_m3ps2: Positive = 3.986e14
-    target_radius_m: Positive = 7.0e6
-    time_step_s: Positive = 600.0
+    mass_kg: Positive = MODEL["mass_kg"]
+    gravitational_parameter_m3ps2: Positive = MODEL["gravitational_parameter"]
+    target_radius_m: Positive = MODEL["target_radius_m"]
+    time_step_s: Positive = MODEL["time_step_s"]
     relpos_sensor: RelativePositionSensorConfig = msgspec.field(default_factory=RelativePositionSensorConfig)
     # The coordinates the flight side sees and commands in (bench/plant/curvilinear.py): "cartesian"
     # LVLH, or "curvilinear" (arc length, radial difference, cross-track angle x radius), converted

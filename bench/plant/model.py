@@ -9,8 +9,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from bench.gnc.cwh import RendezvousParams
 from bench.plant.curvilinear import cartesian_to_curvilinear, position_to_curvilinear_m, thrust_to_lvlh
-from bench.plant.cwh import RendezvousParams
 from bench.plant.dynamics import propagate
 from bench.scenario import Scenario
 

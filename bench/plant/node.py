@@ -14,11 +14,10 @@ import msgspec
 import numpy as np
 
 from bench.bus import keys
-from bench.bus.schemas import MtqApplied, RelativePosition, StepDone, ThrustCommand, TruthState, header
-from bench.node_runtime import NodeContext
+from bench.bus.schemas import STAGES, MtqApplied, RelativePosition, StepDone, ThrustCommand, TruthState, header
 from bench.plant.model import TranslationPlant
-from bench.bus.schemas import STAGES
-from bench.controller.deadline import PlantCommandDeadline
+from bench.runtime.deadline import PlantCommandDeadline
+from bench.runtime.node import NodeContext
 
 
 class LoopBroken(RuntimeError):

@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import copy
 import importlib
-import io
 import itertools
 import json
 import os
@@ -41,7 +40,6 @@ import threading
 import time
 import tomllib
 import zlib
-from contextlib import redirect_stdout
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -51,13 +49,14 @@ import msgspec
 import numpy as np
 
 from bench.scenario import ScenarioError, load_scenario, parse_scenario, scenario_to_toml_dict
-from bench.sim import simulate_in_process
-from bench.studies.campaign_metrics import run_metrics
 
 AXES = ("controllers", "dynamics", "knowledge", "initial_conditions", "faults")
 CELL_COLUMNS = ("controller", "dynamics", "knowledge", "initial_conditions", "fault")
 BUILTIN_PACKAGE = "bench.studies.campaigns"
-MODES = ("in-process", "processes")
+# The case functions live with what they run (the in-process loop, the launcher), above this
+# layer; they are found by name, as `bench.cli` finds subcommands.
+RUNNERS = {"in-process": "bench.sim:campaign_case", "processes": "bench.launcher:campaign_case"}
+MODES = tuple(RUNNERS)
 
 
 class CampaignError(ValueError):
@@ -213,42 +212,9 @@ class CaseTimeout(BaseException):
     BaseException so that code under test catching Exception does not swallow it."""
 
 
-def _run_in_process(scenario) -> dict:
-    trajectory, _ = simulate_in_process(scenario)
-    return run_metrics(trajectory["state_m_mps"], trajectory["thrust_n"], scenario.params(),
-                       trajectory["solve_time_s"], trajectory["solver_iterations"], trajectory["ctrl_feasible"])
-
-
-def _run_processes(scenario) -> dict:
-    """A full multi-process bench run (plant, estimator, controller over Zenoh) in a scratch dir."""
-    import tempfile
-
-    from bench.bus import keys
-    from bench.launcher import run_bench
-    from bench.report.rundata import load_run
-
-    run_id = keys.check_run_id(f"campaign-{zlib.crc32(scenario.name.encode()):08x}-{os.getpid()}")
-    with tempfile.TemporaryDirectory(prefix="bench-campaign-") as runs_dir:
-        with redirect_stdout(io.StringIO()):
-            code, run_dir = run_bench(scenario, run_id, Path(runs_dir), None, show_progress=False, write_report=False)
-        if code != 0:
-            logs = sorted((run_dir / "logs").glob("*.log"))
-            tail = " | ".join(f"{p.stem}: {p.read_text().strip().splitlines()[-1:]}" for p in logs if p.stat().st_size)
-            raise RuntimeError(f"bench run exited with {code}: {tail}")
-        run = load_run(run_dir)
-        commands = [m.body for m in run.on(keys.COMMAND_THRUST) if not m.body.get("fallback")]
-        return run_metrics(run.trajectory["state_m_mps"], run.trajectory["thrust_n"], scenario.params(),
-                           [c["solve_time_s"] for c in commands], [c.get("iterations", 0) for c in commands],
-                           [c["ctrl_feasible"] for c in commands])
-
-
 def _runner(mode: str) -> Callable:
     """The case function (imported before the case's clock starts: imports take seconds)."""
-    if mode == "in-process":
-        return _run_in_process
-    if mode == "processes":
-        return _run_processes
-    module, _, function = mode.partition(":")
+    module, _, function = RUNNERS.get(mode, mode).partition(":")
     return getattr(importlib.import_module(module), function)
 
 
@@ -299,7 +265,8 @@ def run_case(case: Case) -> dict:
 def _schema():
     import pyarrow as pa
 
-    from bench.plant.cwh import RendezvousParams
+    from bench.gnc.cwh import RendezvousParams
+    from bench.studies.campaign_metrics import run_metrics
 
     sample = run_metrics(np.zeros((2, 6)), np.zeros((1, 3)), RendezvousParams.from_reference(), [0.0], [0], [True])
     types = {bool: pa.bool_(), int: pa.int64(), float: pa.float64()}

@@ -14,9 +14,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from bench.controller.metrics import fuel_delta_v_mps
-from bench.metrics import trajectory_metrics
-from bench.plant.cwh import RendezvousParams
+from bench.gnc.cwh import RendezvousParams
+from bench.studies.metrics import fuel_delta_v_mps, traj_constraints
 
 # A run has diverged when the chaser ends farther than it started or ever gets this many times
 # farther than its initial distance (a controller that lost the target on the nonlinear plant ends
@@ -49,7 +48,7 @@ def run_metrics(state_m_mps: np.ndarray, thrust_n: np.ndarray, params: Rendezvou
     x = np.asarray(state_m_mps, dtype=float)
     u = np.asarray(thrust_n, dtype=float).reshape(-1, 3)
     finite = bool(np.all(np.isfinite(x)) and np.all(np.isfinite(u)))
-    seed = trajectory_metrics(x, u, params) if finite else None
+    seed = traj_constraints((x * np.asarray(params.scaling)).T, u.T, params) if finite else None
     dt = params.time_step_s
     j_u = float(np.sum(u * u))
     distance_m = np.linalg.norm(x[:, :3], axis=1)
@@ -62,10 +61,10 @@ def run_metrics(state_m_mps: np.ndarray, thrust_n: np.ndarray, params: Rendezvou
     feas = np.asarray(ctrl_feasible if ctrl_feasible is not None else [], dtype=bool)
     nan = float("nan")
     return {
-        "final_position_error_m": seed["final_position_error_m"] if seed else nan,
-        "final_velocity_error_mps": seed["final_velocity_error_mps"] if seed else nan,
-        "constraints_satisfied": bool(seed["constraints_satisfied"]) if seed else False,
-        "max_abs_thrust_n": seed["max_abs_thrust_N"] if seed else nan,
+        "final_position_error_m": seed.final_distance_m if seed else nan,
+        "final_velocity_error_mps": seed.final_speed_mps if seed else nan,
+        "constraints_satisfied": bool(seed.feasible) if seed else False,
+        "max_abs_thrust_n": seed.max_abs_thrust_n if seed else nan,
         "input_cost_n2": j_u,                                           # seed J_u
         "delta_v_mps": fuel_delta_v_mps(u.T, dt, params.mass_kg),
         "fuel_l2_n_sqrt_s": float(np.sqrt(dt * j_u)),                  # ||u||_L2(0,T)
@@ -76,7 +75,7 @@ def run_metrics(state_m_mps: np.ndarray, thrust_n: np.ndarray, params: Rendezvou
         # and whether the run diverged.
         "settled_max_position_m": float(distance_m[settle_from:].max()) if finite else nan,
         "diverged": diverged,
-        "success": bool(seed is not None and seed["constraints_satisfied"] and not diverged),
+        "success": bool(seed is not None and seed.feasible and not diverged),
         # Compute cost per controller cycle (the solver's own time; LQR's is a matrix product).
         "solve_time_p50_ms": _percentile(solve, 50) * 1e3,
         "solve_time_p90_ms": _percentile(solve, 90) * 1e3,

@@ -145,7 +145,7 @@ def box_plots(summaries: list[CellSummary], out_dir: Path) -> list[Path]:
         ax.set_xticks(range(1, len(labels) + 1), labels, fontsize=6, rotation=90)
         ax.set_ylabel(label)
         if metric == "final_position_error_m":
-            from bench.plant.cwh import RendezvousParams
+            from bench.gnc.cwh import RendezvousParams
 
             ax.axhline(RendezvousParams.from_reference().max_final_position_m, color="k", ls="--", lw=0.8)
         if metric in ("final_position_error_m", "solve_time_p99_ms") and any(d.size and d.max() > 0 for d in data):
