@@ -33,8 +33,13 @@ class ThrustLaw:
     def _build(self, params: RendezvousParams) -> None:
         self.params = params
         self.scaled = params.scaled
+        previous = getattr(self, "controller", None)
         self.factory = partial(build_controller, self.config, params)
         self.controller = self.factory() if self.in_process else None
+        if previous is not None and self.controller is not None and hasattr(self.controller, "continue_from"):
+            # A law with a clock and a plan (LQT) keeps them across a model update. (In a solver
+            # worker the law is rebuilt there from the factory and starts its plan afresh.)
+            self.controller.continue_from(previous)
 
     def update_model(self, mean_motion_radps: float | None) -> bool:
         """Rebuild on an estimated mean motion that moved past the dead band; True if rebuilt."""

@@ -36,3 +36,12 @@ class PlantConfig(msgspec.Struct, forbid_unknown_fields=True):
     time_step_s: Positive = MODEL["time_step_s"]
     relpos_sensor: RelativePositionSensorConfig = msgspec.field(default_factory=RelativePositionSensorConfig)
     range_bearing_sensor: RangeBearingSensorConfig = msgspec.field(default_factory=RangeBearingSensorConfig)
+    # The coordinates the flight side sees and commands in (bench/plant/curvilinear.py): "cartesian"
+    # LVLH, or "curvilinear" (arc length, radial difference, cross-track angle x radius), converted
+    # at the plant boundary so CWH-based controllers fly long approaches on the nonlinear plant.
+    navigation_frame: Literal["cartesian", "curvilinear"] = "cartesian"
+
+    def __post_init__(self):
+        if self.navigation_frame == "curvilinear" and self.dynamics != "nonlinear":
+            raise ValueError("navigation_frame = \"curvilinear\" needs dynamics = \"nonlinear\" "
+                             "(the linear CWH plant is Cartesian by construction)")

@@ -40,7 +40,8 @@ def _publish_sample(ctx: NodeContext, plant: TranslationPlant, last_thrust_n: np
     k = plant.step_index
     hdr = header(ctx.run_id, k, plant.sim_time_s, sensed=time.monotonic_ns())
     position_m = plant.measure_position_m()
-    ctx.publish(keys.TRUTH, TruthState(hdr, plant.state_m_mps.tolist(), last_thrust_n.tolist()))
+    # Truth in the flight side's coordinates: the truth-mode estimator passes it on as the estimate.
+    ctx.publish(keys.TRUTH, TruthState(hdr, plant.navigation_state_m_mps.tolist(), last_thrust_n.tolist()))
     noise = ctx.scenario.plant.relpos_sensor.noise_std_m
     ctx.publish(keys.SENSE_RELPOS, RelativePosition(hdr, position_m.tolist(), noise))
     rng_m, azimuth_rad, elevation_rad = plant.measure_range_bearing()
