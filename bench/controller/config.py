@@ -7,8 +7,9 @@ import msgspec
 
 from bench.controller.deadline import DeadlineConfig
 
-PositiveWeights = Annotated[list[Annotated[float, msgspec.Meta(gt=0)]], msgspec.Meta(min_length=1)]
-Horizon = Annotated[int, msgspec.Meta(ge=1)]
+PositiveWeights = Annotated[list[Annotated[float, msgspec.Meta(gt=0, le=1e12)]], msgspec.Meta(min_length=1, max_length=64)]
+# The QP grows with N (3N inputs, 6N states); 1000 steps is already a 9000-variable QP per cycle.
+Horizon = Annotated[int, msgspec.Meta(ge=1, le=1000)]
 
 
 class ControllerConfig(msgspec.Struct, forbid_unknown_fields=True):
@@ -21,8 +22,8 @@ class ControllerConfig(msgspec.Struct, forbid_unknown_fields=True):
     r_diag: PositiveWeights = msgspec.field(default_factory=lambda: [1.0, 1.0, 1.0])
     horizon: Horizon = 30                               # N, prediction steps (seed: 30; tube 50)
     # mpc_ts_sc: slack penalty eps'S eps + v ||eps||_inf with S = soft_quadratic_weight * I (task 23).
-    soft_quadratic_weight: Annotated[float, msgspec.Meta(gt=0)] = 1.0e3
-    soft_linf_weight: Annotated[float, msgspec.Meta(ge=0)] = 1.0e5
+    soft_quadratic_weight: Annotated[float, msgspec.Meta(gt=0, le=1e12)] = 1.0e3
+    soft_linf_weight: Annotated[float, msgspec.Meta(ge=0, le=1e12)] = 1.0e5
     # mpc_tube: poles of A + B K_tube (task 31) and the out-of-plane horizon.
     tube_poles: Annotated[list[Annotated[float, msgspec.Meta(gt=-1, lt=1)]], msgspec.Meta(min_length=2, max_length=2)] = \
         msgspec.field(default_factory=lambda: [0.05, 0.1])

@@ -26,8 +26,8 @@ import numpy as np
 
 from bench.bus.schemas import DeadlineEvent, Header
 
-Seconds = Annotated[float, msgspec.Meta(ge=0)]
-PositiveSeconds = Annotated[float, msgspec.Meta(gt=0)]
+Seconds = Annotated[float, msgspec.Meta(ge=0, le=60.0)]
+PositiveSeconds = Annotated[float, msgspec.Meta(gt=0, le=60.0)]
 FallbackPolicy = Literal["hold", "shifted_plan", "lqr"]
 # Processes that apply a StressConfig (call StressInjector(config, name).apply(cycle) in their
 # loop). Only the controller does so far; a scenario naming another is refused, not ignored.
@@ -49,8 +49,8 @@ class StressConfig(msgspec.Struct, forbid_unknown_fields=True):
 
     process: StressedProcess = "controller"
     extra_cycle_time_s: Seconds = 0.0
-    cycles: list[Annotated[int, msgspec.Meta(ge=0)]] = []
-    every_nth_cycle: Annotated[int, msgspec.Meta(ge=0)] = 0
+    cycles: Annotated[list[Annotated[int, msgspec.Meta(ge=0, le=100_000)]], msgspec.Meta(max_length=10_000)] = []
+    every_nth_cycle: Annotated[int, msgspec.Meta(ge=0, le=100_000)] = 0
     # "busy": burn CPU (load, as a slow solver would); "sleep": a pure delay (as a pre-empted one).
     kind: Literal["busy", "sleep"] = "busy"
 

@@ -9,9 +9,10 @@ from typing import Annotated, Literal
 
 import msgspec
 
-Positive = Annotated[float, msgspec.Meta(gt=0)]
-NonNegative = Annotated[float, msgspec.Meta(ge=0)]
-PositiveInt = Annotated[int, msgspec.Meta(ge=1)]
+Positive = Annotated[float, msgspec.Meta(gt=0, le=1e15)]
+NonNegative = Annotated[float, msgspec.Meta(ge=0, le=1e15)]
+# Window lengths and decimations: the smoother keeps lag_steps states, so bounded by memory.
+PositiveInt = Annotated[int, msgspec.Meta(ge=1, le=10_000)]
 # A believed radius off by 50 % or more is not an estimation problem, it is a different orbit.
 RelativeError = Annotated[float, msgspec.Meta(gt=-0.5, lt=0.5)]
 
