@@ -11,6 +11,7 @@ from pathlib import Path
 from bench.metrics import trajectory_metrics
 from bench.report import canbus, plots
 from bench.report.deadlines import DeadlineResult, deadlines
+from bench.report.jsonout import write_json
 from bench.report.document import Document, Figure, Section, Table, fmt, write
 from bench.report.estimation import AXES, estimation_error
 from bench.report.latency import LatencyResult, latency
@@ -54,7 +55,11 @@ def summary_section(run: RunData, mission: dict) -> Section:
     text = (f"Scenario {s.name!r}, {s.run.mode}, controller {s.controller.type}, estimator {s.estimator.mode}, "
             f"{s.n_steps} steps of {s.plant.time_step_s:g} s.")
     rows = [[name, fmt(mission.get(key))] for name, key in MISSION_ROWS if key in mission]
-    return Section("Summary", [text], [Table(["metric", "value"], rows)])
+    paragraphs = [text]
+    if run.metrics.get("partial"):
+        paragraphs.insert(0, f"Partial run: {run.metrics.get('end_reason', 'it did not finish')}. "
+                             "The numbers cover the steps it ran.")
+    return Section("Summary", paragraphs, [Table(["metric", "value"], rows)])
 
 
 def trajectory_section(run: RunData, plot_dir: Path) -> Section | None:
@@ -210,5 +215,5 @@ def write_report(run_dir: str | Path) -> tuple[Path, Path]:
         "estimator_error": est_metrics,
         "can_bus": can_metrics,
     })
-    (run.run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    write_json(run.run_dir / "metrics.json", metrics)
     return paths
