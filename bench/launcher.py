@@ -540,7 +540,7 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
                 ending = RunEnding(0, None)
             except NodeFailed as exc:
                 print(f"bench: error: {exc}", file=sys.stderr)
-                ending = RunEnding(EXIT_FAILED, str(exc).splitlines()[0])
+                ending = RunEnding(EXIT_FAILED, str(exc).splitlines()[0].split("; last lines of")[0])
             except Diverged as exc:
                 print(f"bench: error: {exc}", file=sys.stderr)
                 ending = RunEnding(EXIT_DIVERGED, str(exc))
@@ -595,7 +595,7 @@ def _finish(run_dir: Path, scenario: Scenario, children: list[Child], stats: dic
 def cmd_run(args) -> int:
     try:
         scenario = _apply_overrides(load_scenario(args.scenario), args)
-        run_id = keys.check_run_id(args.run_id or _new_run_id(scenario))
+        run_id = keys.check_run_id(_new_run_id(scenario) if args.run_id is None else args.run_id)
         if args.port is not None and not 0 < args.port < 65536:
             raise ScenarioError(f"--port must be between 1 and 65535, got {args.port}")
         code, _ = run_bench(scenario, run_id, Path(args.runs_dir), args.port, not args.no_progress, args.zenoh_config,
