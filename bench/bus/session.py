@@ -4,7 +4,7 @@ Zenoh's default configuration scouts by UDP multicast and listens on every inter
 bench must not announce itself on the host's network, so every session here is built from an
 explicit configuration: multicast scouting off, gossip on (peers that know one endpoint find the
 rest through it), loopback listen endpoints unless the user names others, and a short liveliness
-lease so a dead or hung peer is noticed within a second.
+lease (the run's `[run.liveliness] lease_s`) so a dead or hung peer is noticed within seconds.
 """
 from __future__ import annotations
 
