@@ -48,7 +48,8 @@ EXIT_FAILED = 1
 EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130
 EXIT_TERMINATED = 143
-STARTUP_TIMEOUT_S = 60.0
+STARTUP_TIMEOUT_S = 120.0
+STARTUP_IDLE_S = 5.0      # a starting node whose CPU time did not advance this long is stuck
 SHUTDOWN_GRACE_S = 5.0
 # After a second Ctrl-C (or SIGTERM) the launcher kills every node and exits within this, even if
 # a Zenoh call it is in never returns.
@@ -417,9 +418,12 @@ def _collect_stats(session, run_id: str, names: set[str]) -> tuple[dict, object]
     return stats, session.declare_subscriber(keys.key(run_id, f"{keys.STATUS_STATS}/*"), on_stats)
 
 
-def _wait_alive(session, run_id: str, children: list[Child]) -> None:
+def _wait_alive(session, run_id: str, children: list[Child], timeout_s: float = STARTUP_TIMEOUT_S) -> None:
+    """Until every node's alive token is there. Past timeout_s, a node still starting is given up
+    to three times that while its CPU time advances (slow on a busy machine), not while it idles."""
     names = {c.name for c in children}
-    deadline = time.monotonic() + STARTUP_TIMEOUT_S
+    started = time.monotonic()
+    progress: dict[str, tuple[float, int]] = {}      # name -> (when its CPU time last advanced, ticks)
     while True:
         _check_children(children, allowed_done=set())
         alive = set()
@@ -428,8 +432,16 @@ def _wait_alive(session, run_id: str, children: list[Child]) -> None:
                 alive.add(str(reply.ok.key_expr).rsplit("/", 1)[-1])
         if names <= alive:
             return
-        if time.monotonic() > deadline:
-            raise NodeFailed(f"processes not alive after {STARTUP_TIMEOUT_S} s: {', '.join(sorted(names - alive))}")
+        now = time.monotonic()
+        for child in children:
+            state = process_state(child.process.pid)
+            if state is not None and (child.name not in progress or progress[child.name][1] != state.cpu_ticks):
+                progress[child.name] = (now, state.cpu_ticks)
+        missing = sorted(names - alive)
+        if now - started > timeout_s:
+            still_working = all(now - progress.get(n, (0.0, 0))[0] < STARTUP_IDLE_S for n in missing)
+            if not still_working or now - started > 3 * timeout_s:
+                raise NodeFailed(f"processes not alive after {now - started:.0f} s: {', '.join(missing)}")
         time.sleep(0.05)
 
 
@@ -532,7 +544,7 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
                 for name in names:
                     peers = loop_peers if name == "plant" else []
                     children.append(_spawn(name, run_id, scenario_path, hub, run_dir, peers, zenoh_config, group))
-                _wait_alive(session, run_id, children)
+                _wait_alive(session, run_id, children, scenario.run.liveliness.startup_timeout_s)
                 _follow_run(session, run_id, children, scenario.n_steps, show_progress, scenario.run.liveliness, run_dir)
                 _stop_children(children)
                 time.sleep(0.1)   # the last stats samples are on their way

@@ -115,11 +115,14 @@ class NodeContext:
     def declare_alive(self) -> None:
         self._keepalive.append(self.session.liveliness().declare_token(keys.key(self.run_id, f"{keys.ALIVE}/{self.name}")))
 
-    def declare_ready(self, consumed_topics: list[str], timeout_s: float = 20.0) -> None:
+    def declare_ready(self, consumed_topics: list[str], timeout_s: float | None = None) -> None:
         """Declare `ready/<name>` once each of `consumed_topics` reaches a subscriber.
 
         Lock-step depends on it: a sample published before its subscriber is matched is lost.
+        The default wait is the scenario's [run.liveliness] startup_timeout_s.
         """
+        if timeout_s is None:
+            timeout_s = self.scenario.run.liveliness.startup_timeout_s
         deadline = time.monotonic() + timeout_s
         for topic in consumed_topics:
             pub = self._publishers.get(topic) or self.declare_publisher(topic)

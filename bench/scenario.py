@@ -55,6 +55,11 @@ class LivelinessConfig(msgspec.Struct, forbid_unknown_fields=True):
     """
 
     lease_s: Annotated[float, msgspec.Meta(ge=0.1, le=60.0)] = 2.0
+    # How long the launcher waits for every node to come alive, and a node for its peers to be
+    # ready. Sixteen Python processes importing numpy, gtsam and Zenoh on two cores at load 30
+    # took over 60 s (benchmarks/bench_concurrent_runs.py); the launcher waits up to three times
+    # this for a node whose CPU time still advances (slow, not stuck).
+    startup_timeout_s: Annotated[float, msgspec.Meta(ge=5.0, le=3600.0)] = 120.0
     stopped_grace_s: Annotated[float, msgspec.Meta(ge=0.0, le=60.0)] = 1.0
     hang_timeout_s: Annotated[float, msgspec.Meta(ge=1.0, le=600.0)] = 15.0
 

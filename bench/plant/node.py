@@ -148,7 +148,7 @@ def run(ctx: NodeContext) -> int:
     ctx.declare_publisher(keys.SENSE_RELPOS)
     ctx.declare_publisher(keys.EVENT_DEADLINE)
     ctx.declare_ready([sense_topic])
-    ctx.wait_for_tokens(keys.READY, ctx.peers, timeout_s=30.0)
+    ctx.wait_for_tokens(keys.READY, ctx.peers, timeout_s=scenario.run.liveliness.startup_timeout_s)
     ctx.watch_peers(ctx.peers)
     ctx.log.info("peers ready (%s); running %d steps in %s mode", ", ".join(ctx.peers), n_steps, scenario.run.mode)
 
