@@ -397,25 +397,39 @@ def _follow_run(session, run_id: str, children: list[Child], n_steps: int, show_
         _check_children([plant], allowed_done=set())
 
 
-def _collect_stats(session, run_id: str, names: set[str]) -> tuple[dict, object]:
-    """Each process's ProcessStats, the first one per process only: a second one (a forgery, or a
-    replay) is counted under "conflicting" and does not overwrite it."""
-    stats: dict = {}
+class StatsCollector:
+    """Each process's ProcessStats, which a node publishes once, as it stops.
 
-    def on_stats(sample) -> None:
+    Anyone on the bus can publish a ProcessStats, so: only for the run's own process names, only
+    once the launcher has started stopping the nodes (earlier ones are counted as premature), and
+    only the first per process (later ones are counted as conflicting, not taken)."""
+
+    def __init__(self, session, run_id: str, names: set[str]):
+        self.run_id = run_id
+        self.names = names
+        self.stats: dict = {}
+        self.accepting = False
+        self.premature = 0
+        self._subscriber = session.declare_subscriber(keys.key(run_id, f"{keys.STATUS_STATS}/*"), self._on_stats)
+
+    def _on_stats(self, sample) -> None:
         try:
             message = decode(sample.payload.to_bytes(), ProcessStats)
         except MalformedMessage:
             return
-        if message.header.run_id != run_id or message.process not in names:
+        if message.header.run_id != self.run_id or message.process not in self.names:
             return
-        entry = {"published": message.published, "malformed": message.malformed}
-        if message.process in stats:
-            stats[message.process]["conflicting"] = stats[message.process].get("conflicting", 0) + 1
+        if not self.accepting:
+            self.premature += 1
             return
-        stats[message.process] = entry
+        if message.process in self.stats:
+            entry = self.stats[message.process]
+            entry["conflicting"] = entry.get("conflicting", 0) + 1
+            return
+        self.stats[message.process] = {"published": message.published, "malformed": message.malformed}
 
-    return stats, session.declare_subscriber(keys.key(run_id, f"{keys.STATUS_STATS}/*"), on_stats)
+    def undeclare(self) -> None:
+        self._subscriber.undeclare()
 
 
 def _wait_alive(session, run_id: str, children: list[Child], timeout_s: float = STARTUP_TIMEOUT_S) -> None:
@@ -534,7 +548,8 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
     group = ProcessGroup()
     started = time.monotonic()
     names = nodes_for(scenario)
-    stats, stats_subscriber = _collect_stats(session, run_id, set(names))
+    collector = StatsCollector(session, run_id, set(names))
+    stats = collector.stats
     ending = RunEnding(EXIT_FAILED, "the launcher failed")
     guard = SignalGuard(group)
     with guard:
@@ -546,6 +561,7 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
                     children.append(_spawn(name, run_id, scenario_path, hub, run_dir, peers, zenoh_config, group))
                 _wait_alive(session, run_id, children, scenario.run.liveliness.startup_timeout_s)
                 _follow_run(session, run_id, children, scenario.n_steps, show_progress, scenario.run.liveliness, run_dir)
+                collector.accepting = True
                 _stop_children(children)
                 time.sleep(0.1)   # the last stats samples are on their way
                 _check_children(children, allowed_done={c.name for c in children})
@@ -561,12 +577,13 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
                 print(f"bench: {signal.Signals(signum).name}: stopping all processes", file=sys.stderr)
                 ending = RunEnding(RunInterrupted(signum).exit_code, f"interrupted by {signal.Signals(signum).name}")
             finally:
+                collector.accepting = True
                 if guard.hurry:
                     _kill_children(children)
                 else:
                     _stop_children(children)
                 group.kill()     # anything a node started
-                stats_subscriber.undeclare()
+                collector.undeclare()
             _finish(run_dir, scenario, children, stats, time.monotonic() - started, ending, write_report and not guard.hurry)
         except RunInterrupted as exc:
             # The first signal came during the cleanup itself: the nodes go at once; only the

@@ -126,3 +126,25 @@ def test_can_frames_are_recorded_not_malformed(tmp_path):
         wait_until(lambda: recorder.arrived == 3)
         counts = recorder.finish()
     assert counts["topics"]["can/flight"] == {"recorded": 2, "malformed": 1, "published": None, "missing": None}
+
+
+def test_forged_process_stats_do_not_replace_the_real_ones():
+    from bench.launcher import StatsCollector
+
+    def stats(process: str, n: int) -> bytes:
+        return encode(ProcessStats(header(REC_RUN, 0, 0.0), process, {keys.TRUTH: n}, {}))
+
+    with session_pair() as (launcher_session, rogue):
+        collector = StatsCollector(launcher_session, REC_RUN, {"plant", "controller"})
+        key = keys.key(REC_RUN, "status/stats/plant")
+        time.sleep(0.2)
+        rogue.put(key, stats("plant", 999))            # before the run ends: premature
+        rogue.put(key, stats("intruder", 5))           # not a process of the run
+        wait_until(lambda: collector.premature == 1)
+        collector.accepting = True                     # the launcher starts stopping the nodes
+        rogue.put(key, stats("plant", 288))            # the plant's own, at its shutdown
+        wait_until(lambda: "plant" in collector.stats)
+        rogue.put(key, stats("plant", 7))              # a forgery after it
+        wait_until(lambda: collector.stats["plant"].get("conflicting") == 1)
+        collector.undeclare()
+    assert collector.stats == {"plant": {"published": {keys.TRUTH: 288}, "malformed": {}, "conflicting": 1}}
