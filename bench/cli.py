@@ -14,7 +14,7 @@ COMMAND_MODULES = [
     "bench.bus.can.vcan",      # vcan up/down
     "bench.report.cli",        # report, compare
     "bench.bus.can.cli",       # faults
-    "bench.controller.cli",    # tune-lqr, compare-controllers
+    "bench.studies.cli",       # tune-lqr, compare-controllers
 ]
 
 

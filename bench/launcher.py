@@ -4,7 +4,7 @@ The launcher opens the hub session every node connects to, starts each node as i
 (`bench node NAME ...`), waits until all are alive, follows the plant's progress, and shuts
 everything down on success, on Ctrl-C or SIGTERM, and when a node dies, hangs or the plant's state
 diverges. Then it writes metrics.json and the report, marked partial with the reason when the run
-did not finish. The nodes die with it even when it is killed (bench/ownership.py); a second
+did not finish. The nodes die with it even when it is killed (bench/runtime/ownership.py); a second
 Ctrl-C kills them at once and exits within a bounded time.
 
 Exit codes: 0 done, 1 a process failed or hung, 2 bad input (nothing started), 3 the plant's
@@ -36,12 +36,13 @@ import zenoh
 from bench.bus import keys
 from bench.bus.schemas import ProcessStats, StepDone, decode, MalformedMessage
 from bench.bus.session import SessionConfigError, SessionOptions, free_loopback_port, loopback_endpoint, open_session
-from bench.metrics import trajectory_metrics
-from bench.node_runtime import NODES, node_options, run_node
-from bench.ownership import child_environment, kill_group, process_state
-from bench.plant.divergence import EXIT_DIVERGED, read_divergence
 from bench.plant.acceptance import ACCEPTANCE_FILE
+from bench.plant.divergence import EXIT_DIVERGED, read_divergence
 from bench.report.jsonout import write_json
+from bench.report.run_metrics import trajectory_metrics
+from bench.runtime.node import NODES, node_options, run_node
+from bench.runtime.ownership import child_environment, kill_group, process_state
+from bench.runtime.process import start_node
 from bench.scenario import LivelinessConfig, Scenario, ScenarioError, builtin_names, load_scenario, parse_scenario
 
 EXIT_FAILED = 1
@@ -132,16 +133,9 @@ class ProcessGroup:
 def _spawn(name: str, run_id: str, scenario_path: Path, hub: str, run_dir: Path, peers: list[str],
            zenoh_config: str | None, group: ProcessGroup | None = None) -> Child:
     log_path = run_dir / "logs" / f"{name}.log"
-    cmd = [sys.executable, "-m", "bench.cli", "node", name, "--run-id", run_id, "--scenario", str(scenario_path),
-           "--connect", hub, "--run-dir", str(run_dir)]
-    if peers:
-        cmd += ["--wait-for", ",".join(peers)]
-    if zenoh_config:
-        cmd += ["--zenoh-config", zenoh_config]
     group = group or ProcessGroup()
-    with open(log_path, "w") as log_file:
-        process = subprocess.Popen(cmd, stdout=log_file, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                   **group.popen_kwargs())
+    process = start_node(name, run_id, scenario_path, hub, run_dir, log_path, peers, zenoh_config,
+                         popen_kwargs=group.popen_kwargs())
     group.joined(process)
     return Child(name, process, log_path)
 

@@ -22,8 +22,8 @@ import msgspec
 from bench.bus.can.config import CanConfig
 from bench.controller.config import ControllerConfig
 from bench.estimator.config import EstimatorConfig
+from bench.gnc.cwh import RendezvousParams
 from bench.plant.config import PlantConfig
-from bench.plant.cwh import RendezvousParams
 
 BUILTIN_PACKAGE = "bench.scenarios"
 
@@ -76,6 +76,17 @@ class RunConfig(msgspec.Struct, forbid_unknown_fields=True):
     liveliness: LivelinessConfig = msgspec.field(default_factory=LivelinessConfig)
 
 
+class OnboardConfig(msgspec.Struct, forbid_unknown_fields=True):
+    """What the flight side (estimator and controller alike) believes about the world.
+
+    The defaults believe the plant's truth ([plant]); a belief that differs is a scenario.
+    """
+
+    # The target orbit radius believed on board is the plant's R (1 + believed_radius_error)
+    # (seed 001, third case). Off by 50 % or more is a different orbit, not an estimation problem.
+    believed_radius_error: Annotated[float, msgspec.Meta(gt=-0.5, lt=0.5)] = 0.0
+
+
 class Scenario(msgspec.Struct, forbid_unknown_fields=True):
     name: Annotated[str, msgspec.Meta(pattern=NAME_PATTERN)]
     description: Annotated[str, msgspec.Meta(max_length=4096)] = ""
@@ -83,6 +94,7 @@ class Scenario(msgspec.Struct, forbid_unknown_fields=True):
     plant: PlantConfig = msgspec.field(default_factory=PlantConfig)
     estimator: EstimatorConfig = msgspec.field(default_factory=EstimatorConfig)
     controller: ControllerConfig = msgspec.field(default_factory=ControllerConfig)
+    onboard: OnboardConfig = msgspec.field(default_factory=OnboardConfig)
     can: CanConfig | None = None
 
     def params(self) -> RendezvousParams:
@@ -97,6 +109,11 @@ class Scenario(msgspec.Struct, forbid_unknown_fields=True):
         if self.run.steps is not None:
             overrides["n_steps"] = self.run.steps
         return RendezvousParams.from_reference(**overrides)
+
+    def onboard_params(self) -> RendezvousParams:
+        """The params as the flight side believes them ([onboard]): what estimator and controller
+        build their models on. The plant flies `params()`."""
+        return self.params().with_radius_error(self.onboard.believed_radius_error)
 
     @property
     def n_steps(self) -> int:

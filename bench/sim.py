@@ -9,8 +9,8 @@ import numpy as np
 
 from bench.controller.cycle import ControlCycle
 from bench.estimator.frontend import StateEstimator
-from bench.metrics import trajectory_metrics
 from bench.plant.model import TranslationPlant
+from bench.report.run_metrics import trajectory_metrics
 from bench.scenario import Scenario
 
 

@@ -26,8 +26,8 @@ import numpy as np
 from bench.bus.can import protocol as p
 from bench.bus.can.busmodel import FLIGHT, BusModel
 from bench.bus.can.faults import FaultSpec
-from bench.bus.can.harness import CanBench, write_scenario
 from bench.bus.can.injector import FaultInjector
+from bench.runtime.can_bench import CanBench, write_scenario
 
 ROUNDS = 3
 DRIVE_S = 3.0

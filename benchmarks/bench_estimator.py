@@ -26,7 +26,7 @@ from bench.estimator.factors import range_bearing  # noqa: E402
 from bench.estimator.motion_model import CwhMotionModel  # noqa: E402
 from bench.estimator.translation import TranslationSmoother  # noqa: E402
 from bench.plant.attitude import AttitudeSensorSpec, AttitudeSimulation  # noqa: E402
-from bench.plant.cwh import RendezvousParams  # noqa: E402
+from bench.gnc.cwh import RendezvousParams  # noqa: E402
 
 PARAMS = RendezvousParams.from_reference()
 
@@ -93,10 +93,11 @@ def time_kalman(fixes, thrusts) -> Timings:
     return timings
 
 
-def time_translation(config: TranslationSmootherConfig, fixes, range_bearings, thrusts) -> Timings:
+def time_translation(config: TranslationSmootherConfig, fixes, range_bearings, thrusts,
+                     believed_radius_error: float = 0.0) -> Timings:
     timings = Timings()
     for _ in range(REPEATS):
-        smoother = TranslationSmoother(config, PARAMS)
+        smoother = TranslationSmoother(config, PARAMS.with_radius_error(believed_radius_error))
         for k in range(STEPS):
             u = thrusts[k - 1] if k else np.zeros(3)
             if config.sensor == "relpos":
@@ -132,7 +133,7 @@ def main() -> None:
         ("Kalman filter (numpy, baseline)", time_kalman(fixes, thrusts)),
         ("translation smoother, lag 20", time_translation(TranslationSmootherConfig(), fixes, range_bearings, thrusts)),
         ("translation + mean motion, lag 20", time_translation(
-            TranslationSmootherConfig(estimate_mean_motion=True, believed_radius_error=0.01), fixes, range_bearings, thrusts)),
+            TranslationSmootherConfig(estimate_mean_motion=True), fixes, range_bearings, thrusts, believed_radius_error=0.01)),
         ("translation, range/bearing, lag 20", time_translation(
             TranslationSmootherConfig(sensor="range_bearing"), fixes, range_bearings, thrusts)),
     ]

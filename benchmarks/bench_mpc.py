@@ -18,9 +18,9 @@ import numpy as np
 import osqp
 from scipy import sparse
 
-from bench.controller.mpc import MPC
-from bench.controller.simulate import simulate
-from bench.plant.cwh import RendezvousParams
+from bench.gnc.cwh import RendezvousParams
+from bench.gnc.mpc import MPC
+from bench.studies.simulate import simulate
 
 Q_STAR = np.diag([94.0, 0.1579, 300.0, 0.01, 0.10, 0.10])
 

@@ -24,8 +24,9 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
-from bench import launcher, node_runtime
+from bench import launcher
 from bench.report.latency import END_TO_END, hop_samples_s, stamps_from_trajectory
+from bench.runtime import node as node_runtime
 from bench.scenario import load_scenario
 
 

@@ -9,11 +9,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bench.controller.lqr import LQR
 from bench.estimator.config import TranslationSmootherConfig
-from bench.estimator.motion_model import params_with_mean_motion
 from bench.estimator.translation import TranslationSmoother
-from bench.plant.cwh import RendezvousParams
+from bench.gnc.cwh import params_with_mean_motion, RendezvousParams
+from bench.gnc.lqr import LQR
 
 # The tuned weights of the default scenario (bench/scenarios/rendezvous_lqr.toml).
 Q_DIAG = [94.0, 0.1579, 500.0, 0.01, 0.1, 0.01]
@@ -43,11 +42,13 @@ def lqr_for(params: RendezvousParams) -> LQR:
 
 
 def run_closed_loop(true_params: RendezvousParams, config: TranslationSmootherConfig,
-                    noise_std_m: float, seed: int, steps: int | None = None) -> LoopResult:
+                    noise_std_m: float, seed: int, steps: int | None = None,
+                    believed_radius_error: float = 0.0) -> LoopResult:
+    """believed_radius_error: the flight side's orbit radius is the truth's times (1 + this)."""
     steps = true_params.n_steps if steps is None else steps
     rng = np.random.default_rng(seed)
     a_true, b_true = true_params.discrete_si()
-    smoother = TranslationSmoother(config, true_params)
+    smoother = TranslationSmoother(config, true_params.with_radius_error(believed_radius_error))
     model_params = smoother.believed_params      # the controller starts from the believed orbit
     controller, gain_n = lqr_for(model_params), model_params.mean_motion
     gain_updates = 0

@@ -1,5 +1,5 @@
 """An independent MPC solve for the tests: the seed's problems in their sparse (state-space) form
-on quadprog, with states as decision variables. Shares nothing with bench.controller.mpc but the
+on quadprog, with states as decision variables. Shares nothing with bench.gnc.mpc but the
 model, so a condensing error there shows up as a different first input here."""
 from __future__ import annotations
 

@@ -6,7 +6,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from bench.bus.session import SessionOptions, free_loopback_port, loopback_endpoint, open_session
-from bench.node_runtime import NodeContext
+from bench.runtime.node import NodeContext
 from bench.scenario import parse_scenario
 
 

@@ -4,8 +4,8 @@ import pytest
 
 from bench.controller.config import ControllerConfig
 from bench.controller.factory import build_controller
-from bench.controller.lqr import dlqr
-from bench.plant.cwh import RendezvousParams
+from bench.gnc.cwh import RendezvousParams
+from bench.gnc.lqr import dlqr
 
 
 @pytest.fixture(scope="module")

@@ -4,14 +4,14 @@ import pytest
 
 from bench.controller.config import ControllerConfig
 from bench.controller.factory import build_controller
-from bench.controller.lqr import LQR
-from bench.controller.metrics import traj_constraints, traj_cost
-from bench.controller.mpc import MPC, MPC_TS_SC
-from bench.controller.sets import Polytope
-from bench.controller.simulate import simulate
-from bench.controller.tube import compute_tube_controller
-from bench.controller.tuning import lqr_tuning
-from bench.plant.cwh import RendezvousParams, z_subsystem
+from bench.gnc.cwh import RendezvousParams, z_subsystem
+from bench.gnc.lqr import LQR
+from bench.gnc.mpc import MPC, MPC_TS_SC
+from bench.gnc.sets import Polytope
+from bench.gnc.tube import compute_tube_controller
+from bench.studies.metrics import traj_constraints, traj_cost
+from bench.studies.simulate import simulate
+from bench.studies.tuning import lqr_tuning
 
 Q_STAR = np.diag([94.0, 0.1579, 300.0, 0.01, 0.10, 0.10])
 

@@ -3,11 +3,11 @@ LQR, and soft against hard constraints (seed 003 tasks 16 to 24)."""
 import numpy as np
 import pytest
 
-from bench.controller.lqr import dlqr
-from bench.controller.mpc import MPC, MPC_TE, MPC_TS, MPC_TS_SC
-from bench.controller.sets import lqr_max_pi
-from bench.controller.simulate import simulate
-from bench.plant.cwh import RendezvousParams
+from bench.gnc.cwh import RendezvousParams
+from bench.gnc.lqr import dlqr
+from bench.gnc.mpc import MPC, MPC_TE, MPC_TS, MPC_TS_SC
+from bench.gnc.sets import lqr_max_pi
+from bench.studies.simulate import simulate
 from mpc_reference import reference_mpc_solution
 
 Q_STAR = np.diag([94.0, 0.1579, 300.0, 0.01, 0.10, 0.10])
@@ -125,8 +125,8 @@ Q_TUNED = np.diag([108.55, 0.0887937, 372.281, 0.000133352, 0.00133352, 0.001333
 
 
 def test_tuned_lqr_and_mpc_meet_the_terminal_conditions_from_a(setup):
-    from bench.controller.lqr import LQR
-    from bench.controller.metrics import traj_constraints
+    from bench.gnc.lqr import LQR
+    from bench.studies.metrics import traj_constraints
 
     params, model, P, x_lqr, x0 = setup
     for ctrl in (LQR(Q_TUNED, R_STAR, model.A, model.B), MPC(Q_TUNED, R_STAR, N, model)):

@@ -2,11 +2,11 @@
 import numpy as np
 import pytest
 
-from bench.controller.lqr import dlqr
-from bench.controller.sets import (Polytope, lqr_max_pi, max_positively_invariant, pontryagin_difference,
+from bench.gnc.lqr import dlqr
+from bench.gnc.sets import (Polytope, lqr_max_pi, max_positively_invariant, pontryagin_difference,
                                    remove_redundant_rows, support, vertices)
-from bench.controller.tube import compute_min_rpi, compute_tightening, compute_tube_controller
-from bench.plant.cwh import RendezvousParams, z_subsystem
+from bench.gnc.cwh import RendezvousParams, z_subsystem
+from bench.gnc.tube import compute_min_rpi, compute_tightening, compute_tube_controller
 
 Q_STAR = np.diag([94.0, 0.1579, 300.0, 0.01, 0.10, 0.10])
 

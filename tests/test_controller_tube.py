@@ -2,9 +2,9 @@
 import numpy as np
 import pytest
 
-from bench.controller.simulate import simulate_uncertain
-from bench.controller.tube import design_tube_mpc, generate_disturbances
-from bench.plant.cwh import RendezvousParams, z_subsystem
+from bench.gnc.cwh import RendezvousParams, z_subsystem
+from bench.gnc.tube import design_tube_mpc, generate_disturbances
+from bench.studies.simulate import simulate_uncertain
 
 U_TOL_N = 1e-5        # the QP meets the tube constraint to 1e-7; times |K_tube| ~ 1e3
 

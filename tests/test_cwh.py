@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 from scipy.integrate import quad_vec
 
-from bench.plant.cwh import RendezvousParams, cwh_continuous, discretise_zoh, scale_system
+from bench.gnc.cwh import RendezvousParams, cwh_continuous, discretise_zoh, scale_system
 from bench.plant.dynamics import propagate
 
 

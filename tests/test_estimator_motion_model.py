@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 from scipy.linalg import expm_frechet
 
-from bench.estimator.motion_model import CwhMotionModel, cwh_discrete_closed_form, params_with_mean_motion
-from bench.plant.cwh import RendezvousParams, cwh_continuous, discretise_zoh
+from bench.estimator.motion_model import CwhMotionModel, cwh_discrete_closed_form
+from bench.gnc.cwh import params_with_mean_motion, RendezvousParams, cwh_continuous, discretise_zoh
 
 PARAMS = RendezvousParams.from_reference()
 

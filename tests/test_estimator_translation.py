@@ -14,7 +14,7 @@ from bench.estimator.config import TranslationSmootherConfig
 from bench.estimator.factors import range_bearing
 from bench.estimator.motion_model import CwhMotionModel
 from bench.estimator.translation import TranslationSmoother
-from bench.plant.cwh import RendezvousParams
+from bench.gnc.cwh import RendezvousParams
 from bench.report.plots import estimator_error
 from estimator_loop import run_closed_loop
 
@@ -54,13 +54,14 @@ def test_newest_estimate_equals_kalman_filter(lag_steps, every):
         x = m.transition @ x + m.input_matrix @ thrust
 
 
-def _nees_monte_carlo(config: TranslationSmootherConfig, true_noise_m: float, runs: int, steps: int):
+def _nees_monte_carlo(config: TranslationSmootherConfig, true_noise_m: float, runs: int, steps: int,
+                      believed_radius_error: float = 0.0):
     """Per-step NEES of runs of a truth drawn from the smoother's own model (prior and Q)."""
     m = _model(config)
     nees = np.zeros((runs, steps))
     for run in range(runs):
         rng = np.random.default_rng(1000 + run)
-        smoother = TranslationSmoother(config, PARAMS)
+        smoother = TranslationSmoother(config, PARAMS.with_radius_error(believed_radius_error))
         x = PARAMS.initial_state_m_mps("A").copy()
         x[3:] = rng.normal(0.0, config.initial_velocity_std_mps, 3)
         thrust = np.zeros(3)
@@ -93,23 +94,23 @@ def _consistent(nees: np.ndarray, dof: int = 6) -> tuple[bool, float, float]:
 RUNS, STEPS = 50, 25
 
 
-@pytest.mark.parametrize("case, config", [
-    ("relative position", TranslationSmootherConfig(lag_steps=10)),
-    ("range/bearing", TranslationSmootherConfig(lag_steps=10, sensor="range_bearing")),
+@pytest.mark.parametrize("case, config, believed_radius_error", [
+    ("relative position", TranslationSmootherConfig(lag_steps=10), 0.0),
+    ("range/bearing", TranslationSmootherConfig(lag_steps=10, sensor="range_bearing"), 0.0),
     # The truth's orbit radius is 1 % off the believed one; the mean motion is estimated jointly.
-    ("joint mean motion", TranslationSmootherConfig(lag_steps=10, believed_radius_error=0.01, estimate_mean_motion=True)),
+    ("joint mean motion", TranslationSmootherConfig(lag_steps=10, estimate_mean_motion=True), 0.01),
 ])
-def test_nees_within_chi_square_bounds(case, config):
-    ok, inside, mean = _consistent(_nees_monte_carlo(config, NOISE_M, RUNS, STEPS))
+def test_nees_within_chi_square_bounds(case, config, believed_radius_error):
+    ok, inside, mean = _consistent(_nees_monte_carlo(config, NOISE_M, RUNS, STEPS, believed_radius_error))
     assert ok, f"{case}: average NEES {mean:.2f}, {inside:.0%} of steps inside the 95 % bounds"
 
 
-@pytest.mark.parametrize("case, config", [
-    ("believes 3 m, sensor has 10 m", TranslationSmootherConfig(position_noise_std_m=3.0, lag_steps=10)),
-    ("orbit radius 1 % off, not estimated", TranslationSmootherConfig(believed_radius_error=0.01, lag_steps=10)),
+@pytest.mark.parametrize("case, config, believed_radius_error", [
+    ("believes 3 m, sensor has 10 m", TranslationSmootherConfig(position_noise_std_m=3.0, lag_steps=10), 0.0),
+    ("orbit radius 1 % off, not estimated", TranslationSmootherConfig(lag_steps=10), 0.01),
 ])
-def test_nees_check_catches_an_overconfident_smoother(case, config):
-    ok, _, mean = _consistent(_nees_monte_carlo(config, NOISE_M, 20, STEPS))
+def test_nees_check_catches_an_overconfident_smoother(case, config, believed_radius_error):
+    ok, _, mean = _consistent(_nees_monte_carlo(config, NOISE_M, 20, STEPS, believed_radius_error))
     assert not ok and mean > 6.0, case
 
 
@@ -208,12 +209,12 @@ def test_default_rendezvous_meets_terminal_conditions_with_smoother_in_the_loop(
 
 
 def test_one_percent_radius_error_breaks_the_rendezvous_unless_mean_motion_is_estimated():
-    wrong = TranslationSmootherConfig(believed_radius_error=0.01)
-    assert not _meets_terminal_conditions(run_closed_loop(PARAMS, wrong, NOISE_M, seed=1))
+    wrong = TranslationSmootherConfig()
+    assert not _meets_terminal_conditions(run_closed_loop(PARAMS, wrong, NOISE_M, seed=1, believed_radius_error=0.01))
 
-    joint = TranslationSmootherConfig(believed_radius_error=0.01, estimate_mean_motion=True)
-    smoother_params = TranslationSmoother(joint, PARAMS)
-    result = run_closed_loop(PARAMS, joint, NOISE_M, seed=1)
+    joint = TranslationSmootherConfig(estimate_mean_motion=True)
+    smoother_params = TranslationSmoother(joint, PARAMS.with_radius_error(0.01))
+    result = run_closed_loop(PARAMS, joint, NOISE_M, seed=1, believed_radius_error=0.01)
     assert _meets_terminal_conditions(result), result.terminal_errors()
     assert result.failed_updates == 0
     believed_error = abs(smoother_params.believed_mean_motion_radps / PARAMS.mean_motion - 1.0)

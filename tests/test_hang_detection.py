@@ -10,7 +10,7 @@ import time
 import pytest
 
 from bench.launcher import Child, NodeFailed, TokenLoss, _check_liveliness
-from bench.ownership import process_state
+from bench.runtime.ownership import process_state
 from bench.scenario import LivelinessConfig
 
 LIVELINESS = LivelinessConfig(lease_s=2.0, stopped_grace_s=1.0, hang_timeout_s=15.0)
@@ -70,7 +70,7 @@ def test_a_token_gone_past_the_hang_timeout_is_hung_even_if_running(busy_child):
 def test_a_peer_whose_token_comes_back_is_not_lost():
     import logging
 
-    from bench.node_runtime import NodeContext
+    from bench.runtime.node import NodeContext
     from bench.scenario import parse_scenario
 
     ctx = NodeContext("plant", "r", parse_scenario({"name": "x"}), None, None, logging.getLogger("t"))

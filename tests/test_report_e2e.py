@@ -11,7 +11,7 @@ from mcap.reader import make_reader
 
 from bench.bus import keys
 from bench.bus.schemas import STAGES
-from bench.controller.deadline import StressConfig
+from bench.controller.config import StressConfig
 from conftest import run_bench_cli
 
 REALTIME_STEPS = 40          # 4 s of real time at the default 10 steps per wall second

@@ -5,11 +5,55 @@ from typing import Annotated, Literal
 
 import msgspec
 
-from bench.controller.deadline import DeadlineConfig
+from bench.data import load_reference
 
+SEED_WEIGHTS = load_reference()["weights"]     # Q*, horizons and tube poles of seed 003
+Seconds = Annotated[float, msgspec.Meta(ge=0, le=60.0)]
+PositiveSeconds = Annotated[float, msgspec.Meta(gt=0, le=60.0)]
+FallbackPolicy = Literal["hold", "shifted_plan", "lqr"]
+# Processes that apply a StressConfig (call StressInjector(config, name).apply(cycle) in their
+# loop). Only the controller does so far; a scenario naming another is refused, not ignored.
+StressedProcess = Literal["controller"]
 PositiveWeights = Annotated[list[Annotated[float, msgspec.Meta(gt=0, le=1e12)]], msgspec.Meta(min_length=1, max_length=64)]
 # The QP grows with N (3N inputs, 6N states); 1000 steps is already a 9000-variable QP per cycle.
 Horizon = Annotated[int, msgspec.Meta(ge=1, le=1000)]
+
+
+class StressConfig(msgspec.Struct, forbid_unknown_fields=True):
+    """Extra time added to chosen cycles of one process, to make deadline misses on purpose.
+
+    A cycle i (0-based) is stressed if i is in `cycles`, or if `every_nth_cycle` = N > 0 and
+    (i + 1) is a multiple of N (the Nth, 2Nth, ... cycle). Over n cycles that is exactly
+    len({i in cycles, i < n} | {N-1, 2N-1, ...}) stressed cycles: tests can count them.
+    """
+
+    process: StressedProcess = "controller"
+    extra_cycle_time_s: Seconds = 0.0
+    cycles: Annotated[list[Annotated[int, msgspec.Meta(ge=0, le=100_000)]], msgspec.Meta(max_length=10_000)] = []
+    every_nth_cycle: Annotated[int, msgspec.Meta(ge=0, le=100_000)] = 0
+    # "busy": burn CPU (load, as a slow solver would); "sleep": a pure delay (as a pre-empted one).
+    kind: Literal["busy", "sleep"] = "busy"
+
+    def is_stressed(self, cycle_index: int) -> bool:
+        if self.extra_cycle_time_s <= 0:
+            return False
+        if cycle_index in self.cycles:
+            return True
+        return self.every_nth_cycle > 0 and (cycle_index + 1) % self.every_nth_cycle == 0
+
+    def stressed_count(self, n_cycles: int) -> int:
+        """How many of cycles 0..n_cycles-1 get the extra time."""
+        return sum(self.is_stressed(i) for i in range(n_cycles))
+
+
+class DeadlineConfig(msgspec.Struct, forbid_unknown_fields=True):
+    """Scenario [controller.deadline]."""
+
+    # Wall-clock budget from the estimate's arrival to the command being ready. The default is
+    # half the step period of real-time mode at its default rate (10 steps per wall second).
+    budget_s: PositiveSeconds = 0.05
+    fallback: FallbackPolicy = "hold"
+    stress: StressConfig = msgspec.field(default_factory=StressConfig)
 
 
 class ControllerConfig(msgspec.Struct, forbid_unknown_fields=True):
@@ -18,15 +62,15 @@ class ControllerConfig(msgspec.Struct, forbid_unknown_fields=True):
     # mpc_tube: tube MPC (23) on the out-of-plane axis [z, vz], mpc with LQR terminal cost in plane.
     type: Literal["lqr", "mpc", "mpc_te", "mpc_ts", "mpc_ts_sc", "mpc_tube"] = "lqr"
     # Q = diag(q_diag), R = diag(r_diag), on the scaled state (seed 003); defaults are Q*, R*.
-    q_diag: PositiveWeights = msgspec.field(default_factory=lambda: [94.0, 0.1579, 300.0, 0.01, 0.10, 0.10])
+    q_diag: PositiveWeights = msgspec.field(default_factory=lambda: list(SEED_WEIGHTS["q_star"]))
     r_diag: PositiveWeights = msgspec.field(default_factory=lambda: [1.0, 1.0, 1.0])
-    horizon: Horizon = 30                               # N, prediction steps (seed: 30; tube 50)
+    horizon: Horizon = SEED_WEIGHTS["mpc_horizon"]      # N, prediction steps
     # mpc_ts_sc: slack penalty eps'S eps + v ||eps||_inf with S = soft_quadratic_weight * I (task 23).
     soft_quadratic_weight: Annotated[float, msgspec.Meta(gt=0, le=1e12)] = 1.0e3
     soft_linf_weight: Annotated[float, msgspec.Meta(ge=0, le=1e12)] = 1.0e5
     # mpc_tube: poles of A + B K_tube (task 31) and the out-of-plane horizon.
     tube_poles: Annotated[list[Annotated[float, msgspec.Meta(gt=-1, lt=1)]], msgspec.Meta(min_length=2, max_length=2)] = \
-        msgspec.field(default_factory=lambda: [0.05, 0.1])
-    tube_horizon: Horizon = 50
-    # Wall-clock budget per cycle, fallback on a miss, optional stress (bench/controller/deadline.py).
+        msgspec.field(default_factory=lambda: list(SEED_WEIGHTS["tube_poles"]))
+    tube_horizon: Horizon = SEED_WEIGHTS["tube_horizon"]
+    # Wall-clock budget per cycle, fallback on a miss, optional stress (used by bench/controller/deadline.py).
     deadline: DeadlineConfig = msgspec.field(default_factory=DeadlineConfig)

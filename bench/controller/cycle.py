@@ -2,15 +2,16 @@
 process and bench.sim so the two cannot drift apart.
 
 The command is saturated at the thrusters' limit u_max per axis, as flight software does before
-it commands an actuator; seed 003's `simulate` (bench.controller) leaves it unsaturated on purpose
+it commands an actuator; seed 003's `simulate` (bench.studies) leaves it unsaturated on purpose
 to study constraint satisfaction, the bench flies what the hardware can do.
 """
 from __future__ import annotations
 
 import numpy as np
 
-from bench.controller.deadline import CycleOutcome, DeadlineMonitor, lqr_fallback_law
+from bench.controller.deadline import DeadlineMonitor, lqr_fallback_law
 from bench.controller.thrust import ThrustLaw
+from bench.runtime.deadline import CycleOutcome
 from bench.scenario import Scenario
 
 

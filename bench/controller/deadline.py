@@ -2,15 +2,14 @@
 
 Every controller cycle has a wall-clock budget (`deadline.budget_s` in the scenario's
 [controller] section). `DeadlineMonitor.run_cycle` times the cycle on the monotonic clock, counts
-overruns (cycle slips), keeps the worst cycle time and the current streak of consecutive misses,
-and on a miss throws the late result away and applies the configured fallback, so the loop keeps
-running. proxsuite has no wall-clock limit of its own: the bench owns the budget. A solve whose
-result comes too late is abandoned here, and `iteration_cap()` lets an iterative solver stop in
-time, from the measured time per iteration of earlier cycles.
+overruns (cycle slips, with `bench.runtime.deadline.MissCounter`), and on a miss throws the late
+result away and applies the configured fallback, so the loop keeps running. proxsuite has no
+wall-clock limit of its own: the bench owns the budget, and a solve whose result comes too late is
+abandoned here.
 
-`PlantCommandDeadline` is the plant's view of the same deadline in real-time mode: a command for
-step k that is not in when step k is integrated is a miss there too. Comparing both tells
-"controller was slow" from "transport was slow".
+The plant's view of the same deadline (`PlantCommandDeadline`) and the miss bookkeeping both
+share are in `bench.runtime.deadline`; the budget, fallback and stress schema in
+`bench.controller.config`.
 
 `StressInjector` makes a process slow on purpose (a scenario option), deterministically: a CPU
 busy loop or a sleep of `extra_cycle_time_s` on listed cycles or on every Nth cycle.
@@ -18,62 +17,20 @@ busy loop or a sleep of `extra_cycle_time_s` on listed cycles or on every Nth cy
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
-from typing import Annotated, Callable, Literal
+from dataclasses import dataclass
+from typing import Callable
 
-import msgspec
 import numpy as np
 
-from bench.bus.schemas import DeadlineEvent, Header
-
-Seconds = Annotated[float, msgspec.Meta(ge=0, le=60.0)]
-PositiveSeconds = Annotated[float, msgspec.Meta(gt=0, le=60.0)]
-FallbackPolicy = Literal["hold", "shifted_plan", "lqr"]
-# Processes that apply a StressConfig (call StressInjector(config, name).apply(cycle) in their
-# loop). Only the controller does so far; a scenario naming another is refused, not ignored.
-StressedProcess = Literal["controller"]
+from bench.controller.config import ControllerConfig, DeadlineConfig, StressConfig
+from bench.controller.factory import weights_from_config
+from bench.gnc.cwh import RendezvousParams
+from bench.gnc.lqr import LQR
+from bench.runtime.deadline import CycleOutcome, MissCounter
 
 # Key of `info` under which a predictive controller returns its planned inputs, shape (N, n_u),
 # in N; the "shifted_plan" fallback replays the rest of the last plan that came in on time.
 PLAN_INFO_KEY = "u_plan"
-
-
-# --- scenario configuration -------------------------------------------------------------------
-class StressConfig(msgspec.Struct, forbid_unknown_fields=True):
-    """Extra time added to chosen cycles of one process, to make deadline misses on purpose.
-
-    A cycle i (0-based) is stressed if i is in `cycles`, or if `every_nth_cycle` = N > 0 and
-    (i + 1) is a multiple of N (the Nth, 2Nth, ... cycle). Over n cycles that is exactly
-    len({i in cycles, i < n} | {N-1, 2N-1, ...}) stressed cycles: tests can count them.
-    """
-
-    process: StressedProcess = "controller"
-    extra_cycle_time_s: Seconds = 0.0
-    cycles: Annotated[list[Annotated[int, msgspec.Meta(ge=0, le=100_000)]], msgspec.Meta(max_length=10_000)] = []
-    every_nth_cycle: Annotated[int, msgspec.Meta(ge=0, le=100_000)] = 0
-    # "busy": burn CPU (load, as a slow solver would); "sleep": a pure delay (as a pre-empted one).
-    kind: Literal["busy", "sleep"] = "busy"
-
-    def is_stressed(self, cycle_index: int) -> bool:
-        if self.extra_cycle_time_s <= 0:
-            return False
-        if cycle_index in self.cycles:
-            return True
-        return self.every_nth_cycle > 0 and (cycle_index + 1) % self.every_nth_cycle == 0
-
-    def stressed_count(self, n_cycles: int) -> int:
-        """How many of cycles 0..n_cycles-1 get the extra time."""
-        return sum(self.is_stressed(i) for i in range(n_cycles))
-
-
-class DeadlineConfig(msgspec.Struct, forbid_unknown_fields=True):
-    """Scenario [controller.deadline]."""
-
-    # Wall-clock budget from the estimate's arrival to the command being ready. The default is
-    # half the step period of real-time mode at its default rate (10 steps per wall second).
-    budget_s: PositiveSeconds = 0.05
-    fallback: FallbackPolicy = "hold"
-    stress: StressConfig = msgspec.field(default_factory=StressConfig)
 
 
 # --- stress -----------------------------------------------------------------------------------
@@ -102,67 +59,6 @@ class StressInjector:
             time.sleep(self.config.extra_cycle_time_s)
         self.injected_cycles.append(cycle_index)
         return True
-
-
-# --- miss bookkeeping shared by the controller's and the plant's view -------------------------
-@dataclass
-class MissCounter:
-    """Cycle slips as F Prime counts them: total, current streak, longest streak, worst time."""
-
-    cycles: int = 0
-    misses: int = 0
-    consecutive_misses: int = 0
-    max_consecutive_misses: int = 0
-    worst_cycle_time_s: float = 0.0
-
-    def record(self, cycle_time_s: float, missed: bool) -> None:
-        self.cycles += 1
-        self.worst_cycle_time_s = max(self.worst_cycle_time_s, cycle_time_s)
-        if missed:
-            self.misses += 1
-            self.consecutive_misses += 1
-            self.max_consecutive_misses = max(self.max_consecutive_misses, self.consecutive_misses)
-        else:
-            self.consecutive_misses = 0
-
-    def summary(self) -> dict:
-        return {
-            "cycles": self.cycles,
-            "misses": self.misses,
-            "max_consecutive_misses": self.max_consecutive_misses,
-            "worst_cycle_time_s": self.worst_cycle_time_s,
-        }
-
-
-@dataclass
-class CycleOutcome:
-    """What one monitored cycle produced: the command to send and the deadline bookkeeping."""
-
-    thrust_n: np.ndarray
-    info: dict
-    cycle_index: int
-    cycle_time_s: float
-    budget_s: float
-    missed: bool
-    consecutive_misses: int
-    fallback: str | None           # the fallback that produced thrust_n, None if on time
-    recovered: bool = False        # first on-time cycle after a streak of misses
-
-    @property
-    def has_event(self) -> bool:
-        """Publish a DeadlineEvent on every miss and when a streak of misses ends."""
-        return self.missed or self.recovered
-
-    def deadline_event(self, header: Header, process: str = "controller") -> DeadlineEvent:
-        return DeadlineEvent(
-            header=header,
-            process=process,
-            cycle_time_s=self.cycle_time_s,
-            budget_s=self.budget_s,
-            missed=self.missed,
-            consecutive_misses=self.consecutive_misses,
-            fallback=self.fallback,
-        )
 
 
 # --- fallbacks --------------------------------------------------------------------------------
@@ -205,7 +101,6 @@ class DeadlineMonitor:
         self.counter = MissCounter()
         self.fallbacks_applied: dict[str, int] = {}
         self._last = _LastGood(command=np.zeros(n_inputs))
-        self._seconds_per_iteration: float | None = None
 
     # --- the cycle ---------------------------------------------------------------------------
     def run_cycle(
@@ -244,15 +139,11 @@ class DeadlineMonitor:
         )
 
     def _accept(self, info: dict) -> None:
-        """An on-time result: remember its plan and how fast the solver iterated."""
+        """An on-time result: remember its plan."""
         plan = info.get(PLAN_INFO_KEY)
         if plan is not None:
             self._last.plan = np.atleast_2d(np.asarray(plan, dtype=float))
             self._last.cycles_since_plan = 0
-        iterations = int(info.get("iterations") or 0)
-        solve_time_s = info.get("solve_time")
-        if iterations > 0 and solve_time_s is not None:
-            self._seconds_per_iteration = float(solve_time_s) / iterations
 
     def _fallback(self, x: np.ndarray) -> tuple[np.ndarray, str]:
         """The command the configured fallback gives; "shifted_plan" degrades to "hold" when
@@ -266,16 +157,7 @@ class DeadlineMonitor:
                 return self._last.plan[self._last.cycles_since_plan].copy(), "shifted_plan"
         return self._last.command.copy(), "hold"
 
-    # --- helpers for the solver and the report -----------------------------------------------
-    def iteration_cap(self, elapsed_s: float = 0.0, safety: float = 0.8) -> int | None:
-        """Iterations that fit in what is left of the budget, from the measured time per
-        iteration of earlier on-time cycles; None until one has been measured. Pass it to
-        proxsuite as settings.max_iter so a solve stops in time instead of being abandoned."""
-        if self._seconds_per_iteration is None or self._seconds_per_iteration <= 0:
-            return None
-        remaining_s = max(0.0, self.budget_s * safety - elapsed_s)
-        return max(1, int(remaining_s / self._seconds_per_iteration))
-
+    # --- for the report ------------------------------------------------------------------
     def summary(self) -> dict:
         """Numbers for metrics.json: cycles, misses, worst cycle time, fallbacks applied."""
         return {
@@ -287,47 +169,8 @@ class DeadlineMonitor:
         }
 
 
-def lqr_fallback_law(controller_config, params) -> Callable[[np.ndarray], np.ndarray]:
+def lqr_fallback_law(controller_config: ControllerConfig, params: RendezvousParams) -> Callable[[np.ndarray], np.ndarray]:
     """u = K x of the scenario's LQR weights on the scaled model: the "lqr" fallback."""
-    # Imported here: bench.controller.config imports this module for DeadlineConfig.
-    from bench.controller.factory import weights_from_config
-    from bench.controller.lqr import LQR
-
     q, r = weights_from_config(controller_config)
     lqr = LQR(q, r, params.scaled.A, params.scaled.B)
     return lambda x: lqr.K @ np.asarray(x, dtype=float)
-
-
-# --- the plant's side -------------------------------------------------------------------------
-@dataclass
-class PlantCommandDeadline:
-    """Real-time mode, plant side: is step k's command in when step k is integrated?
-
-    Call `command_arrived(seq)` for every command received and `check(k, waited_s)` when step k
-    is integrated; a miss means the plant applies the last command it has (zero-order hold).
-    """
-
-    step_period_s: float
-    counter: MissCounter = field(default_factory=MissCounter)
-    _arrived: set = field(default_factory=set)
-
-    def command_arrived(self, seq: int) -> None:
-        self._arrived.add(seq)
-
-    def check(self, step_k: int, waited_s: float) -> CycleOutcome:
-        """waited_s: wall time from sensing step k to integrating it (the plant's cycle time)."""
-        missed = step_k not in self._arrived
-        was_missing = self.counter.consecutive_misses > 0
-        self.counter.record(waited_s, missed)
-        self._arrived = {s for s in self._arrived if s > step_k}
-        return CycleOutcome(
-            thrust_n=np.zeros(0),
-            info={},
-            cycle_index=step_k,
-            cycle_time_s=waited_s,
-            budget_s=self.step_period_s,
-            missed=missed,
-            consecutive_misses=self.counter.consecutive_misses,
-            fallback="hold" if missed else None,
-            recovered=was_missing and not missed,
-        )

@@ -10,11 +10,11 @@ import time
 import numpy as np
 
 from bench.controller.config import ControllerConfig
-from bench.controller.lqr import LQR, dlqr
-from bench.controller.mpc import MPC, MPC_TE, MPC_TS, MPC_TS_SC
-from bench.controller.sets import lqr_max_pi
-from bench.controller.tube import design_tube_mpc
-from bench.plant.cwh import RendezvousParams, Z_INPUTS, Z_STATES, z_subsystem
+from bench.gnc.cwh import RendezvousParams, Z_INPUTS, Z_STATES, z_subsystem
+from bench.gnc.lqr import LQR, dlqr
+from bench.gnc.mpc import MPC, MPC_TE, MPC_TS, MPC_TS_SC
+from bench.gnc.sets import lqr_max_pi
+from bench.gnc.tube import design_tube_mpc
 
 IN_PLANE_STATES = (0, 1, 3, 4)
 IN_PLANE_INPUTS = (0, 1)

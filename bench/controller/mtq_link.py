@@ -14,7 +14,7 @@ from dataclasses import asdict
 from bench.bus.can.config import CanConfig
 from bench.bus.can.driver import CommandLoop, FaultEvent, MagnetorquerDriver
 from bench.bus.can.nodes import can_dir, open_node_bus
-from bench.node_runtime import NodeContext
+from bench.runtime.node import NodeContext
 
 DRIVER_REPORT_NAME = "driver.json"
 
@@ -26,7 +26,6 @@ class MagnetorquerLink:
         self.driver = MagnetorquerDriver.from_config(self.bus, config)
         self.loop = CommandLoop(self.driver, config.driver.command_period_s, dipole_at=config.dipole_at,
                                 on_events=self._log_events)
-        self.commands_sent = 0
         self._thread = threading.Thread(target=self.loop.run, args=(ctx.stop,), name="mtq-driver", daemon=True)
 
     def _log_events(self, events: list[FaultEvent]) -> None:

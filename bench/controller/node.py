@@ -14,7 +14,7 @@ from bench.bus import keys
 from bench.bus.schemas import ThrustCommand, TranslationEstimate
 from bench.controller.cycle import ControlCycle
 from bench.controller.mtq_link import MagnetorquerLink
-from bench.node_runtime import NodeContext
+from bench.runtime.node import NodeContext
 
 
 def run(ctx: NodeContext) -> int:

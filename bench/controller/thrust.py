@@ -6,13 +6,10 @@ estimated mean motion, so the controller's A and B are the estimated ones.
 """
 from __future__ import annotations
 
-from dataclasses import replace
-
 import numpy as np
 
 from bench.controller.factory import build_controller
-from bench.estimator.motion_model import params_with_mean_motion
-from bench.plant.cwh import RendezvousParams
+from bench.gnc.cwh import params_with_mean_motion, RendezvousParams
 from bench.scenario import Scenario
 
 # Rebuild the controller when the estimated mean motion has moved this much (relative) since the
@@ -23,13 +20,8 @@ MODEL_REFRESH_REL = 1e-3
 class ThrustLaw:
     def __init__(self, scenario: Scenario):
         self.config = scenario.controller
-        params = scenario.params()
-        if scenario.estimator.mode == "smoother":
-            # The flight side only knows the believed orbit radius.
-            believed_error = scenario.estimator.translation.believed_radius_error
-            params = replace(params, target_radius_m=params.target_radius_m * (1.0 + believed_error))
         self.model_updates = 0
-        self._build(params)
+        self._build(scenario.onboard_params())   # the flight side knows only the believed orbit
 
     def _build(self, params: RendezvousParams) -> None:
         self.params = params

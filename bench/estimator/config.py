@@ -1,7 +1,8 @@
 """Scenario section [estimator]: which estimator, and what the smoothers assume about the world.
 
-The numbers here are the estimator's *beliefs* (assumed noise levels, believed orbit radius). The
-truth the plant simulates is configured in [plant]; a mistuned estimator is a legitimate scenario.
+The numbers here are the estimator's *beliefs* (assumed noise levels). What the whole flight side
+believes about the orbit, which the controller shares, is in [onboard] (bench.scenario); the
+truth the plant simulates is in [plant]. A mistuned estimator is a legitimate scenario.
 """
 from __future__ import annotations
 
@@ -13,8 +14,6 @@ Positive = Annotated[float, msgspec.Meta(gt=0, le=1e15)]
 NonNegative = Annotated[float, msgspec.Meta(ge=0, le=1e15)]
 # Window lengths and decimations: the smoother keeps lag_steps states, so bounded by memory.
 PositiveInt = Annotated[int, msgspec.Meta(ge=1, le=10_000)]
-# A believed radius off by 50 % or more is not an estimation problem, it is a different orbit.
-RelativeError = Annotated[float, msgspec.Meta(gt=-0.5, lt=0.5)]
 
 
 class TranslationSmootherConfig(msgspec.Struct, forbid_unknown_fields=True):
@@ -36,10 +35,8 @@ class TranslationSmootherConfig(msgspec.Struct, forbid_unknown_fields=True):
     sensor: Literal["relpos", "range_bearing"] = "relpos"
     range_noise_std_m: Positive = 10.0
     bearing_noise_std_rad: Positive = 1.0e-4
-    # Uncertain target orbit (seed 001, third case): the smoother's model uses the believed radius
-    # R_true * (1 + believed_radius_error) and, if estimate_mean_motion, estimates the mean motion
-    # jointly with the state, starting from the believed value with this relative 1-sigma.
-    believed_radius_error: RelativeError = 0.0
+    # Uncertain target orbit (seed 001, third case): estimate the mean motion jointly with the
+    # state, starting from the believed value ([onboard]) with this relative 1-sigma.
     estimate_mean_motion: bool = False
     mean_motion_prior_rel_std: Positive = 0.03
 

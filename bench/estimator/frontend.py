@@ -24,7 +24,7 @@ class StateEstimate:
 class StateEstimator:
     def __init__(self, scenario: Scenario):
         self.mode = scenario.estimator.mode
-        self.smoother = (TranslationSmoother(scenario.estimator.translation, scenario.params())
+        self.smoother = (TranslationSmoother(scenario.estimator.translation, scenario.onboard_params())
                          if self.mode == "smoother" else None)
 
     @property

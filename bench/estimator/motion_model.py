@@ -7,24 +7,13 @@ that Q is full rank and every motion factor constrains all six states.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from functools import cached_property, lru_cache
 
 import numpy as np
 from scipy.linalg import expm
 
-from bench.plant.cwh import RendezvousParams, cwh_continuous, discretise_zoh
-
-
-def params_with_mean_motion(params: RendezvousParams, mean_motion_radps: float) -> RendezvousParams:
-    """The params whose target orbit has this mean motion (R = (mu / n^2)^(1/3)).
-
-    How a controller adopts the smoother's estimated mean motion: rebuild its model from these.
-    """
-    if not (np.isfinite(mean_motion_radps) and mean_motion_radps > 0):
-        raise ValueError(f"mean_motion_radps must be positive and finite, got {mean_motion_radps}")
-    radius_m = (params.gravitational_parameter_m3ps2 / mean_motion_radps**2) ** (1.0 / 3.0)
-    return replace(params, target_radius_m=float(radius_m))
+from bench.gnc.cwh import cwh_continuous, discretise_zoh
 
 
 @dataclass(frozen=True)

@@ -13,7 +13,7 @@ import numpy as np
 from bench.bus import keys
 from bench.bus.schemas import RelativePosition, ThrustCommand, TranslationEstimate, TruthState
 from bench.estimator.frontend import StateEstimator
-from bench.node_runtime import NodeContext
+from bench.runtime.node import NodeContext
 
 # How long to wait for command k-1 once fix k is in. In lock-step it was sent before fix k was
 # taken, so it is in flight; in real-time a missing command means the plant held the last one.

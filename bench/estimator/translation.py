@@ -27,7 +27,7 @@ from bench.estimator import factors
 from bench.estimator.config import TranslationSmootherConfig
 from bench.estimator.kalman import POSITION_MATRIX, Gaussian, predict
 from bench.estimator.motion_model import CwhMotionModel
-from bench.plant.cwh import RendezvousParams
+from bench.gnc.cwh import RendezvousParams
 
 log = logging.getLogger(__name__)
 
@@ -74,15 +74,13 @@ class _GoodEstimate:
 class TranslationSmoother:
     """update(seq, sim_time_s, position_m | None, thrust_applied_n) -> TranslationEstimateResult | None.
 
-    `params` are the scenario's true parameters; the smoother's model uses the believed orbit
-    radius params.target_radius_m * (1 + config.believed_radius_error).
+    `params` are what the flight side believes (`Scenario.onboard_params()`): the smoother's
+    model uses their orbit radius, and never sees the plant's.
     """
 
     def __init__(self, config: TranslationSmootherConfig, params: RendezvousParams):
         self.config = config
-        self.believed_params = replace(
-            params, target_radius_m=params.target_radius_m * (1.0 + config.believed_radius_error)
-        )
+        self.believed_params = params
         self.believed_mean_motion_radps = self.believed_params.mean_motion
         self.model = CwhMotionModel(params.mass_kg, params.time_step_s, config.process_noise_psd_m2ps3)
         self.failed_updates = 0

@@ -9,7 +9,9 @@ from typing import Annotated, Literal
 
 import msgspec
 
-Positive = Annotated[float, msgspec.Meta(gt=0, le=1e15)]
+from bench.data import load_reference
+
+MODEL = load_reference()["model"]     # the defaults below are the reference's (seed 003)
 NonNegative = Annotated[float, msgspec.Meta(ge=0, le=1e9)]
 # 1e9 m is 2.5 times the Moon's distance: no relative-motion scenario starts farther out.
 StateValue = Annotated[float, msgspec.Meta(ge=-1e9, le=1e9)]
@@ -43,10 +45,10 @@ class PlantConfig(msgspec.Struct, forbid_unknown_fields=True):
     # A name from the reference (A, B, C) or an explicit state in m and m/s.
     initial_condition: Annotated[str, msgspec.Meta(max_length=32)] = "A"
     initial_state_m_mps: State6 | None = None
-    mass_kg: Annotated[float, msgspec.Meta(gt=0, le=1e9)] = 300.0
-    gravitational_parameter_m3ps2: Annotated[float, msgspec.Meta(gt=0, le=1e21)] = 3.986e14
-    target_radius_m: Annotated[float, msgspec.Meta(gt=0, le=1e12)] = 7.0e6
-    time_step_s: Annotated[float, msgspec.Meta(gt=0, le=86_400)] = 600.0
+    mass_kg: Annotated[float, msgspec.Meta(gt=0, le=1e9)] = MODEL["mass_kg"]
+    gravitational_parameter_m3ps2: Annotated[float, msgspec.Meta(gt=0, le=1e21)] = MODEL["gravitational_parameter"]
+    target_radius_m: Annotated[float, msgspec.Meta(gt=0, le=1e12)] = MODEL["target_radius_m"]
+    time_step_s: Annotated[float, msgspec.Meta(gt=0, le=86_400)] = MODEL["time_step_s"]
     relpos_sensor: RelativePositionSensorConfig = msgspec.field(default_factory=RelativePositionSensorConfig)
     command_acceptance: CommandAcceptanceConfig = msgspec.field(default_factory=CommandAcceptanceConfig)
     divergence: DivergenceConfig = msgspec.field(default_factory=DivergenceConfig)

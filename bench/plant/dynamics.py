@@ -15,7 +15,7 @@ from typing import Literal
 import numpy as np
 from scipy.integrate import solve_ivp
 
-from bench.plant.cwh import RendezvousParams
+from bench.gnc.cwh import RendezvousParams
 
 DynamicsModel = Literal["cwh", "nonlinear"]
 

@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from bench.plant.cwh import RendezvousParams
+from bench.gnc.cwh import RendezvousParams
 from bench.plant.dynamics import propagate
 from bench.scenario import Scenario
 

@@ -25,13 +25,12 @@ import msgspec
 import numpy as np
 
 from bench.bus import keys
-from bench.bus.schemas import MtqApplied, RelativePosition, StepDone, ThrustCommand, TruthState, header
-from bench.node_runtime import NodeContext
+from bench.bus.schemas import STAGES, MtqApplied, RelativePosition, StepDone, ThrustCommand, TruthState, header
 from bench.plant.acceptance import ACCEPTANCE_FILE, ActuatorEnvelope, CommandGate
 from bench.plant.divergence import EXIT_DIVERGED, Divergence, check_state
 from bench.plant.model import TranslationPlant
-from bench.bus.schemas import STAGES
-from bench.controller.deadline import PlantCommandDeadline
+from bench.runtime.deadline import PlantCommandDeadline
+from bench.runtime.node import NodeContext
 
 
 class LoopBroken(RuntimeError):

@@ -8,13 +8,13 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from bench.metrics import trajectory_metrics
 from bench.report import canbus, plots
 from bench.report.deadlines import DeadlineResult, deadlines
 from bench.report.jsonout import write_json
 from bench.report.document import Document, Figure, Section, Table, fmt, write
 from bench.report.estimation import AXES, estimation_error
 from bench.report.latency import LatencyResult, latency
+from bench.report.run_metrics import trajectory_metrics
 from bench.report.rundata import RunData, ahead_of_plant, load_run
 
 PLOTS_DIR = "plots"

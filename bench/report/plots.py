@@ -14,7 +14,7 @@ matplotlib.use("Agg")   # no display: reports are rendered in batch and in CI
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from bench.plant.cwh import RendezvousParams  # noqa: E402
+from bench.gnc.cwh import RendezvousParams  # noqa: E402
 
 DPI = 100
 

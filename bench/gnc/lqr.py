@@ -6,7 +6,7 @@ import time
 import numpy as np
 from scipy.linalg import solve_discrete_are
 
-from bench.controller.weights import check_weights
+from bench.gnc.weights import check_weights
 
 
 def dlqr(a: np.ndarray, b: np.ndarray, q: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

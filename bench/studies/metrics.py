@@ -9,7 +9,7 @@ from dataclasses import dataclass, asdict
 
 import numpy as np
 
-from bench.plant.cwh import RendezvousParams
+from bench.gnc.cwh import RendezvousParams
 
 
 # MPC inputs and states ride their constraints to the QP tolerance (1e-9 in scaled units: 1e-9 N,

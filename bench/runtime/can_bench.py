@@ -1,7 +1,12 @@
-"""The actuator bus as separate processes, for tests and benchmarks: bus model, board, driver.
+"""The actuator bus as separate processes without the rest of the loop: bus model, board, driver.
+
+Part of the product, not test scaffolding: the CAN fault tests (tests/test_can_faults.py) and the
+bus-model benchmark (benchmarks/bench_can_busmodel.py) use it, and so can anyone who wants to
+exercise a driver against the board and the bus model alone.
 
 `CanBench` opens the hub Zenoh session (through bench.bus.session), starts `bench node canbus`
-and `bench node mtq` as their own OS processes on a scenario, and runs the flight-side driver in
+and `bench node mtq` as their own OS processes (`bench.runtime.process.start_node`, as the
+launcher does) on a scenario, and runs the flight-side driver in
 the calling process on the scripted dipole profile. When it stops it collects what each process
 wrote (board.json, busmodel.json, injections.jsonl, the captures) into a `CanRunResult` that
 accounts for every frame.
@@ -9,10 +14,8 @@ accounts for every frame.
 from __future__ import annotations
 
 import json
-import os
 import signal
 import subprocess
-import sys
 import time
 from collections import Counter
 from dataclasses import dataclass, field
@@ -28,6 +31,8 @@ from bench.bus.can.nodes import ACCOUNTING_NAME, BOARD_NAME, CAPTURE_NAME, INJEC
 from bench.bus.can.transport import open_can_bus
 from bench.bus.schemas import MtqApplied, decode
 from bench.bus.session import SessionOptions, free_loopback_port, loopback_endpoint, open_session
+from bench.runtime.process import start_node
+from bench.scenario import load_scenario
 
 STARTUP_TIMEOUT_S = 30.0
 EXIT_TIMEOUT_S = 10.0
@@ -81,15 +86,12 @@ class CanBench:
     scenario_path: Path
     run_dir: Path
     run_id: str
-    python: str = sys.executable
     procs: dict = field(default_factory=dict)
     events: list = field(default_factory=list)
     commanded: list = field(default_factory=list)
     sent: list = field(default_factory=list)          # (alive counter, monotonic ns) per command
 
     def __post_init__(self):
-        from bench.scenario import load_scenario
-
         self.scenario = load_scenario(self.scenario_path)
         self.config: CanConfig = self.scenario.can
         self.run_dir.mkdir(parents=True, exist_ok=True)
@@ -102,10 +104,8 @@ class CanBench:
 
     # --- processes ------------------------------------------------------------------------
     def _spawn(self, name: str) -> None:
-        log = open(self.run_dir / f"{name}.log", "w")
-        cmd = [self.python, "-m", "bench.cli", "node", name, "--run-id", self.run_id, "--scenario",
-               str(self.scenario_path), "--connect", self.hub, "--run-dir", str(self.run_dir)]
-        self.procs[name] = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env={**os.environ})
+        self.procs[name] = start_node(name, self.run_id, self.scenario_path, self.hub, self.run_dir,
+                                      self.run_dir / f"{name}.log")
 
     def _wait_token(self, kind: str, name: str) -> None:
         deadline = time.monotonic() + STARTUP_TIMEOUT_S
@@ -131,7 +131,7 @@ class CanBench:
                                 session_options=SessionOptions(connect=(self.hub,)))
         if hasattr(self.bus, "wait_for_peers"):
             self.bus.wait_for_peers(1, STARTUP_TIMEOUT_S)
-        self.driver = MagnetorquerDriver(self.bus, self.config.driver, self.config.board, p.Protocol(self.config.node_id))
+        self.driver = MagnetorquerDriver.from_config(self.bus, self.config)
         self._spawn("mtq")
         deadline = time.monotonic() + STARTUP_TIMEOUT_S
         while not self.driver.health().alive:   # the board's first heartbeat
@@ -182,7 +182,7 @@ class CanBench:
             proc.kill()
             proc.wait()
             with open(self.run_dir / f"{name}.log", "a") as log:
-                log.write(f"\n[harness] no exit {EXIT_TIMEOUT_S} s after SIGTERM: killed\n")
+                log.write(f"\n[can_bench] no exit {EXIT_TIMEOUT_S} s after SIGTERM: killed\n")
 
     def close(self) -> None:
         for name in list(self.procs):

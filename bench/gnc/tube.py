@@ -11,10 +11,10 @@ import dataclasses
 import numpy as np
 from scipy.signal import place_poles
 
-from bench.controller.mpc import CondensedMPC, box_bounds, check_polytope
-from bench.controller.lqr import dlqr
-from bench.controller.sets import Polytope, min_robust_positively_invariant, pontryagin_difference, support
-from bench.controller.weights import check_weights
+from bench.gnc.lqr import dlqr
+from bench.gnc.mpc import CondensedMPC, box_bounds, check_polytope
+from bench.gnc.sets import Polytope, min_robust_positively_invariant, pontryagin_difference, support
+from bench.gnc.weights import check_weights
 
 
 def disturbance_set(model) -> Polytope:
@@ -99,7 +99,7 @@ class MPC_TUBE(CondensedMPC):
 
 def design_tube_mpc(q_z_diag, r_z: float, horizon: int, poles, model_z) -> MPC_TUBE:
     """The seed's MPC_TUBE_script (task 31): K_tube, E, tightening, terminal set, controller."""
-    from bench.controller.sets import lqr_max_pi
+    from bench.gnc.sets import lqr_max_pi
 
     Q, R = np.diag(q_z_diag), np.atleast_2d(r_z)
     k_tube = compute_tube_controller(poles, model_z)

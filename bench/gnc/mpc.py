@@ -16,10 +16,10 @@ import time
 import numpy as np
 from scipy.linalg import block_diag
 
-from bench.controller.lqr import dlqr
-from bench.controller.qp import DenseBoxQP, QPSolution
-from bench.controller.sets import Polytope
-from bench.controller.weights import check_weights
+from bench.gnc.lqr import dlqr
+from bench.gnc.qp import DenseBoxQP, QPSolution
+from bench.gnc.sets import Polytope
+from bench.gnc.weights import check_weights
 
 # The solver meets constraints to its tolerance (1e-7), so a closed loop riding a state constraint
 # lands a hair outside it; the i = 0 check allows that much (scaled units: 1e-6 Mm = 1 m).

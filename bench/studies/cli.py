@@ -6,7 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.plant.cwh import RendezvousParams, load_reference
+from bench.data import load_reference
+from bench.gnc.cwh import RendezvousParams
 
 SEED_Q_STAR = tuple(load_reference()["weights"]["q_star"])
 
@@ -46,7 +47,7 @@ def _tune_lqr(args) -> int:
     from rich.progress import Progress
     from rich.table import Table
 
-    from bench.controller.tuning import lqr_tuning, refine_q
+    from bench.studies.tuning import lqr_tuning, refine_q
 
     params = RendezvousParams.from_reference()
     try:
@@ -80,7 +81,7 @@ def _tune_lqr(args) -> int:
 
 
 def _compare(args) -> int:
-    from bench.controller.comparison import run_comparison
+    from bench.studies.comparison import run_comparison
 
     try:
         return run_comparison(args)

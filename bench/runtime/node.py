@@ -26,7 +26,7 @@ from bench.bus import keys
 from bench.bus.clock_sync import declare_clock_responder
 from bench.bus.schemas import MalformedMessage, Message, ProcessStats, decode, encode, header
 from bench.bus.session import SessionOptions, open_session
-from bench.ownership import die_with_launcher
+from bench.runtime.ownership import die_with_launcher
 from bench.scenario import Scenario
 
 # Node name -> module with run(ctx). Other parts add theirs (the magnetorquer board, the recorder).

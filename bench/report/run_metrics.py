@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from bench.controller.metrics import POSITION_TOL_M, THRUST_TOL_N, traj_constraints
-from bench.plant.cwh import RendezvousParams
+from bench.gnc.cwh import RendezvousParams
+from bench.studies.metrics import POSITION_TOL_M, THRUST_TOL_N, traj_constraints
 
 
 def trajectory_metrics(state_m_mps: np.ndarray, thrust_n: np.ndarray, params: RendezvousParams) -> dict:

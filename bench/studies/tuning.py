@@ -14,10 +14,10 @@ from typing import Callable
 
 import numpy as np
 
-from bench.controller.lqr import LQR
-from bench.controller.metrics import TrajectoryMetrics, traj_constraints
-from bench.controller.simulate import simulate
-from bench.plant.cwh import RendezvousParams
+from bench.gnc.cwh import RendezvousParams
+from bench.gnc.lqr import LQR
+from bench.studies.metrics import TrajectoryMetrics, traj_constraints
+from bench.studies.simulate import simulate
 
 IN_PLANE_Q = (0, 1, 3, 4)        # q_x, q_y, q_vx, q_vy
 OUT_OF_PLANE_Q = (2, 5)          # q_z, q_vz

@@ -8,22 +8,16 @@ crosses a process boundary stays in SI; only `ScaledModel` speaks scaled units.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property
-import tomllib
-from importlib import resources
 
 import numpy as np
 from scipy.linalg import expm
 
+from bench.data import load_reference
+
 N_STATE = 6
 N_INPUT = 3
-
-
-def load_reference() -> dict:
-    """The rendezvous reference numbers (seed 003 and its 2022 parameter file)."""
-    text = resources.files("bench.data").joinpath("rendezvous.toml").read_text()
-    return tomllib.loads(text)
 
 
 def mean_motion_radps(gravitational_parameter_m3ps2: float, target_radius_m: float) -> float:
@@ -71,20 +65,21 @@ def scale_system(a_d: np.ndarray, b_d: np.ndarray, scaling: np.ndarray) -> tuple
 class RendezvousParams:
     """The seed's `params` struct (seed 003 table 1), built from a scenario or the reference.
 
-    SI units throughout; `scaled` gives the model and constraints in the controllers' units.
+    SI units throughout; `scaled` gives the model and constraints in the controllers' units. No
+    defaults: the numbers come from `from_reference` (bench/data/rendezvous.toml) only.
     """
 
-    mass_kg: float = 300.0
-    gravitational_parameter_m3ps2: float = 3.986e14
-    target_radius_m: float = 7.0e6
-    time_step_s: float = 600.0
-    n_steps: int = 288
-    scaling: tuple[float, ...] = (1e-6, 1e-6, 1e-6, 1e-3, 1e-3, 1e-3)
-    max_abs_thrust_n: float = 1.0
-    max_abs_position_xz_m: float = 1.0e5
-    max_abs_position_y_m: float = 1.0e6
-    max_final_position_m: float = 100.0
-    max_final_velocity_mps: float = 1.0
+    mass_kg: float
+    gravitational_parameter_m3ps2: float
+    target_radius_m: float
+    time_step_s: float
+    n_steps: int
+    scaling: tuple[float, ...]
+    max_abs_thrust_n: float
+    max_abs_position_xz_m: float
+    max_abs_position_y_m: float
+    max_final_position_m: float
+    max_final_velocity_mps: float
     initial_conditions_m_mps: dict[str, tuple[float, ...]] = field(default_factory=dict, compare=False)
 
     @classmethod
@@ -134,12 +129,28 @@ class RendezvousParams:
     def scaled(self) -> "ScaledModel":
         return ScaledModel.from_params(self)
 
+    def with_radius_error(self, relative_error: float) -> "RendezvousParams":
+        """These params with the target orbit radius R (1 + relative_error): what a flight side
+        believes that has the orbit this far wrong (seed 001, third case)."""
+        return replace(self, target_radius_m=self.target_radius_m * (1.0 + relative_error))
+
     def initial_state_m_mps(self, name: str) -> np.ndarray:
         try:
             return np.array(self.initial_conditions_m_mps[name])
         except KeyError:
             known = ", ".join(sorted(self.initial_conditions_m_mps)) or "none"
             raise KeyError(f"unknown initial condition {name!r} (known: {known})") from None
+
+
+def params_with_mean_motion(params: RendezvousParams, mean_motion_radps: float) -> RendezvousParams:
+    """The params whose target orbit has this mean motion (R = (mu / n^2)^(1/3)).
+
+    How a controller adopts the smoother's estimated mean motion: rebuild its model from these.
+    """
+    if not (np.isfinite(mean_motion_radps) and mean_motion_radps > 0):
+        raise ValueError(f"mean_motion_radps must be positive and finite, got {mean_motion_radps}")
+    radius_m = (params.gravitational_parameter_m3ps2 / mean_motion_radps**2) ** (1.0 / 3.0)
+    return replace(params, target_radius_m=float(radius_m))
 
 
 class _ModelDimensions:

@@ -1,0 +1,35 @@
+"""Starting a bench node as its own operating-system process.
+
+The one way a node process is started, by the launcher (`bench run`) and by the CAN bench
+(`bench.runtime.can_bench`): `python -m bench.cli node NAME ...` with the interpreter running now,
+so a child imports the same tree (PYTHONPATH is inherited), stdout and stderr into one log file.
+"""
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+
+def node_command(name: str, run_id: str, scenario_path: Path, hub: str, run_dir: Path,
+                 peers: list[str] | None = None, zenoh_config: str | None = None) -> list[str]:
+    """The `bench node` command line of node `name`, connecting to the hub endpoint."""
+    cmd = [sys.executable, "-m", "bench.cli", "node", name, "--run-id", run_id, "--scenario", str(scenario_path),
+           "--connect", hub, "--run-dir", str(run_dir)]
+    if peers:
+        cmd += ["--wait-for", ",".join(peers)]
+    if zenoh_config:
+        cmd += ["--zenoh-config", zenoh_config]
+    return cmd
+
+
+def start_node(name: str, run_id: str, scenario_path: Path, hub: str, run_dir: Path, log_path: Path,
+               peers: list[str] | None = None, zenoh_config: str | None = None,
+               popen_kwargs: dict | None = None) -> subprocess.Popen:
+    """Start node `name` as a child process logging to log_path; stdin closed, so a node
+    never waits on the terminal. popen_kwargs: what the launcher adds to own it (process group,
+    environment; bench.runtime.ownership)."""
+    with open(log_path, "w") as log_file:
+        return subprocess.Popen(node_command(name, run_id, scenario_path, hub, run_dir, peers, zenoh_config),
+                                stdout=log_file, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                **(popen_kwargs or {}))
