@@ -333,7 +333,7 @@ def _print_summary(metrics: dict, run_dir: Path) -> None:
 
 
 def _follow_run(session, run_id: str, children: list[Child], n_steps: int, show_progress: bool,
-                liveliness: LivelinessConfig, run_dir: Path) -> None:
+                liveliness: LivelinessConfig, run_dir: Path, on_finished=None) -> None:
     """Block until the plant finishes; raise NodeFailed if any process dies or hangs first,
     Diverged if the plant stopped on a diverged state."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
@@ -342,9 +342,12 @@ def _follow_run(session, run_id: str, children: list[Child], n_steps: int, show_
 
     def on_step(sample) -> None:
         try:
-            steps.put(decode(sample.payload.to_bytes(), StepDone).header.seq)
+            message = decode(sample.payload.to_bytes(), StepDone)
         except MalformedMessage:
-            pass   # garbage on the status topic must not stop the launcher
+            return   # garbage on the status topic must not stop the launcher
+        steps.put(message.header.seq)
+        if message.finished and on_finished is not None:
+            on_finished()
 
     subscriber = session.declare_subscriber(keys.key(run_id, keys.STATUS_STEP), on_step)
     lost: dict[str, TokenLoss] = {}
@@ -395,8 +398,9 @@ class StatsCollector:
     """Each process's ProcessStats, which a node publishes once, as it stops.
 
     Anyone on the bus can publish a ProcessStats, so: only for the run's own process names, only
-    once the launcher has started stopping the nodes (earlier ones are counted as premature), and
-    only the first per process (later ones are counted as conflicting, not taken)."""
+    once the plant has reported its last step or the launcher has started stopping the nodes
+    (earlier ones are counted as premature), and only the first per process (later ones are
+    counted as conflicting, not taken)."""
 
     def __init__(self, session, run_id: str, names: set[str]):
         self.run_id = run_id
@@ -421,6 +425,9 @@ class StatsCollector:
             entry["conflicting"] = entry.get("conflicting", 0) + 1
             return
         self.stats[message.process] = {"published": message.published, "malformed": message.malformed}
+
+    def accept(self) -> None:
+        self.accepting = True
 
     def undeclare(self) -> None:
         self._subscriber.undeclare()
@@ -554,8 +561,9 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
                     peers = loop_peers if name == "plant" else []
                     children.append(_spawn(name, run_id, scenario_path, hub, run_dir, peers, zenoh_config, group))
                 _wait_alive(session, run_id, children, scenario.run.liveliness.startup_timeout_s)
-                _follow_run(session, run_id, children, scenario.n_steps, show_progress, scenario.run.liveliness, run_dir)
-                collector.accepting = True
+                _follow_run(session, run_id, children, scenario.n_steps, show_progress, scenario.run.liveliness, run_dir,
+                            on_finished=collector.accept)
+                collector.accept()
                 _stop_children(children)
                 time.sleep(0.1)   # the last stats samples are on their way
                 _check_children(children, allowed_done={c.name for c in children})
@@ -571,7 +579,7 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
                 print(f"bench: {signal.Signals(signum).name}: stopping all processes", file=sys.stderr)
                 ending = RunEnding(RunInterrupted(signum).exit_code, f"interrupted by {signal.Signals(signum).name}")
             finally:
-                collector.accepting = True
+                collector.accept()
                 if guard.hurry:
                     _kill_children(children)
                 else:

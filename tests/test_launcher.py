@@ -110,6 +110,8 @@ def _start_long_run(runs_dir, run_id, *extra):
 
 
 def _wait_gone(run_id, timeout_s=10.0):
+    """run_id: better the run directory's path, which only this test's processes carry (other
+    engineers' tests on the same machine use the same run ids)."""
     deadline = time.monotonic() + timeout_s
     while bench_processes(run_id) and time.monotonic() < deadline:
         time.sleep(0.1)
@@ -126,7 +128,7 @@ def test_launcher_stops_everything_when_a_child_dies(runs_dir, victim):
     _, stderr = proc.communicate(timeout=120)
     assert proc.returncode == 1
     assert f"process '{victim}'" in stderr and "exited with code -9" in stderr
-    assert _wait_gone(run_id) == []
+    assert _wait_gone(str(runs_dir / run_id)) == []
 
 
 def json_pid(run_dir, name):
@@ -145,7 +147,7 @@ def test_ctrl_c_stops_everything(runs_dir):
     _, stderr = proc.communicate(timeout=120)
     assert proc.returncode == 130
     assert "interrupted" in stderr
-    assert _wait_gone(run_id) == []
+    assert _wait_gone(str(runs_dir / run_id)) == []
 
 
 def test_garbage_on_every_bench_key_crashes_nothing(runs_dir):
@@ -207,7 +209,7 @@ def test_hung_process_is_noticed_through_its_liveliness_token(runs_dir):
             pass
     assert proc.returncode == 1
     assert "process 'controller'" in stderr and "liveliness" in stderr
-    assert _wait_gone(run_id) == []
+    assert _wait_gone(str(runs_dir / run_id)) == []
 
 
 def test_nodes_started_by_hand_form_the_loop(tmp_path):

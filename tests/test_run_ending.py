@@ -79,7 +79,7 @@ def test_children_die_with_the_launcher(runs_dir, sig):
     _, stderr = proc.communicate(timeout=60)
     time.sleep(ORPHAN_LIMIT_S)
     assert alive_by_ps(pids) == [], stderr
-    assert bench_processes(run_id) == []
+    assert bench_processes(str(runs_dir / run_id)) == []     # nor anything they started
     if sig == signal.SIGTERM:
         assert proc.returncode == 143
         metrics = strict_json(runs_dir / run_id / "metrics.json")

@@ -4,7 +4,7 @@ Two mechanisms, because each covers what the other cannot:
 - every node started by the launcher asks the kernel for SIGTERM when its parent dies
   (`prctl(PR_SET_PDEATHSIG)`), so a launcher killed by SIGKILL (a supervisor, a container stop, an
   out-of-memory kill) takes its nodes with it; SIGTERM lets the recorder finish its MCAP file. A
-  watcher thread exits the node hard ORPHAN_EXIT_S later if it has not stopped by then;
+  watchdog process of each node kills it ORPHAN_EXIT_S later if it has not stopped by then;
 - all nodes of a run share one process group, which the launcher kills at the end of every
   run, so nothing a node started (a solver worker) outlives the run either.
 
@@ -17,7 +17,6 @@ from __future__ import annotations
 import ctypes
 import os
 import signal
-import threading
 import time
 from dataclasses import dataclass
 
@@ -36,30 +35,54 @@ def child_environment(extra: dict[str, str] | None = None) -> dict[str, str]:
 
 
 def die_with_launcher() -> None:
-    """In a node started by the launcher: SIGTERM when the launcher dies, exit hard soon after.
+    """In a node started by the launcher: SIGTERM when the launcher dies, SIGKILL soon after.
 
-    No-op in a node started by hand (no BENCH_LAUNCHER_PID) or where prctl is missing.
+    The SIGKILL comes from a small watchdog process forked here, not from a thread: a node whose
+    main thread is stuck in a C call holding the GIL (a Zenoh close) runs no Python thread, and on
+    a loaded machine such a node outlived the 2 s bound. The watchdog dies with its node
+    (PDEATHSIG SIGKILL). No-op in a node started by hand (no BENCH_LAUNCHER_PID).
     """
     text = os.environ.get(LAUNCHER_PID_ENV)
     if not text or not text.isdigit():
         return
     launcher_pid = int(text)
-    try:
-        libc = ctypes.CDLL(None, use_errno=True)
-        libc.prctl(PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0)
-    except (OSError, AttributeError):
-        pass     # not Linux: the watcher below still notices the launcher is gone
+    _set_parent_death_signal(signal.SIGTERM)
     if os.getppid() != launcher_pid:
         os._exit(ORPHAN_EXIT_CODE)   # the launcher died before prctl took effect
+    node_pid = os.getpid()
+    if os.fork() == 0:               # the watchdog; called before the node opens its session
+        _watchdog(node_pid, launcher_pid)
 
-    def watch() -> None:
-        while os.getppid() == launcher_pid:
+
+def _set_parent_death_signal(sig: int) -> None:
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(PR_SET_PDEATHSIG, int(sig), 0, 0, 0)
+    except (OSError, AttributeError):
+        pass     # not Linux: the watchdog still notices the launcher is gone
+
+
+def _watchdog(node_pid: int, launcher_pid: int) -> None:
+    """Child of the node: once the launcher is gone, SIGTERM the node, SIGKILL it ORPHAN_EXIT_S later."""
+    try:
+        os.setsid()                  # out of the run's process group: Ctrl-C and killpg are for the node
+        _set_parent_death_signal(signal.SIGKILL)
+        if os.getppid() != node_pid:
+            os._exit(0)
+        while _alive(launcher_pid) and os.getppid() == node_pid:
             time.sleep(_PARENT_POLL_S)
-        os.kill(os.getpid(), signal.SIGTERM)     # where PDEATHSIG is not available
-        time.sleep(ORPHAN_EXIT_S)
-        os._exit(ORPHAN_EXIT_CODE)
+        if os.getppid() == node_pid:
+            os.kill(node_pid, signal.SIGTERM)     # where PDEATHSIG is not available
+            time.sleep(ORPHAN_EXIT_S)
+            os.kill(node_pid, signal.SIGKILL)
+    except Exception:    # noqa: BLE001 - the watchdog must never linger or print into the node's log
+        pass
+    os._exit(0)
 
-    threading.Thread(target=watch, name="launcher-watch", daemon=True).start()
+
+def _alive(pid: int) -> bool:
+    state = process_state(pid)
+    return state is not None and state.state != "Z"
 
 
 def kill_group(pgid: int | None, sig: int = signal.SIGKILL) -> None:
