@@ -2,11 +2,17 @@
 
 The launcher opens the hub session every node connects to, starts each node as its own OS process
 (`bench node NAME ...`), waits until all are alive, follows the plant's progress, and shuts
-everything down on success, on Ctrl-C, and when a node dies. Then it writes metrics.json.
+everything down on success, on Ctrl-C or SIGTERM, and when a node dies, hangs or the plant's state
+diverges. Then it writes metrics.json and the report, marked partial with the reason when the run
+did not finish. The nodes die with it even when it is killed (bench/runtime/ownership.py); a second
+Ctrl-C kills them at once and exits within a bounded time.
+
+Exit codes: 0 done, 1 a process failed or hung, 2 bad input (nothing started), 3 the plant's
+state diverged, 130 interrupted (SIGINT), 143 terminated (SIGTERM).
 """
 from __future__ import annotations
 
-import json
+import fcntl
 import logging
 import os
 import queue
@@ -14,10 +20,14 @@ import secrets
 import signal
 import subprocess
 import sys
+import threading
 import time
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
+
+import json
+import zipfile
 
 import msgspec
 import numpy as np
@@ -26,20 +36,50 @@ import zenoh
 from bench.bus import keys
 from bench.bus.schemas import ProcessStats, StepDone, decode, MalformedMessage
 from bench.bus.session import SessionConfigError, SessionOptions, free_loopback_port, loopback_endpoint, open_session
+from bench.plant.acceptance import ACCEPTANCE_FILE
+from bench.plant.divergence import EXIT_DIVERGED, read_divergence
+from bench.report.jsonout import write_json
 from bench.report.run_metrics import trajectory_metrics
 from bench.runtime.node import NODES, node_options, run_node
+from bench.runtime.ownership import child_environment, kill_group, process_state
 from bench.runtime.process import start_node
-from bench.scenario import Scenario, ScenarioError, builtin_names, load_scenario
+from bench.scenario import LivelinessConfig, Scenario, ScenarioError, builtin_names, load_scenario, parse_scenario
 
+EXIT_FAILED = 1
 EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130
-STARTUP_TIMEOUT_S = 60.0
+EXIT_TERMINATED = 143
+STARTUP_TIMEOUT_S = 120.0
+STARTUP_IDLE_S = 5.0      # a starting node whose CPU time did not advance this long is stuck
 SHUTDOWN_GRACE_S = 5.0
-TOKEN_LOSS_GRACE_S = 1.0
+# After a second Ctrl-C (or SIGTERM) the launcher kills every node and exits within this, even if
+# a Zenoh call it is in never returns.
+HARD_EXIT_S = 2.5
+LOCK_FILE = ".lock"
 
 
 class NodeFailed(RuntimeError):
     pass
+
+
+class Diverged(RuntimeError):
+    pass
+
+
+class RunInterrupted(BaseException):
+    """SIGINT or SIGTERM to the launcher (a BaseException, like KeyboardInterrupt)."""
+
+    def __init__(self, signum: int):
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+    @property
+    def exit_code(self) -> int:
+        return EXIT_INTERRUPTED if self.signum == signal.SIGINT else EXIT_TERMINATED
+
+
+class RunIdTaken(ValueError):
+    """The run id is in use by a live run, or its directory holds an earlier run."""
 
 
 # ------------------------------------------------------------------------------------------------
@@ -71,25 +111,55 @@ class Child:
             return ""
 
 
+class ProcessGroup:
+    """All nodes of a run in one process group (the first node leads it), killed as one."""
+
+    def __init__(self):
+        self.pgid: int | None = None
+
+    def popen_kwargs(self) -> dict:
+        # A group of their own: a terminal's Ctrl-C reaches the launcher only, which stops the
+        # nodes in order (the recorder last) instead of all at once.
+        return {"process_group": self.pgid or 0, "env": child_environment()}
+
+    def joined(self, process: subprocess.Popen) -> None:
+        if self.pgid is None:
+            self.pgid = process.pid
+
+    def kill(self) -> None:
+        kill_group(self.pgid)
+
+
 def _spawn(name: str, run_id: str, scenario_path: Path, hub: str, run_dir: Path, peers: list[str],
-           zenoh_config: str | None) -> Child:
+           zenoh_config: str | None, group: ProcessGroup | None = None) -> Child:
     log_path = run_dir / "logs" / f"{name}.log"
-    return Child(name, start_node(name, run_id, scenario_path, hub, run_dir, log_path, peers, zenoh_config), log_path)
+    group = group or ProcessGroup()
+    process = start_node(name, run_id, scenario_path, hub, run_dir, log_path, peers, zenoh_config,
+                         popen_kwargs=group.popen_kwargs())
+    group.joined(process)
+    return Child(name, process, log_path)
 
 
 def _stop_children(children: list[Child], grace_s: float = SHUTDOWN_GRACE_S) -> None:
     """SIGTERM in reverse start order (recorder last), then SIGKILL whatever is left."""
     for child in reversed(children):
         if child.process.poll() is None:
-            child.process.send_signal(signal.SIGTERM)
             try:
+                child.process.send_signal(signal.SIGTERM)
                 child.process.wait(timeout=grace_s)
-            except subprocess.TimeoutExpired:
+            except (subprocess.TimeoutExpired, ProcessLookupError):
                 pass
+    _kill_children(children)
+
+
+def _kill_children(children: list[Child]) -> None:
     for child in children:
         if child.process.poll() is None:
-            child.process.kill()
-            child.process.wait()
+            try:
+                child.process.kill()
+                child.process.wait(timeout=5.0)
+            except (ProcessLookupError, subprocess.TimeoutExpired):
+                pass
 
 
 def _check_children(children: list[Child], allowed_done: set[str]) -> None:
@@ -104,19 +174,42 @@ def _check_children(children: list[Child], allowed_done: set[str]) -> None:
             )
 
 
-def _check_liveliness(children: list[Child], lost: list[tuple[str, float]], grace_s: float = TOKEN_LOSS_GRACE_S) -> None:
-    """A node whose token vanished while its process runs on is hung (or cut off from the bus).
+@dataclass
+class TokenLoss:
+    """A node whose alive token vanished: when, and its CPU time then (to tell hung from slow)."""
 
-    A node that finishes drops its token just before it exits: give it a grace period.
+    since_s: float
+    cpu_ticks: int | None
+
+
+def _check_liveliness(children: list[Child], lost: dict[str, TokenLoss], liveliness: LivelinessConfig,
+                      final: bool = False) -> None:
+    """A node whose token vanished while its process runs on is hung, if it is stopped (state T:
+    SIGSTOP, a debugger) for stopped_grace_s, or if its token stays away for hang_timeout_s.
+
+    A node starved of CPU on a busy machine may miss its lease too; it is still runnable and its
+    token comes back, so it is not called hung before hang_timeout_s. `final`: the run is ending
+    anyway (a peer gave up on it): any node still without its token is the cause to name.
     """
-    for name, lost_at_s in lost:
+    now = time.monotonic()
+    for name, loss in list(lost.items()):
         child = next((c for c in children if c.name == name), None)
-        if child is None or time.monotonic() - lost_at_s < grace_s:
+        if child is None or child.process.poll() is not None:
             continue
-        if child.process.poll() is None:
+        state = process_state(child.process.pid)
+        if state is None:
+            continue
+        away_s = now - loss.since_s
+        progress = "no CPU progress" if loss.cpu_ticks == state.cpu_ticks else "CPU time still advancing"
+        if state.stopped and (final or away_s >= liveliness.stopped_grace_s):
             raise NodeFailed(
-                f"process '{name}' (pid {child.process.pid}) stopped answering on Zenoh: its liveliness "
-                f"token expired (hung, or cut off from the bus)"
+                f"process '{name}' (pid {child.process.pid}) is stopped (state {state.state}, {progress}): its "
+                f"liveliness token expired {away_s:.1f} s ago"
+            )
+        if final or away_s >= liveliness.hang_timeout_s:
+            raise NodeFailed(
+                f"process '{name}' (pid {child.process.pid}) stopped answering on Zenoh: its liveliness token "
+                f"expired {away_s:.1f} s ago (state {state.state}, {progress}; hung, or cut off from the bus)"
             )
 
 
@@ -133,10 +226,12 @@ def _apply_overrides(scenario: Scenario, args) -> Scenario:
     if args.mode:
         run = msgspec.structs.replace(run, mode=args.mode)
     if args.steps is not None:
-        if args.steps < 1:
-            raise ScenarioError(f"--steps must be at least 1, got {args.steps}")
+        from bench.scenario import MAX_STEPS
+
+        if not 1 <= args.steps <= MAX_STEPS:
+            raise ScenarioError(f"--steps must be 1-{MAX_STEPS}, got {args.steps}")
         run = msgspec.structs.replace(run, steps=args.steps)
-    return msgspec.structs.replace(scenario, run=run)
+    return parse_scenario(msgspec.to_builtins(msgspec.structs.replace(scenario, run=run)), "command line")
 
 
 def _latency_percentiles_ms(trajectory: dict) -> dict:
@@ -155,27 +250,67 @@ def _latency_percentiles_ms(trajectory: dict) -> dict:
     }
 
 
-def write_metrics(run_dir: Path, scenario: Scenario, children: list[Child], stats: dict, wall_s: float) -> dict:
-    with np.load(run_dir / "trajectory.npz") as data:
-        trajectory = {k: data[k] for k in data.files}
-    if scenario.kind == "attitude":
-        from bench.report.attitude_metrics import attitude_metrics
+def write_metrics(run_dir: Path, scenario: Scenario, children: list[Child], stats: dict, wall_s: float,
+                  ending: "RunEnding | None" = None) -> dict:
+    """metrics.json from whatever the run left: a partial run is marked with the reason it ended."""
+    metrics: dict = {}
+    trajectory = _load_trajectory(run_dir, scenario)
+    if trajectory is not None:
+        if scenario.kind == "attitude":
+            from bench.report.attitude_metrics import attitude_metrics
 
-        metrics = attitude_metrics(trajectory, scenario)
-    else:
-        metrics = trajectory_metrics(trajectory["state_m_mps"], trajectory["thrust_n"], scenario.params())
+            metrics = attitude_metrics(trajectory, scenario)
+        else:
+            metrics = trajectory_metrics(trajectory["state_m_mps"], trajectory["thrust_n"], scenario.params())
     metrics.update({
         "scenario": scenario.name,
         "mode": scenario.run.mode,
         "wall_time_s": wall_s,
-        "end_to_end_latency": _latency_percentiles_ms(trajectory),
-        "plant_missed_steps": int(trajectory["plant_missed_steps"]),
-        "plant_late_commands": int(trajectory["plant_late_commands"]),
         "processes": {c.name: {"pid": c.process.pid, "exit_code": c.process.returncode} for c in children},
         "process_stats": stats,
     })
-    (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    if trajectory is not None:
+        metrics.update({
+            "end_to_end_latency": _latency_percentiles_ms(trajectory),
+            "plant_missed_steps": int(trajectory.get("plant_missed_steps", 0)),
+            "plant_late_commands": int(trajectory.get("plant_late_commands", 0)),
+        })
+    acceptance = _read_json(run_dir / ACCEPTANCE_FILE)
+    if acceptance is not None:
+        metrics["command_acceptance"] = acceptance
+    ending = ending or RunEnding(0, None)
+    metrics["exit_code"] = ending.code
+    metrics["partial"] = ending.reason is not None
+    if ending.reason is not None:
+        metrics["end_reason"] = ending.reason
+    write_json(run_dir / "metrics.json", metrics)
     return metrics
+
+
+def _load_trajectory(run_dir: Path, scenario: Scenario) -> dict | None:
+    """The run's trajectory, or None where it is missing, broken or holds no step."""
+    try:
+        with np.load(run_dir / "trajectory.npz") as data:
+            trajectory = {k: data[k] for k in data.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile):
+        return None
+    needed = ("att_time_s", "att_q_wxyz") if scenario.kind == "attitude" else ("state_m_mps", "thrust_n")
+    if any(k not in trajectory for k in needed) or len(trajectory[needed[-1]]) == 0:
+        return None
+    return trajectory
+
+
+def _read_json(path: Path):
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+
+
+@dataclass
+class RunEnding:
+    code: int
+    reason: str | None      # None: the run finished; else why it ended early (first line)
 
 
 def _print_summary(metrics: dict, run_dir: Path) -> None:
@@ -214,69 +349,113 @@ def _rendezvous_rows(metrics: dict, latency: dict) -> list[tuple[str, str]]:
     ]
 
 
-def _follow_run(session, run_id: str, children: list[Child], n_steps: int, show_progress: bool) -> None:
-    """Block until the plant finishes; raise NodeFailed if any process dies first."""
+def _follow_run(session, run_id: str, children: list[Child], n_steps: int, show_progress: bool,
+                liveliness: LivelinessConfig, run_dir: Path, on_finished=None) -> None:
+    """Block until the plant finishes; raise NodeFailed if any process dies or hangs first,
+    Diverged if the plant stopped on a diverged state."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
     steps: queue.Queue[int] = queue.Queue()
 
     def on_step(sample) -> None:
         try:
-            steps.put(decode(sample.payload.to_bytes(), StepDone).header.seq)
+            message = decode(sample.payload.to_bytes(), StepDone)
         except MalformedMessage:
-            pass   # garbage on the status topic must not stop the launcher
+            return   # garbage on the status topic must not stop the launcher
+        steps.put(message.header.seq)
+        if message.finished and on_finished is not None:
+            on_finished()
 
     subscriber = session.declare_subscriber(keys.key(run_id, keys.STATUS_STEP), on_step)
-    lost: list[tuple[str, float]] = []
+    lost: dict[str, TokenLoss] = {}
+    pids = {c.name: c.process.pid for c in children}
 
     def on_token(sample) -> None:
-        if sample.kind == zenoh.SampleKind.DELETE:
-            lost.append((str(sample.key_expr).rsplit("/", 1)[-1], time.monotonic()))
+        name = str(sample.key_expr).rsplit("/", 1)[-1]
+        if sample.kind == zenoh.SampleKind.DELETE and name in pids:
+            state = process_state(pids[name])
+            lost.setdefault(name, TokenLoss(time.monotonic(), state.cpu_ticks if state else None))
+        else:
+            lost.pop(name, None)    # back: it was slow, not hung
 
     tokens = session.liveliness().declare_subscriber(keys.key(run_id, f"{keys.ALIVE}/*"), on_token)
     plant = next(c for c in children if c.name == "plant")
     columns = [TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn()]
-    with Progress(*columns, disable=not show_progress, transient=False) as progress:
-        task = progress.add_task("steps", total=n_steps)
-        done = 0
-        while plant.process.poll() is None:
-            try:
-                _check_children(children, allowed_done=set())
-            except NodeFailed:
-                # A peer that noticed a hung node first may exit before the grace period is
-                # over; the hung one is the cause to name.
-                _check_liveliness(children, lost, grace_s=0.0)
-                raise
-            _check_liveliness(children, lost)
-            try:
-                done = max(done, steps.get(timeout=0.1) + 1)
-                progress.update(task, completed=done)
-            except queue.Empty:
-                pass
-        progress.update(task, completed=done)
-    subscriber.undeclare()
-    tokens.undeclare()
+    try:
+        with Progress(*columns, disable=not show_progress, transient=False) as progress:
+            task = progress.add_task("steps", total=n_steps)
+            done = 0
+            while plant.process.poll() is None:
+                try:
+                    _check_children(children, allowed_done=set())
+                except NodeFailed:
+                    # A peer that noticed a hung node first may exit before the grace period is
+                    # over; the hung one is the cause to name.
+                    _check_liveliness(children, lost, liveliness, final=True)
+                    raise
+                _check_liveliness(children, lost, liveliness)
+                try:
+                    done = max(done, min(steps.get(timeout=0.1) + 1, n_steps))
+                    progress.update(task, completed=done)
+                except queue.Empty:
+                    pass
+            progress.update(task, completed=done)
+    finally:
+        subscriber.undeclare()
+        tokens.undeclare()
+    if plant.process.returncode == EXIT_DIVERGED:
+        divergence = read_divergence(run_dir)
+        raise Diverged(f"plant {divergence.describe()}" if divergence else "plant state diverged (no divergence.json)")
     if plant.process.returncode != 0:
-        _check_liveliness(children, lost, grace_s=0.0)
+        _check_liveliness(children, lost, liveliness, final=True)
         _check_children([plant], allowed_done=set())
 
 
-def _collect_stats(session, run_id: str) -> tuple[dict, object]:
-    stats: dict = {}
+class StatsCollector:
+    """Each process's ProcessStats, which a node publishes once, as it stops.
 
-    def on_stats(sample) -> None:
+    Anyone on the bus can publish a ProcessStats, so: only for the run's own process names, only
+    once the plant has reported its last step or the launcher has started stopping the nodes
+    (earlier ones are counted as premature), and only the first per process (later ones are
+    counted as conflicting, not taken)."""
+
+    def __init__(self, session, run_id: str, names: set[str]):
+        self.run_id = run_id
+        self.names = names
+        self.stats: dict = {}
+        self.accepting = False
+        self.premature = 0
+        self._subscriber = session.declare_subscriber(keys.key(run_id, f"{keys.STATUS_STATS}/*"), self._on_stats)
+
+    def _on_stats(self, sample) -> None:
         try:
             message = decode(sample.payload.to_bytes(), ProcessStats)
         except MalformedMessage:
             return
-        stats[message.process] = {"published": message.published, "malformed": message.malformed}
+        if message.header.run_id != self.run_id or message.process not in self.names:
+            return
+        if not self.accepting:
+            self.premature += 1
+            return
+        if message.process in self.stats:
+            entry = self.stats[message.process]
+            entry["conflicting"] = entry.get("conflicting", 0) + 1
+            return
+        self.stats[message.process] = {"published": message.published, "malformed": message.malformed}
 
-    return stats, session.declare_subscriber(keys.key(run_id, f"{keys.STATUS_STATS}/*"), on_stats)
+    def accept(self) -> None:
+        self.accepting = True
+
+    def undeclare(self) -> None:
+        self._subscriber.undeclare()
 
 
-def _wait_alive(session, run_id: str, children: list[Child]) -> None:
+def _wait_alive(session, run_id: str, children: list[Child], timeout_s: float = STARTUP_TIMEOUT_S) -> None:
+    """Until every node's alive token is there. Past timeout_s, a node still starting is given up
+    to three times that while its CPU time advances (slow on a busy machine), not while it idles."""
     names = {c.name for c in children}
-    deadline = time.monotonic() + STARTUP_TIMEOUT_S
+    started = time.monotonic()
+    progress: dict[str, tuple[float, int]] = {}      # name -> (when its CPU time last advanced, ticks)
     while True:
         _check_children(children, allowed_done=set())
         alive = set()
@@ -285,9 +464,85 @@ def _wait_alive(session, run_id: str, children: list[Child]) -> None:
                 alive.add(str(reply.ok.key_expr).rsplit("/", 1)[-1])
         if names <= alive:
             return
-        if time.monotonic() > deadline:
-            raise NodeFailed(f"processes not alive after {STARTUP_TIMEOUT_S} s: {', '.join(sorted(names - alive))}")
+        now = time.monotonic()
+        for child in children:
+            state = process_state(child.process.pid)
+            if state is not None and (child.name not in progress or progress[child.name][1] != state.cpu_ticks):
+                progress[child.name] = (now, state.cpu_ticks)
+        missing = sorted(names - alive)
+        if now - started > timeout_s:
+            still_working = all(now - progress.get(n, (0.0, 0))[0] < STARTUP_IDLE_S for n in missing)
+            if not still_working or now - started > 3 * timeout_s:
+                raise NodeFailed(f"processes not alive after {now - started:.0f} s: {', '.join(missing)}")
         time.sleep(0.05)
+
+
+class RunDirClaim:
+    """runs/<run_id>, created for this run and locked while it lasts (flock: released by the kernel
+    when the launcher dies, however it dies). A live id, or a directory holding an earlier run, is
+    refused before anything is written or started."""
+
+    def __init__(self, run_dir: Path):
+        self.run_dir = run_dir
+        run_dir.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            run_dir.mkdir()
+        except FileExistsError:
+            raise RunIdTaken(self._taken_message()) from None
+        self._lock = open(run_dir / LOCK_FILE, "w")
+        fcntl.flock(self._lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        self._lock.write(str(os.getpid()))
+        self._lock.flush()
+
+    def _taken_message(self) -> str:
+        run_id = self.run_dir.name
+        try:
+            with open(self.run_dir / LOCK_FILE) as f:
+                try:
+                    fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                except BlockingIOError:
+                    return f"run id {run_id!r} is in use by a running bench (pid {f.read().strip() or '?'}); choose another --run-id"
+        except OSError:
+            pass
+        return f"run id {run_id!r}: {self.run_dir} already holds a run; choose another --run-id or remove it"
+
+    def release(self) -> None:
+        self._lock.close()
+
+
+class SignalGuard:
+    """SIGINT and SIGTERM during a run. The first raises RunInterrupted where the launcher is, and
+    it stops the nodes in order and writes what the run left. A second one does not raise (an
+    exception in the middle of the cleanup is what used to leave the launcher hanging): it kills
+    every node at once and arms a hard exit HARD_EXIT_S later."""
+
+    def __init__(self, group: ProcessGroup):
+        self.group = group
+        self.first: int | None = None
+        self.hurry = False
+        self._saved: dict = {}
+
+    def __enter__(self) -> "SignalGuard":
+        if threading.current_thread() is threading.main_thread():
+            for signum in (signal.SIGINT, signal.SIGTERM):
+                self._saved[signum] = signal.signal(signum, self._handle)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for signum, handler in self._saved.items():
+            signal.signal(signum, handler)
+
+    def _handle(self, signum, _frame) -> None:
+        if self.first is None:
+            self.first = signum
+            raise RunInterrupted(signum)
+        if not self.hurry:
+            self.hurry = True
+            self.group.kill()
+            code = RunInterrupted(self.first).exit_code
+            timer = threading.Timer(HARD_EXIT_S, os._exit, (code,))
+            timer.daemon = True
+            timer.start()
 
 
 def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None, show_progress: bool = True,
@@ -295,44 +550,94 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
     """Run a scenario as separate processes. Returns (exit code, run directory)."""
     hub = loopback_endpoint(port or free_loopback_port())
     # The session first: a taken port must fail before anything is written or started.
-    session = open_session(SessionOptions(listen=(hub,), config_file=Path(zenoh_config) if zenoh_config else None))
+    lease_ms = int(round(scenario.run.liveliness.lease_s * 1000))
+    session = open_session(SessionOptions(listen=(hub,), config_file=Path(zenoh_config) if zenoh_config else None,
+                                          lease_ms=lease_ms))
     run_dir = runs_dir / run_id
-    (run_dir / "logs").mkdir(parents=True, exist_ok=True)
+    try:
+        claim = RunDirClaim(run_dir)
+    except BaseException:
+        session.close()
+        raise
+    (run_dir / "logs").mkdir()
     scenario_path = run_dir / "scenario.json"
     scenario_path.write_bytes(msgspec.json.format(msgspec.json.encode(scenario)))
     children: list[Child] = []
+    group = ProcessGroup()
     started = time.monotonic()
-    stats, stats_subscriber = _collect_stats(session, run_id)
-    try:
-        names = nodes_for(scenario)
-        loop_peers = [n for n in names if n != "plant"]
-        for name in names:
-            peers = loop_peers if name == "plant" else []
-            children.append(_spawn(name, run_id, scenario_path, hub, run_dir, peers, zenoh_config))
-        _wait_alive(session, run_id, children)
-        _follow_run(session, run_id, children, scenario.n_steps, show_progress)
-        wall_s = time.monotonic() - started
-        _stop_children(children)
-        time.sleep(0.1)   # the last stats samples are on their way
-        _check_children(children, allowed_done={c.name for c in children})
-        metrics = write_metrics(run_dir, scenario, children, stats, wall_s)
-        _print_summary(metrics, run_dir)
-        if write_report:
-            from bench.report.build import write_report as build_report
+    names = nodes_for(scenario)
+    collector = StatsCollector(session, run_id, set(names))
+    stats = collector.stats
+    ending = RunEnding(EXIT_FAILED, "the launcher failed")
+    guard = SignalGuard(group)
+    with guard:
+        try:
+            try:
+                loop_peers = [n for n in names if n != "plant"]
+                for name in names:
+                    peers = loop_peers if name == "plant" else []
+                    children.append(_spawn(name, run_id, scenario_path, hub, run_dir, peers, zenoh_config, group))
+                _wait_alive(session, run_id, children, scenario.run.liveliness.startup_timeout_s)
+                _follow_run(session, run_id, children, scenario.n_steps, show_progress, scenario.run.liveliness, run_dir,
+                            on_finished=collector.accept)
+                collector.accept()
+                _stop_children(children)
+                time.sleep(0.1)   # the last stats samples are on their way
+                _check_children(children, allowed_done={c.name for c in children})
+                ending = RunEnding(0, None)
+            except NodeFailed as exc:
+                print(f"bench: error: {exc}", file=sys.stderr)
+                ending = RunEnding(EXIT_FAILED, str(exc).splitlines()[0].split("; last lines of")[0])
+            except Diverged as exc:
+                print(f"bench: error: {exc}", file=sys.stderr)
+                ending = RunEnding(EXIT_DIVERGED, str(exc))
+            except (RunInterrupted, KeyboardInterrupt) as exc:
+                signum = exc.signum if isinstance(exc, RunInterrupted) else signal.SIGINT
+                print(f"bench: {signal.Signals(signum).name}: stopping all processes", file=sys.stderr)
+                ending = RunEnding(RunInterrupted(signum).exit_code, f"interrupted by {signal.Signals(signum).name}")
+            finally:
+                collector.accept()
+                if guard.hurry:
+                    _kill_children(children)
+                else:
+                    _stop_children(children)
+                group.kill()     # anything a node started
+                collector.undeclare()
+            _finish(run_dir, scenario, children, stats, time.monotonic() - started, ending, write_report and not guard.hurry)
+        except RunInterrupted as exc:
+            # The first signal came during the cleanup itself: the nodes go at once; only the
+            # files may be missing, and `bench report RUN` can build them.
+            _kill_children(children)
+            group.kill()
+            if ending.reason is None:
+                ending = RunEnding(exc.exit_code, f"interrupted by {exc}")
+        finally:
+            session.close()
+            claim.release()
+    return ending.code, run_dir
 
-            _, html = build_report(run_dir)
-            print(f"report: {html}")
-        return 0, run_dir
-    except NodeFailed as exc:
-        print(f"bench: error: {exc}", file=sys.stderr)
-        return 1, run_dir
-    except KeyboardInterrupt:
-        print("bench: interrupted; stopping all processes", file=sys.stderr)
-        return EXIT_INTERRUPTED, run_dir
-    finally:
-        _stop_children(children)
-        stats_subscriber.undeclare()
-        session.close()
+
+def _finish(run_dir: Path, scenario: Scenario, children: list[Child], stats: dict, wall_s: float,
+            ending: RunEnding, write_report: bool) -> None:
+    """metrics.json and the report from whatever the run left; neither may turn an ending into a crash."""
+    try:
+        metrics = write_metrics(run_dir, scenario, children, stats, wall_s, ending)
+    except Exception as exc:     # noqa: BLE001 - a broken file must not hide how the run ended
+        print(f"bench: could not write metrics.json: {exc}", file=sys.stderr)
+        return
+    if ending.reason is None:
+        _print_summary(metrics, run_dir)
+    else:
+        print(f"bench: partial run ({ending.reason}); metrics: {run_dir / 'metrics.json'}", file=sys.stderr)
+    if not write_report:
+        return
+    try:
+        from bench.report.build import write_report as build_report
+
+        _, html = build_report(run_dir)
+        print(f"report: {html}")
+    except Exception as exc:     # noqa: BLE001
+        print(f"bench: could not build the report ({exc}); `bench report {run_dir}` retries", file=sys.stderr)
 
 
 def campaign_case(scenario: Scenario) -> dict:
@@ -364,7 +669,7 @@ def campaign_case(scenario: Scenario) -> dict:
 def cmd_run(args) -> int:
     try:
         scenario = _apply_overrides(load_scenario(args.scenario), args)
-        run_id = keys.check_run_id(args.run_id or _new_run_id(scenario))
+        run_id = keys.check_run_id(_new_run_id(scenario) if args.run_id is None else args.run_id)
         if args.port is not None and not 0 < args.port < 65536:
             raise ScenarioError(f"--port must be between 1 and 65535, got {args.port}")
         code, _ = run_bench(scenario, run_id, Path(args.runs_dir), args.port, not args.no_progress, args.zenoh_config,

@@ -2,10 +2,16 @@
 
 A scenario is composed of one section per part of the loop; each part owns its section's schema
 (`bench/<part>/config.py`). A bad file raises `ScenarioError` with one line naming the field.
+
+Nothing a file holds may get past here and fail later: the file's size and nesting are bounded
+before it is parsed, every number must be finite, and every count and size has an upper bound
+(steps, horizons, list lengths) so no value makes a process allocate without limit. The ranges
+are listed in docs/run_safety.md.
 """
 from __future__ import annotations
 
 import json
+import math
 import tomllib
 from importlib import resources
 from pathlib import Path
@@ -29,15 +35,48 @@ class ScenarioError(ValueError):
     """A scenario that cannot be run, with the field and the problem in the message."""
 
 
+# A scenario file larger or deeper than this is refused before it is parsed (a 50 000-deep
+# array makes tomllib recurse until the interpreter gives up).
+MAX_SCENARIO_BYTES = 1 << 20
+MAX_NESTING = 32
+# Every step keeps a state, a command and nine stamps in the plant's memory (~200 B): 1e5 steps
+# is 20 MB, and at 600 s per step 694 days of simulated time.
+MAX_STEPS = 100_000
+# Real-time: the wall-clock step period (time_step_s / time_factor) must be between these.
+MIN_WALL_PERIOD_S = 1e-3
+MAX_WALL_PERIOD_S = 60.0
+# Scenario names start run ids and directory names: plain characters, no leading '.' or '-'.
+NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,39}$"
+
+
+class LivelinessConfig(msgspec.Struct, forbid_unknown_fields=True):
+    """[run.liveliness]: how a hung process is told from a slow one (launcher and plant).
+
+    A process whose liveliness token vanished is hung if it is stopped (state T in /proc, e.g.
+    SIGSTOP) for stopped_grace_s, or if its token stays gone for hang_timeout_s whatever it does;
+    a token that comes back (a starved process whose lease lapsed) clears the suspicion.
+    """
+
+    lease_s: Annotated[float, msgspec.Meta(ge=0.1, le=60.0)] = 2.0
+    # How long the launcher waits for every node to come alive, and a node for its peers to be
+    # ready. Sixteen Python processes importing numpy, gtsam and Zenoh on two cores at load 30
+    # took over 60 s (benchmarks/bench_concurrent_runs.py); the launcher waits up to three times
+    # this for a node whose CPU time still advances (slow, not stuck).
+    startup_timeout_s: Annotated[float, msgspec.Meta(ge=5.0, le=3600.0)] = 120.0
+    stopped_grace_s: Annotated[float, msgspec.Meta(ge=0.0, le=60.0)] = 1.0
+    hang_timeout_s: Annotated[float, msgspec.Meta(ge=1.0, le=600.0)] = 15.0
+
+
 class RunConfig(msgspec.Struct, forbid_unknown_fields=True):
     # lock-step: plant waits for each command (deterministic); real-time: plant steps on the
     # wall clock at time_factor simulated seconds per wall second and never waits.
     mode: Literal["lock-step", "real-time"] = "lock-step"
-    steps: Annotated[int, msgspec.Meta(ge=1)] | None = None       # default: the reference's 288
-    time_factor: Annotated[float, msgspec.Meta(gt=0)] = 6000.0    # real-time: 600 s steps at 10 Hz
-    seed: Annotated[int, msgspec.Meta(ge=0)] = 1
+    steps: Annotated[int, msgspec.Meta(ge=1, le=MAX_STEPS)] | None = None   # default: the reference's 288
+    time_factor: Annotated[float, msgspec.Meta(ge=1e-2, le=1e6)] = 6000.0   # real-time: 600 s steps at 10 Hz
+    seed: Annotated[int, msgspec.Meta(ge=0, le=2**63 - 1)] = 1
     # lock-step: how long the plant waits for a command before it declares the loop broken.
-    command_timeout_s: Annotated[float, msgspec.Meta(gt=0)] = 10.0
+    command_timeout_s: Annotated[float, msgspec.Meta(gt=0, le=3600.0)] = 10.0
+    liveliness: LivelinessConfig = msgspec.field(default_factory=LivelinessConfig)
 
 
 class OnboardConfig(msgspec.Struct, forbid_unknown_fields=True):
@@ -60,8 +99,8 @@ class OnboardConfig(msgspec.Struct, forbid_unknown_fields=True):
 
 
 class Scenario(msgspec.Struct, forbid_unknown_fields=True):
-    name: str
-    description: str = ""
+    name: Annotated[str, msgspec.Meta(pattern=NAME_PATTERN)]
+    description: Annotated[str, msgspec.Meta(max_length=4096)] = ""
     # "rendezvous": the translational loop (600 s steps). "attitude": the magnetorquer loop at the
     # gyro rate ([attitude], [attitude_control]; issue 11).
     kind: Literal["rendezvous", "attitude"] = "rendezvous"
@@ -151,7 +190,15 @@ def _check_attitude(s: Scenario) -> None:
 def _check_semantics(s: Scenario) -> None:
     if s.kind == "attitude":
         _check_attitude(s)
-        return
+    if s.run.mode == "real-time":
+        period_s = s.step_s / s.run.time_factor
+        if not MIN_WALL_PERIOD_S <= period_s <= MAX_WALL_PERIOD_S:
+            raise ScenarioError(
+                f"run.time_factor: {s.run.time_factor:g} makes a {s.step_s:g} s step last {period_s:.3g} s "
+                f"of wall time; it must be {MIN_WALL_PERIOD_S:g}-{MAX_WALL_PERIOD_S:g} s"
+            )
+    if s.kind == "attitude":
+        return  # the translational checks below are for the rendezvous loop
     if s.plant.initial_state_m_mps is None:
         known = RendezvousParams.from_reference().initial_conditions_m_mps
         if s.plant.initial_condition not in known:
@@ -174,11 +221,70 @@ def _msgspec_message(exc: msgspec.ValidationError) -> str:
     return text
 
 
+def _first_non_finite(value, path: str = "") -> str | None:
+    """Path of the first float that is inf or NaN in plain data (dicts, lists), else None."""
+    stack = [(path, value)]
+    while stack:
+        where, item = stack.pop()
+        if isinstance(item, float) and not math.isfinite(item):
+            return f"{where.lstrip('.') or '<root>'}: must be a finite number, got {item!r}"
+        if isinstance(item, dict):
+            stack.extend((f"{where}.{k}", v) for k, v in reversed(list(item.items())))
+        elif isinstance(item, (list, tuple)):
+            stack.extend((f"{where}[{i}]", v) for i, v in reversed(list(enumerate(item))))
+    return None
+
+
+def _max_nesting(text: str) -> int:
+    """Deepest [ / { nesting of a TOML or JSON text, strings and comments skipped (a pre-parse check)."""
+    depth = deepest = 0
+    quote, comment, escaped = None, False, False
+    for ch in text:
+        if comment:
+            comment = ch != "\n"
+        elif quote:
+            if escaped:
+                escaped = False
+            elif ch == "\\" and quote == '"':
+                escaped = True
+            elif ch == quote or ch == "\n":
+                quote = None
+        elif ch in "\"'":
+            quote = ch
+        elif ch == "#":
+            comment = True
+        elif ch in "[{":
+            depth += 1
+            deepest = max(deepest, depth)
+        elif ch in "]}":
+            depth -= 1
+    return deepest
+
+
+def _read_bounded(path: Path) -> str:
+    """The file's text, refused before reading if it is too large or too deep to parse safely."""
+    size = path.stat().st_size
+    if size > MAX_SCENARIO_BYTES:
+        raise ScenarioError(f"{path}: {size} bytes; a scenario file may hold at most {MAX_SCENARIO_BYTES}")
+    text = path.read_text(errors="replace")
+    if _max_nesting(text) > MAX_NESTING:
+        raise ScenarioError(f"{path}: nested deeper than {MAX_NESTING} levels of [ or {{")
+    return text
+
+
 def parse_scenario(data: dict, source: str = "<scenario>") -> Scenario:
+    if not isinstance(data, dict):
+        raise ScenarioError(f"{source}: a scenario is a table of sections, not {type(data).__name__}")
+    problem = _first_non_finite(data)
+    if problem:
+        raise ScenarioError(f"{source}: {problem}")
     try:
         scenario = msgspec.convert(data, Scenario, strict=False)
     except msgspec.ValidationError as exc:
         raise ScenarioError(f"{source}: {_msgspec_message(exc)}") from None
+    problem = _first_non_finite(msgspec.to_builtins(scenario))   # strings such as "nan" converted
+    if problem:
+        raise ScenarioError(f"{source}: {problem}")
     try:
         _check_semantics(scenario)
     except ScenarioError as exc:
@@ -200,14 +306,14 @@ def load_scenario(name_or_path: str | Path | None = None) -> Scenario:
         if not path.is_file():
             raise ScenarioError(f"scenario file {name_or_path!r} does not exist")
         try:
-            data = json.loads(path.read_text())
-        except json.JSONDecodeError as exc:
+            data = json.loads(_read_bounded(path))
+        except (json.JSONDecodeError, RecursionError) as exc:
             raise ScenarioError(f"{path}: not valid JSON: {exc}") from None
         return parse_scenario(data, str(path))
     if path.suffix == ".toml" or path.exists():
         if not path.is_file():
             raise ScenarioError(f"scenario file {name_or_path!r} does not exist")
-        text, source = path.read_text(), str(path)
+        text, source = _read_bounded(path), str(path)
     elif name_or_path in builtin_names():
         text = resources.files(BUILTIN_PACKAGE).joinpath(f"{name_or_path}.toml").read_text()
         source = f"built-in scenario {name_or_path!r}"
@@ -217,7 +323,7 @@ def load_scenario(name_or_path: str | Path | None = None) -> Scenario:
         )
     try:
         data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
+    except (tomllib.TOMLDecodeError, RecursionError) as exc:
         raise ScenarioError(f"{source}: not valid TOML: {exc}") from None
     return parse_scenario(data, source)
 

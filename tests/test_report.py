@@ -158,7 +158,8 @@ def test_report_files_tables_and_metrics(tmp_path):
     assert deadlines["plant_misses_controller_slow"] == len(SLOW_CYCLES)
     assert deadlines["plant_misses_transport_slow"] == len(TRANSPORT_LOST)
     assert deadlines["worst_cycle_time_s"] == pytest.approx(0.06)
-    assert metrics["recording"] == {"recorded": 3 * N + len(SLOW_CYCLES) + 6, "malformed": 1, "missing": 0, "truncated": False}
+    assert metrics["recording"] == {"recorded": 3 * N + len(SLOW_CYCLES) + 6, "malformed": 1, "missing": 0, "truncated": False,
+                                    "dropped": 0, "wrong_type": {}, "ahead_of_plant": {}}
     assert metrics["estimator_error"]["fraction_within_3sigma"] == 1.0   # |error| <= 9 m, 3 sigma = 30 m
     assert metrics["estimator_error"]["rms_error"]["x"] == pytest.approx(np.sqrt(np.mean((3.0 * (1 + np.arange(N) % 3)) ** 2)))
     assert metrics["latency_ms"][END_TO_END.name]["n"] == N - len(SLOW_CYCLES | TRANSPORT_LOST)

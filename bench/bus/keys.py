@@ -23,13 +23,16 @@ STATUS_STATS = "status/stats"
 ALIVE = "alive"      # liveliness tokens: alive/<process>
 READY = "ready"      # liveliness tokens: ready/<process>, declared once its subscribers match
 
-_RUN_ID = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
+# First character a letter or digit: no ".", ".." (a run written into the parent folder) and
+# no "-x" (read as an option by every tool handed the directory name).
+_RUN_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}\Z")
 
 
 def check_run_id(run_id: str) -> str:
     """Run ids become one key-expression chunk and a directory name: keep them plain."""
-    if not _RUN_ID.match(run_id):
-        raise ValueError(f"run id {run_id!r} must be 1-64 characters of letters, digits, '_', '.', '-'")
+    if not isinstance(run_id, str) or not _RUN_ID.match(run_id):
+        raise ValueError(f"run id {run_id!r} must be 1-64 characters of letters, digits, '_', '.', '-', "
+                         f"starting with a letter or digit")
     return run_id
 
 

@@ -4,7 +4,7 @@ Zenoh's default configuration scouts by UDP multicast and listens on every inter
 bench must not announce itself on the host's network, so every session here is built from an
 explicit configuration: multicast scouting off, gossip on (peers that know one endpoint find the
 rest through it), loopback listen endpoints unless the user names others, and a short liveliness
-lease so a dead or hung peer is noticed within a second.
+lease (the run's `[run.liveliness] lease_s`) so a dead or hung peer is noticed within seconds.
 """
 from __future__ import annotations
 
@@ -16,8 +16,10 @@ from pathlib import Path
 import zenoh
 
 LOOPBACK_HOST = "127.0.0.1"
-# Liveliness lease: tokens of a peer that stops answering vanish after about this long.
-LEASE_MS = 600
+# Liveliness lease: tokens of a peer that stops answering vanish after about this long. A bench
+# run passes its scenario's [run.liveliness] lease_s; 2 s survives four concurrent lock-step runs
+# on two busy cores (benchmarks/bench_concurrent_runs.py), where 600 ms did not (a 534 ms stall).
+LEASE_MS = 2000
 KEEP_ALIVE_PER_LEASE = 4
 
 
@@ -39,6 +41,7 @@ class SessionOptions:
     connect: tuple[str, ...] = ()
     config_file: Path | None = None
     mode: str = "peer"
+    lease_ms: int = LEASE_MS
 
 
 @dataclass
@@ -111,6 +114,8 @@ def build_config(options: SessionOptions) -> zenoh.Config:
         listen=[_validate_endpoint(e) for e in options.listen] or [loopback_endpoint(0)],
         connect=[_validate_endpoint(e) for e in options.connect],
     )
+    if not 100 <= options.lease_ms <= 60_000:
+        raise SessionConfigError(f"lease of {options.lease_ms} ms is outside 100-60000 ms")
     if options.mode not in {"peer", "client"}:
         raise SessionConfigError(f"zenoh mode {options.mode!r} must be 'peer' or 'client'")
     settings = {
@@ -119,7 +124,7 @@ def build_config(options: SessionOptions) -> zenoh.Config:
         "scouting/gossip/enabled": "true",
         "listen/endpoints": json.dumps(checked.listen if options.mode == "peer" else []),
         "connect/endpoints": json.dumps(checked.connect),
-        "transport/link/tx/lease": str(LEASE_MS),
+        "transport/link/tx/lease": str(options.lease_ms),
         "transport/link/tx/keep_alive": str(KEEP_ALIVE_PER_LEASE),
         # The bench's own processes must not share memory by accident; keep transport plain.
         "transport/shared_memory/enabled": "false",

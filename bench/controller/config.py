@@ -10,14 +10,15 @@ import msgspec
 from bench.data import load_reference
 
 SEED_WEIGHTS = load_reference()["weights"]     # Q*, horizons and tube poles of seed 003
-Seconds = Annotated[float, msgspec.Meta(ge=0)]
-PositiveSeconds = Annotated[float, msgspec.Meta(gt=0)]
+Seconds = Annotated[float, msgspec.Meta(ge=0, le=60.0)]
+PositiveSeconds = Annotated[float, msgspec.Meta(gt=0, le=60.0)]
 FallbackPolicy = Literal["hold", "shifted_plan", "lqr"]
 # Processes that apply a StressConfig (call StressInjector(config, name).apply(cycle) in their
 # loop). Only the controller does so far; a scenario naming another is refused, not ignored.
 StressedProcess = Literal["controller"]
-PositiveWeights = Annotated[list[Annotated[float, msgspec.Meta(gt=0)]], msgspec.Meta(min_length=1)]
-Horizon = Annotated[int, msgspec.Meta(ge=1)]
+PositiveWeights = Annotated[list[Annotated[float, msgspec.Meta(gt=0, le=1e12)]], msgspec.Meta(min_length=1, max_length=64)]
+# The QP grows with N (3N inputs, 6N states); 1000 steps is already a 9000-variable QP per cycle.
+Horizon = Annotated[int, msgspec.Meta(ge=1, le=1000)]
 
 
 class StressConfig(msgspec.Struct, forbid_unknown_fields=True):
@@ -30,8 +31,8 @@ class StressConfig(msgspec.Struct, forbid_unknown_fields=True):
 
     process: StressedProcess = "controller"
     extra_cycle_time_s: Seconds = 0.0
-    cycles: list[Annotated[int, msgspec.Meta(ge=0)]] = []
-    every_nth_cycle: Annotated[int, msgspec.Meta(ge=0)] = 0
+    cycles: Annotated[list[Annotated[int, msgspec.Meta(ge=0, le=100_000)]], msgspec.Meta(max_length=10_000)] = []
+    every_nth_cycle: Annotated[int, msgspec.Meta(ge=0, le=100_000)] = 0
     # "busy": burn CPU (load, as a slow solver would); "sleep": a pure delay (as a pre-empted one).
     kind: Literal["busy", "sleep"] = "busy"
 
@@ -76,8 +77,8 @@ class ControllerConfig(msgspec.Struct, forbid_unknown_fields=True):
     r_diag: PositiveWeights = msgspec.field(default_factory=lambda: [1.0, 1.0, 1.0])
     horizon: Horizon = SEED_WEIGHTS["mpc_horizon"]      # N, prediction steps
     # mpc_ts_sc: slack penalty eps'S eps + v ||eps||_inf with S = soft_quadratic_weight * I (task 23).
-    soft_quadratic_weight: Annotated[float, msgspec.Meta(gt=0)] = 1.0e3
-    soft_linf_weight: Annotated[float, msgspec.Meta(ge=0)] = 1.0e5
+    soft_quadratic_weight: Annotated[float, msgspec.Meta(gt=0, le=1e12)] = 1.0e3
+    soft_linf_weight: Annotated[float, msgspec.Meta(ge=0, le=1e12)] = 1.0e5
     # mpc_tube: poles of A + B K_tube (task 31) and the out-of-plane horizon.
     tube_poles: Annotated[list[Annotated[float, msgspec.Meta(gt=-1, lt=1)]], msgspec.Meta(min_length=2, max_length=2)] = \
         msgspec.field(default_factory=lambda: list(SEED_WEIGHTS["tube_poles"]))

@@ -10,9 +10,10 @@ from typing import Annotated, Literal
 
 import msgspec
 
-Positive = Annotated[float, msgspec.Meta(gt=0)]
-NonNegative = Annotated[float, msgspec.Meta(ge=0)]
-PositiveInt = Annotated[int, msgspec.Meta(ge=1)]
+Positive = Annotated[float, msgspec.Meta(gt=0, le=1e15)]
+NonNegative = Annotated[float, msgspec.Meta(ge=0, le=1e15)]
+# Window lengths and decimations: the smoother keeps lag_steps states, so bounded by memory.
+PositiveInt = Annotated[int, msgspec.Meta(ge=1, le=10_000)]
 Probability = Annotated[float, msgspec.Meta(gt=0, lt=1)]
 Vec3 = Annotated[list[float], msgspec.Meta(min_length=3, max_length=3)]
 

@@ -7,6 +7,9 @@
 Defaults are a 1U CubeSat (1.3 kg, J ~ 2e-3 kg m^2) with 0.2 A m^2 coils (the [can.board] limit):
 in a ~3e-5 T field that is up to 6e-6 N m, ~3e-3 rad/s^2, so a detumble from 8 deg/s or a
 large slew takes minutes, a fraction of a 95-minute orbit, which keeps closed-loop runs short.
+
+Every number has a documented range (docs/run_safety.md): finite, and bounded so that no value a
+file can hold makes the plant allocate without limit or integrate nonsense.
 """
 from __future__ import annotations
 
@@ -19,9 +22,10 @@ import numpy as np
 from bench.data import load_reference
 
 MODEL = load_reference()["model"]     # the defaults below are the reference's (seed 003)
-Positive = Annotated[float, msgspec.Meta(gt=0)]
-NonNegative = Annotated[float, msgspec.Meta(ge=0)]
-State6 = Annotated[list[float], msgspec.Meta(min_length=6, max_length=6)]
+NonNegative = Annotated[float, msgspec.Meta(ge=0, le=1e9)]
+# 1e9 m is 2.5 times the Moon's distance: no relative-motion scenario starts farther out.
+StateValue = Annotated[float, msgspec.Meta(ge=-1e9, le=1e9)]
+State6 = Annotated[list[StateValue], msgspec.Meta(min_length=6, max_length=6)]
 
 
 class RelativePositionSensorConfig(msgspec.Struct, forbid_unknown_fields=True):
@@ -35,18 +39,37 @@ class RangeBearingSensorConfig(msgspec.Struct, forbid_unknown_fields=True):
     bearing_noise_std_rad: NonNegative = 1.0e-4
 
 
+class CommandAcceptanceConfig(msgspec.Struct, forbid_unknown_fields=True):
+    """[plant.command_acceptance]: what the output stage does with a refused command
+    (bench/plant/acceptance.py). The envelope is the reference's u_max per axis."""
+
+    # "hold": keep applying the last accepted command; "zero": apply no thrust.
+    on_reject: Literal["hold", "zero"] = "hold"
+
+
+class DivergenceConfig(msgspec.Struct, forbid_unknown_fields=True):
+    """[plant.divergence]: a state beyond these (or non-finite) ends the run (exit code 3)."""
+
+    # 1e8 m (100 000 km) and 1e4 m/s: a hundred times the seed's y_max and far beyond any
+    # relative velocity in the seeds; only a broken integration or command gets there.
+    max_abs_position_m: Annotated[float, msgspec.Meta(gt=0, le=1e12)] = 1.0e8
+    max_abs_velocity_mps: Annotated[float, msgspec.Meta(gt=0, le=1e8)] = 1.0e4
+
+
 class PlantConfig(msgspec.Struct, forbid_unknown_fields=True):
     # "cwh": linear CWH, exact discretisation; "nonlinear": two-body chaser and target (seed 001).
     dynamics: Literal["cwh", "nonlinear"] = "cwh"
     # A name from the reference (A, B, C) or an explicit state in m and m/s.
-    initial_condition: str = "A"
+    initial_condition: Annotated[str, msgspec.Meta(max_length=32)] = "A"
     initial_state_m_mps: State6 | None = None
-    mass_kg: Positive = MODEL["mass_kg"]
-    gravitational_parameter_m3ps2: Positive = MODEL["gravitational_parameter"]
-    target_radius_m: Positive = MODEL["target_radius_m"]
-    time_step_s: Positive = MODEL["time_step_s"]
+    mass_kg: Annotated[float, msgspec.Meta(gt=0, le=1e9)] = MODEL["mass_kg"]
+    gravitational_parameter_m3ps2: Annotated[float, msgspec.Meta(gt=0, le=1e21)] = MODEL["gravitational_parameter"]
+    target_radius_m: Annotated[float, msgspec.Meta(gt=0, le=1e12)] = MODEL["target_radius_m"]
+    time_step_s: Annotated[float, msgspec.Meta(gt=0, le=86_400)] = MODEL["time_step_s"]
     relpos_sensor: RelativePositionSensorConfig = msgspec.field(default_factory=RelativePositionSensorConfig)
     range_bearing_sensor: RangeBearingSensorConfig = msgspec.field(default_factory=RangeBearingSensorConfig)
+    command_acceptance: CommandAcceptanceConfig = msgspec.field(default_factory=CommandAcceptanceConfig)
+    divergence: DivergenceConfig = msgspec.field(default_factory=DivergenceConfig)
     # The coordinates the flight side sees and commands in (bench/plant/curvilinear.py): "cartesian"
     # LVLH, or "curvilinear" (arc length, radial difference, cross-track angle x radius), converted
     # at the plant boundary so CWH-based controllers fly long approaches on the nonlinear plant.

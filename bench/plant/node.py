@@ -1,13 +1,24 @@
 """The plant process: owns simulated time, publishes sensing and truth, applies thrust commands.
 
+Reads: command/thrust (ThrustCommand), actuator/mtq (MtqApplied, recorded). Writes: truth,
+sense/relpos, command/applied, event/deadline, status/step; trajectory.npz,
+command_acceptance.json and, when it stops on divergence, divergence.json.
+
 lock-step: publish step k, wait for command k, integrate. Deterministic.
 real-time: step k starts at t0 + k * period on the monotonic clock (period = time step divided by
 the scenario's time factor); the command for step k must arrive before step k+1 starts, else it
 is a plant-side deadline miss and the last command received is held (zero-order hold).
+
+Every command passes the output stage (bench/plant/acceptance.py) first: only a finite command for
+the current step inside the thrust envelope is applied, whoever sent it. In lock-step the plant
+keeps waiting for an acceptable command k after refusing one (the controller's is on its way);
+if only refused ones came by the command timeout, it holds or zeroes as configured.
+A state that diverges (non-finite, or beyond [plant.divergence]) ends the run with EXIT_DIVERGED.
 """
 from __future__ import annotations
 
 import importlib
+import json
 import queue
 import time
 
@@ -16,6 +27,8 @@ import numpy as np
 
 from bench.bus import keys
 from bench.bus.schemas import STAGES, MtqApplied, RangeBearing, RelativePosition, StepDone, ThrustCommand, TruthState, header
+from bench.plant.acceptance import ACCEPTANCE_FILE, ActuatorEnvelope, CommandGate
+from bench.plant.divergence import EXIT_DIVERGED, Divergence, check_state
 from bench.plant.model import TranslationPlant
 from bench.runtime.deadline import PlantCommandDeadline
 from bench.runtime.node import NodeContext
@@ -49,22 +62,39 @@ def _publish_sample(ctx: NodeContext, plant: TranslationPlant, last_thrust_n: np
     ctx.publish(keys.SENSE_RANGE_BEARING, RangeBearing(hdr, float(rng_m), float(azimuth_rad), float(elevation_rad)))
 
 
-def _wait_command_lockstep(ctx: NodeContext, commands: queue.Queue, k: int, timeout_s: float) -> ThrustCommand:
+def _wait_command_lockstep(ctx: NodeContext, commands: queue.Queue, k: int, timeout_s: float,
+                           gate: CommandGate) -> ThrustCommand | None:
+    """The first acceptable command for step k; None if only refused ones came by the timeout."""
     deadline = time.monotonic() + timeout_s
+    refused = 0
     while not ctx.stop.is_set():
         remaining = deadline - time.monotonic()
         if remaining <= 0:
+            if refused:
+                ctx.log.error("step %d: only refused commands within %.3g s; applying the %s policy", k, timeout_s,
+                              gate.on_reject)
+                gate.refuse_step()
+                return None
             raise LoopBroken(f"no thrust command for step {k} within {timeout_s} s")
-        if ctx.lost_peers:
-            raise LoopBroken(f"peer '{ctx.lost_peers[0]}' lost while waiting for the command of step {k}")
+        if ctx.lost_peer(ctx.scenario.run.liveliness.hang_timeout_s):
+            raise LoopBroken(f"peer '{ctx.lost_peer(0.0)}' lost while waiting for the command of step {k}")
         try:
             command = commands.get(timeout=min(remaining, 0.2))
         except queue.Empty:
             continue
-        if command.header.seq == k:
+        verdict = gate.check(command.thrust_n, seq=command.header.seq, step=k)
+        if verdict.accepted:
             return command
-        ctx.log.warning("discarding command for step %d while waiting for step %d", command.header.seq, k)
+        refused += 1
+        _log_refusal(ctx, gate, command, k, verdict.reason)
     raise LoopBroken("stopped")
+
+
+def _log_refusal(ctx: NodeContext, gate: CommandGate, command: ThrustCommand, k: int, reason: str) -> None:
+    n = gate.rejected[reason]
+    if n <= 5 or n % 100 == 0:    # a flood must not flood the log too
+        ctx.log.warning("refused command #%d (%s) at step %d: seq %d, thrust %s N", n, reason, k,
+                        command.header.seq, command.thrust_n)
 
 
 class RealTimeClock:
@@ -84,20 +114,27 @@ class RealTimeClock:
         if delay > 0:
             time.sleep(delay)
 
-    def collect_command(self, commands: queue.Queue, k: int) -> ThrustCommand | None:
-        """The command for step k if it arrives before step k+1's tick; late ones are counted."""
+    def collect_command(self, ctx: NodeContext, commands: queue.Queue, k: int, gate: CommandGate) -> ThrustCommand | None:
+        """The acceptable command for step k if it arrives before step k+1's tick; late ones are counted."""
         deadline = self.tick_s(k + 1)
+        refused = False
         while True:
             remaining = deadline - time.monotonic()
             try:
                 command = commands.get(timeout=remaining) if remaining > 0 else commands.get_nowait()
             except queue.Empty:
+                if refused:
+                    gate.refuse_step()
                 return None
-            if command.header.seq == k:
+            verdict = gate.check(command.thrust_n, seq=command.header.seq, step=k)
+            if verdict.accepted:
                 self.deadline.command_arrived(k)
                 return command
             if command.header.seq < k:
                 self.late_commands += 1
+            else:
+                refused = True
+                _log_refusal(ctx, gate, command, k, verdict.reason)
 
 
 def run(ctx: NodeContext) -> int:
@@ -108,9 +145,10 @@ def run(ctx: NodeContext) -> int:
     plant = TranslationPlant.from_scenario(scenario)
     n_steps = scenario.n_steps
     commands = ctx.subscribe_queue(keys.COMMAND_THRUST, ThrustCommand)
-    dipoles = MagnetorquerRecord()
+    dipoles = MagnetorquerRecord(dipole_gate(scenario))
     if scenario.can is not None:
-        # No attitude dynamics yet: the plant records the dipole the board applies (m x B later).
+        # No attitude dynamics yet: the plant records the dipole the board applies (m x B later),
+        # through the same output stage the attitude plant will apply it with.
         ctx.subscribe(keys.ACTUATOR_MTQ, MtqApplied, dipoles.add)
     sense_topic = keys.TRUTH if scenario.estimator.mode == "truth" else keys.SENSE_RELPOS
     if scenario.estimator.mode != "truth" and scenario.estimator.translation.sensor == "range_bearing":
@@ -119,55 +157,92 @@ def run(ctx: NodeContext) -> int:
     ctx.declare_publisher(keys.SENSE_RANGE_BEARING)
     ctx.declare_publisher(keys.EVENT_DEADLINE)
     ctx.declare_ready([sense_topic])
-    ctx.wait_for_tokens(keys.READY, ctx.peers, timeout_s=30.0)
+    ctx.wait_for_tokens(keys.READY, ctx.peers, timeout_s=scenario.run.liveliness.startup_timeout_s)
     ctx.watch_peers(ctx.peers)
     ctx.log.info("peers ready (%s); running %d steps in %s mode", ", ".join(ctx.peers), n_steps, scenario.run.mode)
 
     stamps = StampLog(n_steps)
-    last_thrust_n = np.zeros(3)
+    gate = thrust_gate(scenario)
     realtime = scenario.run.mode == "real-time"
     clock = RealTimeClock(plant.params.time_step_s / scenario.run.time_factor) if realtime else None
+    divergence = None
     try:
         for k in range(n_steps):
             if ctx.stop.is_set():
                 ctx.log.warning("stopped at step %d of %d", k, n_steps)
                 return 1
-            if ctx.lost_peers:
-                raise LoopBroken(f"peer '{ctx.lost_peers[0]}' lost at step {k}")
+            if ctx.lost_peer(scenario.run.liveliness.hang_timeout_s):
+                raise LoopBroken(f"peer '{ctx.lost_peer(0.0)}' lost at step {k}")
             if realtime:
                 clock.sleep_until(clock.tick_s(k))
-            _publish_sample(ctx, plant, last_thrust_n)
+            _publish_sample(ctx, plant, gate.output)
             if realtime:
-                command = clock.collect_command(commands, k)
+                command = clock.collect_command(ctx, commands, k, gate)
                 outcome = clock.deadline.check(k, time.monotonic() - clock.tick_s(k))
                 if outcome.has_event:
                     ctx.publish(keys.EVENT_DEADLINE, outcome.deadline_event(header(ctx.run_id, k, plant.sim_time_s), "plant"))
             else:
-                command = _wait_command_lockstep(ctx, commands, k, scenario.run.command_timeout_s)
+                command = _wait_command_lockstep(ctx, commands, k, scenario.run.command_timeout_s, gate)
             if command is not None:
                 received = command.header.stamped("plant_received", time.monotonic_ns())
-                last_thrust_n = np.array(command.thrust_n)
                 applied = msgspec.structs.replace(command, header=received.stamped("applied", time.monotonic_ns()))
                 stamps.record(k, applied.header.stamps_ns)
                 # Published so the recording holds every stage's stamp, actuation included.
                 ctx.publish(keys.COMMAND_APPLIED, applied)
-            plant.apply(last_thrust_n)
+            plant.apply(gate.output)
+            divergence = state_divergence(plant, scenario)
+            if divergence is not None:
+                ctx.log.error("%s; stopping the run", divergence.describe())
+                divergence.write(ctx.run_dir)
+                return EXIT_DIVERGED
             ctx.publish(keys.STATUS_STEP, StepDone(header(ctx.run_id, k, plant.sim_time_s), n_steps, k == n_steps - 1))
     except LoopBroken as exc:
         ctx.log.error("%s", exc)
         return 1
     finally:
         _write_trajectory(ctx, plant, stamps, clock, dipoles)
+        _write_acceptance(ctx, {"thrust": gate.counts(), "dipole": dipoles.gate.counts() if dipoles.gate else None})
     return 0
 
 
-class MagnetorquerRecord:
-    """Every applied-dipole report of the board, with the plant's receive time (monotonic ns)."""
+def thrust_gate(scenario) -> CommandGate:
+    """The output stage of the thruster: the reference's u_max per axis."""
+    envelope = ActuatorEnvelope("thrust", "N", scenario.params().max_abs_thrust_n)
+    return CommandGate(envelope, on_reject=scenario.plant.command_acceptance.on_reject)
 
-    def __init__(self):
+
+STATE_NAMES = ("x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps")
+
+
+def state_divergence(plant: TranslationPlant, scenario) -> Divergence | None:
+    limits = scenario.plant.divergence
+    bounds = [limits.max_abs_position_m] * 3 + [limits.max_abs_velocity_mps] * 3
+    return check_state(plant.step_index, plant.state_m_mps, STATE_NAMES, bounds)
+
+
+def _write_acceptance(ctx: NodeContext, counts: dict) -> None:
+    (ctx.run_dir / ACCEPTANCE_FILE).write_text(json.dumps(counts, indent=2))
+
+
+def dipole_gate(scenario) -> CommandGate | None:
+    """The output stage of the magnetorquer: the board's saturation per axis. Its messages carry
+    the board's alive counter, not a step, so only size, finiteness and envelope apply here."""
+    if scenario.can is None:
+        return None
+    envelope = ActuatorEnvelope("dipole", "A m^2", scenario.can.board.max_dipole_am2)
+    return CommandGate(envelope, on_reject=scenario.plant.command_acceptance.on_reject)
+
+
+class MagnetorquerRecord:
+    """Every accepted applied-dipole report of the board, with the plant's receive time (monotonic ns)."""
+
+    def __init__(self, gate: CommandGate | None = None):
+        self.gate = gate
         self.rows: list[tuple] = []
 
     def add(self, message: MtqApplied) -> None:
+        if self.gate is not None and not self.gate.check(message.dipole_am2).accepted:
+            return
         self.rows.append((time.monotonic_ns(), *message.dipole_am2, message.safe_state))
 
     def arrays(self) -> dict[str, np.ndarray]:

@@ -13,11 +13,12 @@ import numpy as np
 from bench.report import canbus, plots
 from bench.report.attitude import attitude_section
 from bench.report.deadlines import DeadlineResult, deadlines
+from bench.report.jsonout import write_json
 from bench.report.document import Document, Figure, Section, Table, fmt, write
 from bench.report.estimation import AXES, estimation_error
 from bench.report.latency import LatencyResult, latency
 from bench.report.run_metrics import trajectory_metrics
-from bench.report.rundata import RunData, load_run
+from bench.report.rundata import RunData, ahead_of_plant, load_run
 
 PLOTS_DIR = "plots"
 MISSION_ROWS = (
@@ -58,7 +59,11 @@ def summary_section(run: RunData, mission: dict) -> Section:
     text = (f"Scenario {s.name!r}, {s.run.mode}, controller {controller}, estimator {s.estimator.mode}, "
             f"{s.n_steps} steps of {s.step_s:g} s.")
     rows = [[name, fmt(mission.get(key))] for name, key in MISSION_ROWS if key in mission]
-    return Section("Summary", [text], [Table(["metric", "value"], rows)])
+    paragraphs = [text]
+    if run.metrics.get("partial"):
+        paragraphs.insert(0, f"Partial run: {run.metrics.get('end_reason', 'it did not finish')}. "
+                             "The numbers cover the steps it ran.")
+    return Section("Summary", paragraphs, [Table(["metric", "value"], rows)])
 
 
 def trajectory_section(run: RunData, plot_dir: Path) -> Section | None:
@@ -179,20 +184,56 @@ def can_section(run: RunData, plot_dir: Path) -> tuple[Section | None, dict | No
 
 
 def recording_section(run: RunData) -> tuple[Section, dict]:
-    counts = run.recorder_counts or {"topics": {}}
-    rows = [[topic, fmt(c["published"]), fmt(c["recorded"]), fmt(c["malformed"]), fmt(c["missing"])]
-            for topic, c in counts["topics"].items()]
-    missing = sum(c["missing"] or 0 for c in counts["topics"].values())
-    malformed = sum(c["malformed"] for c in counts["topics"].values())
-    note = ("recording.mcap holds every sample the recorder saw; 'published' is what each publisher reported "
-            f"at shutdown. Missing in total: {missing}; malformed (kept raw): {malformed}.")
+    counts = run.recorder_counts if isinstance(run.recorder_counts, dict) else None
+    topics = counts.get("topics", {}) if counts else {}
+    topics = {t: c for t, c in topics.items() if isinstance(c, dict)} if isinstance(topics, dict) else {}
+
+    def n(c: dict, key: str) -> int:
+        value = c.get(key)
+        return value if isinstance(value, int) else 0
+
+    rows = [[topic, fmt(c.get("published")), fmt(c.get("recorded")), fmt(c.get("malformed")), fmt(c.get("missing")),
+             fmt(c.get("dropped", 0))] for topic, c in topics.items()]
+    missing = sum(n(c, "missing") for c in topics.values())
+    malformed = sum(n(c, "malformed") for c in topics.values())
+    dropped = sum(n(c, "dropped") for c in topics.values())
+    wrong_type = dict(run.wrong_type)
+    ahead = ahead_of_plant(run)
+    note = ("recording.mcap holds every sample the recorder kept; 'published' is what each publisher reported "
+            f"at shutdown. Missing in total: {missing}; malformed (kept raw): {malformed}; dropped over the "
+            f"recorder's budget: {dropped}.")
+    if wrong_type:
+        note += (" Messages of a type their topic does not carry (left out of every analysis): "
+                 + ", ".join(f"{t}: {k}" for t, k in sorted(wrong_type.items())) + ".")
+    if ahead:
+        note += (" Messages for a step the plant never reached: "
+                 + ", ".join(f"{t}: {k}" for t, k in sorted(ahead.items())) + ".")
     if run.recording_truncated:
         note += " The recording ends early (the recorder did not finish it): samples after its last chunk are lost."
-    if run.recorder_counts is None:
+    if counts is None:
         note = "No recorder ran in this run, or it did not finish." if not run.messages else "The recorder did not finish (no counts)."
-    section = Section("Recording", [note], [Table(["topic", "published", "recorded", "malformed", "missing"], rows)])
+    section = Section("Recording", [note], [Table(["topic", "published", "recorded", "malformed", "missing", "dropped"], rows)])
     return section, {"missing": missing, "malformed": malformed, "truncated": run.recording_truncated,
-                     "recorded": sum(c["recorded"] for c in counts["topics"].values())}
+                     "recorded": sum(n(c, "recorded") for c in topics.values()), "dropped": dropped,
+                     "wrong_type": wrong_type, "ahead_of_plant": ahead}
+
+
+def acceptance_section(run: RunData) -> Section | None:
+    """What the plant's output stage refused, per actuator and reason (command_acceptance.json)."""
+    counts = run.metrics.get("command_acceptance")
+    if not isinstance(counts, dict):
+        return None
+    rows = []
+    for actuator, c in sorted(counts.items()):
+        if not isinstance(c, dict):
+            continue
+        rejected = c.get("rejected") if isinstance(c.get("rejected"), dict) else {}
+        rows.append([actuator, fmt(c.get("accepted")), ", ".join(f"{r}: {k}" for r, k in sorted(rejected.items())) or "none",
+                     str(c.get("on_reject", ""))])
+    return Section("Command acceptance", [
+        "Commands the plant applied, and those its output stage refused (non-finite, not for the current step, "
+        "out of the actuator envelope), whoever sent them."
+    ], [Table(["actuator", "accepted", "refused", "on refusal"], rows)])
 
 
 # --- the report -------------------------------------------------------------------------------
@@ -210,7 +251,7 @@ def write_report(run_dir: str | Path) -> tuple[Path, Path]:
     att_section, att_metrics = attitude_section(run, plot_dir)
     sections = [summary_section(run, mission), att_section, trajectory_section(run, plot_dir),
                 latency_section(run, lat, plot_dir),
-                deadline_section(dl, plot_dir), est_section, can_sec, rec_section]
+                deadline_section(dl, plot_dir), est_section, can_sec, acceptance_section(run), rec_section]
     doc = Document(f"Run {run.run_id}", [s for s in sections if s is not None])
     paths = write(doc, run.run_dir, "report")
     metrics = {**mission, **run.metrics}
@@ -224,5 +265,5 @@ def write_report(run_dir: str | Path) -> tuple[Path, Path]:
     })
     if att_metrics is not None:
         metrics["attitude"] = att_metrics
-    (run.run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    write_json(run.run_dir / "metrics.json", metrics)
     return paths

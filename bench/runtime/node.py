@@ -9,6 +9,7 @@ counted and logged where it arrives, never raised into the node.
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import queue
 import signal
@@ -25,6 +26,7 @@ from bench.bus import keys
 from bench.bus.clock_sync import declare_clock_responder
 from bench.bus.schemas import MalformedMessage, Message, ProcessStats, decode, encode, header
 from bench.bus.session import SessionOptions, open_session
+from bench.runtime.ownership import die_with_launcher
 from bench.scenario import Scenario
 
 # Node name -> module with run(ctx). Other parts add theirs (the magnetorquer board, the recorder).
@@ -48,7 +50,10 @@ class NodeContext:
     log: logging.Logger
     stop: threading.Event = field(default_factory=threading.Event)
     peers: list[str] = field(default_factory=list)   # nodes whose ready token this one awaits
-    lost_peers: list[str] = field(default_factory=list)
+    lost_peers: list[str] = field(default_factory=list)    # every loss seen (log, tests)
+    # Peers whose alive token is gone right now, with the monotonic time it vanished. A token
+    # that comes back (a slow peer whose lease lapsed, then reconnected) clears the entry.
+    lost_since_s: dict[str, float] = field(default_factory=dict)
     published: Counter = field(default_factory=Counter)
     malformed: Counter = field(default_factory=Counter)
     _publishers: dict = field(default_factory=dict)
@@ -110,11 +115,14 @@ class NodeContext:
     def declare_alive(self) -> None:
         self._keepalive.append(self.session.liveliness().declare_token(keys.key(self.run_id, f"{keys.ALIVE}/{self.name}")))
 
-    def declare_ready(self, consumed_topics: list[str], timeout_s: float = 20.0) -> None:
+    def declare_ready(self, consumed_topics: list[str], timeout_s: float | None = None) -> None:
         """Declare `ready/<name>` once each of `consumed_topics` reaches a subscriber.
 
         Lock-step depends on it: a sample published before its subscriber is matched is lost.
+        The default wait is the scenario's [run.liveliness] startup_timeout_s.
         """
+        if timeout_s is None:
+            timeout_s = self.scenario.run.liveliness.startup_timeout_s
         deadline = time.monotonic() + timeout_s
         for topic in consumed_topics:
             pub = self._publishers.get(topic) or self.declare_publisher(topic)
@@ -148,12 +156,29 @@ class NodeContext:
 
         def on_token(sample: zenoh.Sample) -> None:
             peer = str(sample.key_expr).rsplit("/", 1)[-1]
-            if sample.kind == zenoh.SampleKind.DELETE and peer in watched:
+            if peer not in watched:
+                return
+            if sample.kind == zenoh.SampleKind.DELETE:
                 self.lost_peers.append(peer)
-                self.log.error("peer '%s' lost (its liveliness token vanished)", peer)
+                self.lost_since_s.setdefault(peer, time.monotonic())
+                self.log.warning("peer '%s' lost (its liveliness token vanished)", peer)
+            elif self.lost_since_s.pop(peer, None) is not None:
+                self.log.warning("peer '%s' is back (its liveliness token reappeared)", peer)
 
         self._keepalive.append(self.session.liveliness().declare_subscriber(
             keys.key(self.run_id, f"{keys.ALIVE}/*"), on_token))
+
+    def lost_peer(self, min_age_s: float) -> str | None:
+        """A peer whose token has been gone for at least min_age_s, else None.
+
+        A busy machine can starve a peer past its lease without it being hung; the token comes
+        back when it is scheduled again, so only a loss that lasts is a lost peer.
+        """
+        now = time.monotonic()
+        for peer, since in list(self.lost_since_s.items()):
+            if now - since >= min_age_s:
+                return peer
+        return None
 
     # --- shutdown -------------------------------------------------------------------------
     def publish_stats(self) -> None:
@@ -182,9 +207,11 @@ def run_node(name: str, run_id: str, scenario: Scenario, options: SessionOptions
 
     if name not in NODES:
         raise ValueError(f"unknown node {name!r} (known: {', '.join(sorted(NODES))})")
+    die_with_launcher()
     module = importlib.import_module(NODES[name])
     log = logging.getLogger(f"bench.{name}")
-    session = open_session(options)
+    lease_ms = int(round(scenario.run.liveliness.lease_s * 1000))
+    session = open_session(dataclasses.replace(options, lease_ms=lease_ms))
     ctx = NodeContext(name=name, run_id=run_id, scenario=scenario, session=session, run_dir=run_dir, log=log,
                       peers=list(peers or []))
 

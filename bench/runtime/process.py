@@ -24,9 +24,12 @@ def node_command(name: str, run_id: str, scenario_path: Path, hub: str, run_dir:
 
 
 def start_node(name: str, run_id: str, scenario_path: Path, hub: str, run_dir: Path, log_path: Path,
-               peers: list[str] | None = None, zenoh_config: str | None = None) -> subprocess.Popen:
+               peers: list[str] | None = None, zenoh_config: str | None = None,
+               popen_kwargs: dict | None = None) -> subprocess.Popen:
     """Start node `name` as a child process logging to log_path; stdin closed, so a node
-    never waits on the terminal."""
+    never waits on the terminal. popen_kwargs: what the launcher adds to own it (process group,
+    environment; bench.runtime.ownership)."""
     with open(log_path, "w") as log_file:
         return subprocess.Popen(node_command(name, run_id, scenario_path, hub, run_dir, peers, zenoh_config),
-                                stdout=log_file, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
+                                stdout=log_file, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                **(popen_kwargs or {}))

@@ -18,9 +18,9 @@ def _dbc_cycle_s(name: str):
     override it (a deliberate deviation, e.g. a slow board)."""
     return msgspec.field(default_factory=lambda: cycle_time_s(name))
 
-PositiveS = Annotated[float, msgspec.Meta(gt=0)]
-NonNegS = Annotated[float, msgspec.Meta(ge=0)]
-Vec3 = Annotated[list[float], msgspec.Meta(min_length=3, max_length=3)]
+PositiveS = Annotated[float, msgspec.Meta(gt=0, le=3600.0)]
+NonNegS = Annotated[float, msgspec.Meta(ge=0, le=1e6)]
+Vec3 = Annotated[list[Annotated[float, msgspec.Meta(ge=-1e3, le=1e3)]], msgspec.Meta(min_length=3, max_length=3)]
 
 
 class BoardConfig(msgspec.Struct, forbid_unknown_fields=True):
@@ -34,7 +34,7 @@ class BoardConfig(msgspec.Struct, forbid_unknown_fields=True):
     # Magnetometer sampling windows: coils held off for window_s every period_s (0: never).
     mag_window_period_s: NonNegS = 0.0
     mag_window_s: NonNegS = 0.0
-    ambient_temperature_c: float = 20.0
+    ambient_temperature_c: Annotated[float, msgspec.Meta(ge=-273.15, le=500.0)] = 20.0
     # E2E profile 2 receiver (protocol.E2EReceiver): MaxDeltaCounterInit (widened by one per
     # command period or frame without a valid command), SyncCounterInit (valid commands ignored
     # after the sequence was lost) and MaxNoNewOrRepeatedData.
@@ -109,8 +109,8 @@ def _default_profile() -> list[DipoleStep]:
 
 class CanConfig(msgspec.Struct, forbid_unknown_fields=True):
     transport: Literal["zenoh", "socketcan", "virtual"] = "zenoh"
-    flight_channel: str = "flight"     # the driver's side of the bus model
-    board_channel: str = "board"       # the board's side
+    flight_channel: Annotated[str, msgspec.Meta(max_length=64)] = "flight"   # the driver's side of the bus model
+    board_channel: Annotated[str, msgspec.Meta(max_length=64)] = "board"     # the board's side
     bitrate_bps: Annotated[int, msgspec.Meta(ge=10_000, le=1_000_000)] = 1_000_000
     node_id: Annotated[int, msgspec.Meta(ge=1, le=127)] = 0x10
     tx_queue_frames: Annotated[int, msgspec.Meta(ge=1, le=1024)] = 8   # a controller's transmit buffers
@@ -119,9 +119,9 @@ class CanConfig(msgspec.Struct, forbid_unknown_fields=True):
     security: SecurityConfig = msgspec.field(default_factory=SecurityConfig)
     # Scripted dipole (until the attitude law commands it): steps held until the next, repeated
     # every profile_repeat_s when that is set.
-    dipole_profile: list[DipoleStep] = msgspec.field(default_factory=_default_profile)
+    dipole_profile: Annotated[list[DipoleStep], msgspec.Meta(max_length=10_000)] = msgspec.field(default_factory=_default_profile)
     profile_repeat_s: NonNegS = 1.8
-    faults: list[FaultSpec] = []
+    faults: Annotated[list[FaultSpec], msgspec.Meta(max_length=256)] = []
     capture: bool = True               # candump .log of the bus model in the run directory
 
     def __post_init__(self):
