@@ -6,6 +6,7 @@ everything down on success, on Ctrl-C, and when a node dies. Then it writes metr
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import os
@@ -25,6 +26,9 @@ import zenoh
 
 from bench.bus import keys
 from bench.bus.schemas import ProcessStats, StepDone, decode, MalformedMessage
+from bench.bus import acl
+from bench.bus.certs import CertificateError, identity_files, write_deployment_certs
+from bench.bus.deployment import LAUNCHER, Deployment, DeploymentError, load_deployment
 from bench.bus.session import SessionConfigError, SessionOptions, free_loopback_port, loopback_endpoint, open_session
 from bench.report.run_metrics import trajectory_metrics
 from bench.runtime.node import NODES, node_options, run_node
@@ -72,9 +76,10 @@ class Child:
 
 
 def _spawn(name: str, run_id: str, scenario_path: Path, hub: str, run_dir: Path, peers: list[str],
-           zenoh_config: str | None) -> Child:
+           zenoh_config: str | None, extra_args: list[str] | None = None) -> Child:
     log_path = run_dir / "logs" / f"{name}.log"
-    return Child(name, start_node(name, run_id, scenario_path, hub, run_dir, log_path, peers, zenoh_config), log_path)
+    return Child(name, start_node(name, run_id, scenario_path, hub, run_dir, log_path, peers, zenoh_config, extra_args),
+                 log_path)
 
 
 def _stop_children(children: list[Child], grace_s: float = SHUTDOWN_GRACE_S) -> None:
@@ -155,7 +160,8 @@ def _latency_percentiles_ms(trajectory: dict) -> dict:
     }
 
 
-def write_metrics(run_dir: Path, scenario: Scenario, children: list[Child], stats: dict, wall_s: float) -> dict:
+def write_metrics(run_dir: Path, scenario: Scenario, children: list[Child], stats: dict, wall_s: float,
+                  remote: dict[str, str] | None = None) -> dict:
     with np.load(run_dir / "trajectory.npz") as data:
         trajectory = {k: data[k] for k in data.files}
     metrics = trajectory_metrics(trajectory["state_m_mps"], trajectory["thrust_n"], scenario.params())
@@ -169,6 +175,8 @@ def write_metrics(run_dir: Path, scenario: Scenario, children: list[Child], stat
         "processes": {c.name: {"pid": c.process.pid, "exit_code": c.process.returncode} for c in children},
         "process_stats": stats,
     })
+    for name, host in (remote or {}).items():   # started on their own hosts: no pid of ours
+        metrics["processes"][name] = {"host": host, "pid": None, "exit_code": None}
     (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
     return metrics
 
@@ -199,8 +207,12 @@ def _print_summary(metrics: dict, run_dir: Path) -> None:
     console.print(f"run directory: {run_dir}")
 
 
-def _follow_run(session, run_id: str, children: list[Child], n_steps: int, show_progress: bool) -> None:
-    """Block until the plant finishes; raise NodeFailed if any process dies first."""
+def _follow_run(session, run_id: str, children: list[Child], n_steps: int, show_progress: bool,
+                remote: dict[str, str] | None = None) -> None:
+    """Block until the plant finishes; raise NodeFailed if any process dies first.
+
+    remote: node -> host of the nodes on other hosts; their liveliness token is all we see of them.
+    """
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
     steps: queue.Queue[int] = queue.Queue()
@@ -233,6 +245,7 @@ def _follow_run(session, run_id: str, children: list[Child], n_steps: int, show_
                 _check_liveliness(children, lost, grace_s=0.0)
                 raise
             _check_liveliness(children, lost)
+            _check_remote(remote or {}, lost)
             try:
                 done = max(done, steps.get(timeout=0.1) + 1)
                 progress.update(task, completed=done)
@@ -244,6 +257,26 @@ def _follow_run(session, run_id: str, children: list[Child], n_steps: int, show_
     if plant.process.returncode != 0:
         _check_liveliness(children, lost, grace_s=0.0)
         _check_children([plant], allowed_done=set())
+
+
+def _check_remote(remote: dict[str, str], lost: list[tuple[str, float]]) -> None:
+    """A node on another host whose token vanished died, hung, or lost its link."""
+    for name, _ in lost:
+        if name in remote:
+            raise NodeFailed(f"process '{name}' on host '{remote[name]}' left the bus (its liveliness token "
+                             f"vanished: it died, hung, or its link to this host is down)")
+
+
+def _stop_remote(session, run_id: str, launcher_token, remote: dict[str, str], grace_s: float = SHUTDOWN_GRACE_S) -> None:
+    """Nodes on other hosts stop when the launcher's token vanishes; wait until their tokens go."""
+    launcher_token.undeclare()
+    deadline = time.monotonic() + grace_s
+    while remote and time.monotonic() < deadline:
+        alive = {str(r.ok.key_expr).rsplit("/", 1)[-1]
+                 for r in session.liveliness().get(keys.key(run_id, f"{keys.ALIVE}/*"), timeout=0.5) if r.ok is not None}
+        if not alive & set(remote):
+            return
+        time.sleep(0.05)
 
 
 def _collect_stats(session, run_id: str) -> tuple[dict, object]:
@@ -259,8 +292,8 @@ def _collect_stats(session, run_id: str) -> tuple[dict, object]:
     return stats, session.declare_subscriber(keys.key(run_id, f"{keys.STATUS_STATS}/*"), on_stats)
 
 
-def _wait_alive(session, run_id: str, children: list[Child]) -> None:
-    names = {c.name for c in children}
+def _wait_alive(session, run_id: str, children: list[Child], remote: dict[str, str] | None = None) -> None:
+    names = {c.name for c in children} | set(remote or {})
     deadline = time.monotonic() + STARTUP_TIMEOUT_S
     while True:
         _check_children(children, allowed_done=set())
@@ -271,16 +304,65 @@ def _wait_alive(session, run_id: str, children: list[Child]) -> None:
         if names <= alive:
             return
         if time.monotonic() > deadline:
-            raise NodeFailed(f"processes not alive after {STARTUP_TIMEOUT_S} s: {', '.join(sorted(names - alive))}")
+            missing = sorted(names - alive)
+            where = [f"{n} (host {remote[n]}: start it with `bench node {n} --run-id {run_id} --deployment FILE "
+                     f"--host {remote[n]}`)" if n in (remote or {}) else n for n in missing]
+            raise NodeFailed(f"processes not alive after {STARTUP_TIMEOUT_S} s: {', '.join(where)}")
         time.sleep(0.05)
 
 
+@dataclass
+class Placement:
+    """Where this run's sessions are: the hub's session options, what each local node is told,
+    and which nodes run on other hosts (node -> host). Local and plain unless asked otherwise."""
+
+    hub: SessionOptions
+    hub_endpoint: str
+    node_args: list[str]
+    remote: dict[str, str]
+
+
+def local_placement(port: int | None, zenoh_config: str | None, cert_dir: Path | None = None) -> Placement:
+    """`bench run` on this host: the hub on loopback; with cert_dir, mutual TLS and access control."""
+    protocol = "tls" if cert_dir else "tcp"
+    hub = loopback_endpoint(port or free_loopback_port(), protocol)
+    identity = identity_files(cert_dir, LAUNCHER) if cert_dir else None
+    options = SessionOptions(listen=(hub,), config_file=Path(zenoh_config) if zenoh_config else None, identity=identity)
+    return Placement(options, hub, ["--cert-dir", str(cert_dir)] if cert_dir else [], {})
+
+
+def deployment_placement(deployment: Deployment, deployment_file: Path, names: list[str],
+                         zenoh_config: str | None) -> Placement:
+    host = deployment.launcher_host
+    if deployment.host_of("plant") != host:
+        raise DeploymentError(f"the plant runs on {deployment.host_of('plant')!r}: it must be on the launcher's "
+                              f"host {host!r} (the launcher follows the plant's progress)")
+    deployment.check_certificates(host, names)
+    options = dataclasses.replace(deployment.hub_options(), config_file=Path(zenoh_config) if zenoh_config else None)
+    remote = {n: deployment.host_of(n) for n in names if deployment.host_of(n) != host}
+    return Placement(options, deployment.rendezvous, ["--deployment", str(Path(deployment_file).resolve()), "--host", host],
+                     remote)
+
+
+def make_local_certs(cert_dir: Path) -> Path:
+    """A throw-away CA and certificates for one secure local run (`bench run --secure`)."""
+    write_deployment_certs(cert_dir, "local", {name: ("127.0.0.1",) for name in acl.identities()})
+    return cert_dir
+
+
 def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None, show_progress: bool = True,
-              zenoh_config: str | None = None, write_report: bool = True) -> tuple[int, Path]:
-    """Run a scenario as separate processes. Returns (exit code, run directory)."""
-    hub = loopback_endpoint(port or free_loopback_port())
+              zenoh_config: str | None = None, write_report: bool = True,
+              placement: Placement | None = None) -> tuple[int, Path]:
+    """Run a scenario as separate processes. Returns (exit code, run directory).
+
+    placement: where the sessions are (default: this host, loopback, plain TCP).
+    """
+    placement = placement or local_placement(port, zenoh_config)
+    hub = placement.hub_endpoint
     # The session first: a taken port must fail before anything is written or started.
-    session = open_session(SessionOptions(listen=(hub,), config_file=Path(zenoh_config) if zenoh_config else None))
+    session = open_session(placement.hub)
+    launcher_token = session.liveliness().declare_token(keys.key(run_id, f"{keys.ALIVE}/{LAUNCHER}"))
+    remote = placement.remote
     run_dir = runs_dir / run_id
     (run_dir / "logs").mkdir(parents=True, exist_ok=True)
     scenario_path = run_dir / "scenario.json"
@@ -292,15 +374,18 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
         names = nodes_for(scenario)
         loop_peers = [n for n in names if n != "plant"]
         for name in names:
+            if name in remote:
+                continue
             peers = loop_peers if name == "plant" else []
-            children.append(_spawn(name, run_id, scenario_path, hub, run_dir, peers, zenoh_config))
-        _wait_alive(session, run_id, children)
-        _follow_run(session, run_id, children, scenario.n_steps, show_progress)
+            children.append(_spawn(name, run_id, scenario_path, hub, run_dir, peers, zenoh_config, placement.node_args))
+        _wait_alive(session, run_id, children, remote)
+        _follow_run(session, run_id, children, scenario.n_steps, show_progress, remote)
         wall_s = time.monotonic() - started
+        _stop_remote(session, run_id, launcher_token, remote)
         _stop_children(children)
         time.sleep(0.1)   # the last stats samples are on their way
         _check_children(children, allowed_done={c.name for c in children})
-        metrics = write_metrics(run_dir, scenario, children, stats, wall_s)
+        metrics = write_metrics(run_dir, scenario, children, stats, wall_s, remote)
         _print_summary(metrics, run_dir)
         if write_report:
             from bench.report.build import write_report as build_report
@@ -326,10 +411,19 @@ def cmd_run(args) -> int:
         run_id = keys.check_run_id(args.run_id or _new_run_id(scenario))
         if args.port is not None and not 0 < args.port < 65536:
             raise ScenarioError(f"--port must be between 1 and 65535, got {args.port}")
+        placement = None
+        if args.deployment:
+            if args.port is not None:
+                raise DeploymentError("--port: the deployment file names the hub's endpoint")
+            placement = deployment_placement(load_deployment(args.deployment), Path(args.deployment),
+                                             nodes_for(scenario), args.zenoh_config)
+        elif args.secure:
+            cert_dir = make_local_certs(Path(args.runs_dir) / run_id / "certs")
+            placement = local_placement(args.port, args.zenoh_config, cert_dir)
         code, _ = run_bench(scenario, run_id, Path(args.runs_dir), args.port, not args.no_progress, args.zenoh_config,
-                            write_report=not args.no_report)
+                            write_report=not args.no_report, placement=placement)
         return code
-    except (ScenarioError, SessionConfigError, ValueError) as exc:
+    except (ScenarioError, SessionConfigError, DeploymentError, CertificateError, ValueError) as exc:
         print(f"bench: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
 
@@ -345,8 +439,14 @@ def cmd_node(args) -> int:
         run_dir = Path(args.run_dir or Path("runs") / run_id)
         run_dir.mkdir(parents=True, exist_ok=True)
         peers = [p for p in (args.wait_for or "").split(",") if p]
-        return run_node(args.name, run_id, scenario, node_options(args), run_dir, peers)
-    except (ScenarioError, SessionConfigError, ValueError) as exc:
+        options = node_options(args)
+        stop_with, host = None, None
+        if args.deployment:
+            host = args.host
+            if load_deployment(args.deployment).launcher_host != host:
+                stop_with = LAUNCHER   # the launcher cannot signal another host: its leaving ends the run
+        return run_node(args.name, run_id, scenario, options, run_dir, peers, stop_with=stop_with, host=host)
+    except (ScenarioError, SessionConfigError, DeploymentError, CertificateError, ValueError) as exc:
         print(f"bench node: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
 
@@ -366,6 +466,9 @@ def add_commands(subparsers) -> None:
     run.add_argument("--mode", choices=["lock-step", "real-time"], help="override the scenario's run.mode")
     run.add_argument("--steps", type=int, help="override the scenario's run.steps")
     run.add_argument("--zenoh-config", help="JSON5 Zenoh configuration applied under the bench's own settings")
+    run.add_argument("--secure", action="store_true",
+                     help="mutual TLS and access control on loopback, with certificates made for this run")
+    run.add_argument("--deployment", help="deployment TOML: which node runs on which host (see docs/security.md)")
     run.add_argument("--no-progress", action="store_true", help="no progress bar")
     run.add_argument("--no-report", action="store_true", help="skip report.html/report.md (bench report RUN_DIR later)")
     run.set_defaults(func=cmd_run)
@@ -379,6 +482,9 @@ def add_commands(subparsers) -> None:
     node.add_argument("--run-dir", help="run directory (default: runs/RUN_ID)")
     node.add_argument("--wait-for", help="comma-separated nodes whose ready token to await before starting")
     node.add_argument("--zenoh-config", help="JSON5 Zenoh configuration")
+    node.add_argument("--cert-dir", help="certificate directory: mutual TLS as this node, access control on")
+    node.add_argument("--deployment", help="deployment TOML (endpoints, certificates) ...")
+    node.add_argument("--host", help="... and which of its hosts this is")
     node.set_defaults(func=cmd_node)
 
     scenarios = subparsers.add_parser("scenarios", help="list the built-in scenarios")
