@@ -418,7 +418,7 @@ def cmd_run(args) -> int:
             placement = deployment_placement(load_deployment(args.deployment), Path(args.deployment),
                                              nodes_for(scenario), args.zenoh_config)
         elif args.secure:
-            cert_dir = make_local_certs(Path(args.runs_dir) / run_id / "certs")
+            cert_dir = Path(args.cert_dir) if args.cert_dir else make_local_certs(Path(args.runs_dir) / run_id / "certs")
             placement = local_placement(args.port, args.zenoh_config, cert_dir)
         code, _ = run_bench(scenario, run_id, Path(args.runs_dir), args.port, not args.no_progress, args.zenoh_config,
                             write_report=not args.no_report, placement=placement)
@@ -468,6 +468,7 @@ def add_commands(subparsers) -> None:
     run.add_argument("--zenoh-config", help="JSON5 Zenoh configuration applied under the bench's own settings")
     run.add_argument("--secure", action="store_true",
                      help="mutual TLS and access control on loopback, with certificates made for this run")
+    run.add_argument("--cert-dir", help="with --secure: certificates to use (default: new ones in the run directory)")
     run.add_argument("--deployment", help="deployment TOML: which node runs on which host (see docs/security.md)")
     run.add_argument("--no-progress", action="store_true", help="no progress bar")
     run.add_argument("--no-report", action="store_true", help="skip report.html/report.md (bench report RUN_DIR later)")

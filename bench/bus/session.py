@@ -184,6 +184,20 @@ def _tls_settings(options: SessionOptions, checked: _Checked) -> dict[str, str]:
     return settings
 
 
+# Zenoh's own log (it writes to stdout), for secure sessions: the TLS listener's line naming why it refused a
+# peer ("invalid peer certificate: certificate expired ...", "... UnknownIssuer") is the one a
+# user needs; everything else stays at error. RUST_LOG overrides it.
+TLS_LOG_FILTER = "error,zenoh_link_tls::unicast=warn"
+_log_initialised = False
+
+
+def _init_tls_log() -> None:
+    global _log_initialised
+    if not _log_initialised:
+        zenoh.init_log_from_env_or(TLS_LOG_FILTER)
+        _log_initialised = True
+
+
 def open_session(options: SessionOptions | None = None) -> zenoh.Session:
     """Open a Zenoh session with the bench's safe configuration.
 
@@ -193,6 +207,8 @@ def open_session(options: SessionOptions | None = None) -> zenoh.Session:
     for endpoint in options.listen:
         check_port_free(_validate_endpoint(endpoint))
     config = build_config(options)
+    if options.secure:
+        _init_tls_log()
     try:
         return zenoh.open(config)
     except Exception as exc:
