@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import os
 import shutil
+import signal
 import subprocess
+import threading
 import sys
 import time
 from pathlib import Path
@@ -30,6 +32,10 @@ def netns_available() -> str | None:
     return None
 
 
+def _exit_on_sigterm(signum, _frame):
+    raise SystemExit(128 + signum)
+
+
 def _ip(*args: str) -> None:
     result = subprocess.run(["ip", *args], capture_output=True, text=True)
     if result.returncode != 0:
@@ -45,8 +51,14 @@ class NetnsLab:
         self.subnet = subnet or f"10.{200 + os.getpid() % 50}.{os.getpid() % 250}"
         self.address = {h: f"{self.subnet}.{i + 1}" for i, h in enumerate(self.hosts)}
         self._made: list[str] = []
+        self._previous_sigterm = None
 
     def __enter__(self) -> "NetnsLab":
+        # SIGTERM (a `timeout`, a CI cancel) would end Python without running __exit__ and leave
+        # the namespaces behind: turn it into SystemExit while the lab exists.
+        self._previous_sigterm = None
+        if threading.current_thread() is threading.main_thread() and signal.getsignal(signal.SIGTERM) == signal.SIG_DFL:
+            self._previous_sigterm = signal.signal(signal.SIGTERM, _exit_on_sigterm)
         try:
             self._create()
         except BaseException:
@@ -78,6 +90,9 @@ class NetnsLab:
         for ns in reversed(self._made):
             subprocess.run(["ip", "netns", "del", ns], capture_output=True)
         self._made.clear()
+        if self._previous_sigterm is not None:
+            signal.signal(signal.SIGTERM, self._previous_sigterm)
+            self._previous_sigterm = None
 
     def command(self, host: str, cmd: list[str]) -> list[str]:
         return ["ip", "netns", "exec", self.netns[host], *cmd]
