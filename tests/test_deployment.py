@@ -134,3 +134,17 @@ def test_rendezvous_across_three_namespaces_with_mtls_and_acl_equals_single_host
     assert {offsets[n]["host"] for n in ("controller", "estimator", "plant")} == {"flight", "est", "sim"}
     for name in ("controller", "estimator"):
         assert abs(offsets[name]["offset_ns"]) <= offsets[name]["uncertainty_ns"], offsets[name]
+
+
+def test_router_deployment_runs_the_loop_through_a_router(lab, tmp_path, runs_dir):
+    """`bench router` on the plant's host, every session connects to it, TLS and the ACL on every
+    link including the router's (20 steps)."""
+    deployment = tmp_path / "deploy.toml"
+    deployment.write_text(deployment_toml(lab, PLACEMENT, launcher="sim", secure=True, router="sim"))
+    assert run_bench_cli("certs", str(deployment), timeout_s=60).returncode == 0
+    result, remote_codes = run_deployment(lab, deployment, PLACEMENT, "sim", "routed", runs_dir,
+                                          run_args=["--no-report", "--steps", "20"], router="sim")
+    assert result.returncode == 0, result.stderr + result.stdout
+    assert remote_codes == {"controller": 0, "estimator": 0}
+    metrics = json.loads((runs_dir / "routed" / "metrics.json").read_text())
+    assert metrics["process_stats"]["plant"]["published"]["truth"] == 20

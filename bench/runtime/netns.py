@@ -135,18 +135,28 @@ def deployment_toml(lab: NetnsLab, placement: dict[str, list[str]], launcher: st
 
 def run_deployment(lab: NetnsLab, deployment_file: Path, placement: dict[str, list[str]], launcher: str,
                    run_id: str, runs_dir: Path, run_args: list[str] = (), hub_port: int = 7447,
-                   timeout_s: float = 600.0) -> tuple[subprocess.CompletedProcess, dict[str, int]]:
+                   timeout_s: float = 600.0, router: str | None = None) -> tuple[subprocess.CompletedProcess, dict[str, int]]:
     """`bench run --deployment` in the launcher's namespace, `bench node` for every node placed on
-    another host in its namespace. Returns the launcher's result and each remote node's exit code.
-    Every process is killed on the way out if it is still running."""
+    another host in its namespace (and `bench router` first on the router's host, if there is one).
+    Returns the launcher's result and each remote node's exit code. Every process is killed on the
+    way out if it is still running."""
     bench = [sys.executable, "-m", "bench.cli"]
     run_dir = Path(runs_dir) / run_id
+    router_proc = None
+    if router:
+        router_log = Path(runs_dir) / f"{run_id}-router.log"
+        router_log.parent.mkdir(parents=True, exist_ok=True)
+        with open(router_log, "w") as log:
+            router_proc = lab.popen(router, [*bench, "router", "--deployment", str(deployment_file)],
+                                    stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
+        lab.wait_listening(router, hub_port, proc=router_proc)
     launcher_proc = lab.popen(launcher, [*bench, "run", "--deployment", str(deployment_file), "--run-id", run_id,
                                          "--runs-dir", str(runs_dir), "--no-progress", *run_args],
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     remote: dict[str, subprocess.Popen] = {}
     try:
-        lab.wait_listening(launcher, hub_port, proc=launcher_proc)
+        if not router:
+            lab.wait_listening(launcher, hub_port, proc=launcher_proc)
         scenario = run_dir / "scenario.json"
         deadline = time.monotonic() + 60
         while not scenario.exists():
@@ -177,3 +187,10 @@ def run_deployment(lab: NetnsLab, deployment_file: Path, placement: dict[str, li
             if proc.poll() is None:
                 proc.kill()
                 proc.wait()
+        if router_proc is not None:
+            router_proc.terminate()   # `bench router` stops cleanly on SIGTERM
+            try:
+                router_proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                router_proc.kill()
+                router_proc.wait()
