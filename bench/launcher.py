@@ -24,9 +24,8 @@ import msgspec
 import numpy as np
 import zenoh
 
-from bench.bus import keys
+from bench.bus import acl, keys
 from bench.bus.schemas import ProcessStats, StepDone, decode, MalformedMessage
-from bench.bus import acl
 from bench.bus.certs import CertificateError, identity_files, write_deployment_certs
 from bench.bus.deployment import LAUNCHER, Deployment, DeploymentError, load_deployment
 from bench.bus.session import SessionConfigError, SessionOptions, free_loopback_port, loopback_endpoint, open_session

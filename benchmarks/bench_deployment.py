@@ -183,7 +183,7 @@ def main() -> int:
         return 2
     work = Path(tempfile.mkdtemp(prefix="bench-deployment-"))
     runs_dir = work / "runs"
-    console = Console()
+    console = Console(width=130)
     hops: dict[str, list] = {}
     rates: dict[str, list] = {}
     try:

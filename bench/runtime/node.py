@@ -24,9 +24,9 @@ import zenoh
 
 from bench.bus import keys
 from bench.bus.clock_sync import declare_clock_responder
-from bench.bus.schemas import MalformedMessage, Message, ProcessStats, decode, encode, header
 from bench.bus.certs import identity_files
 from bench.bus.deployment import DeploymentError, load_deployment
+from bench.bus.schemas import MalformedMessage, Message, ProcessStats, decode, encode, header
 from bench.bus.session import SessionOptions, open_session
 from bench.scenario import Scenario
 
@@ -198,13 +198,25 @@ def stop_when_gone(ctx: NodeContext, process: str) -> None:
     """Stop the node when `process`'s alive token vanishes (the launcher, for nodes on other hosts:
     it cannot signal them, so it ends the run by leaving the bus)."""
 
+    key_expr = keys.key(ctx.run_id, f"{keys.ALIVE}/{process}")
+
+    def confirm() -> None:
+        # Asked again first: with a router Zenoh can report the delete of a token that is still
+        # there while peers reconnect directly (launcher.py `_check_remote`). Not in Zenoh's
+        # callback thread: a query from there would wait on that same thread.
+        try:
+            if any(r.ok is not None for r in ctx.session.liveliness().get(key_expr, timeout=1.0)):
+                return
+        except Exception:   # the session is closing: stopping anyway
+            pass
+        ctx.log.info("'%s' left the bus: stopping", process)
+        ctx.stop.set()
+
     def on_token(sample: zenoh.Sample) -> None:
         if sample.kind == zenoh.SampleKind.DELETE:
-            ctx.log.info("'%s' left the bus: stopping", process)
-            ctx.stop.set()
+            threading.Thread(target=confirm, name=f"{process}-gone", daemon=True).start()
 
-    ctx._keepalive.append(ctx.session.liveliness().declare_subscriber(
-        keys.key(ctx.run_id, f"{keys.ALIVE}/{process}"), on_token))
+    ctx._keepalive.append(ctx.session.liveliness().declare_subscriber(key_expr, on_token))
 
 
 def run_node(name: str, run_id: str, scenario: Scenario, options: SessionOptions, run_dir: Path,
