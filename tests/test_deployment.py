@@ -134,6 +134,17 @@ def test_rendezvous_across_three_namespaces_with_mtls_and_acl_equals_single_host
     assert {offsets[n]["host"] for n in ("controller", "estimator", "plant")} == {"flight", "est", "sim"}
     for name in ("controller", "estimator"):
         assert abs(offsets[name]["offset_ns"]) <= offsets[name]["uncertainty_ns"], offsets[name]
+    # The report moves the controller's and estimator's stamps (other hosts) by their offsets and
+    # leaves the plant's (the recorder's host) alone.
+    from bench.report.latency import merged_stamps, stamps_from_messages
+    from bench.report.rundata import load_run
+
+    run = load_run(run_dir)
+    raw, corrected = stamps_from_messages(run), merged_stamps(run)
+    k = max(raw)
+    assert corrected[k]["commanded"] == raw[k]["commanded"] - offsets["controller"]["offset_ns"]
+    assert corrected[k]["estimated"] == raw[k]["estimated"] - offsets["estimator"]["offset_ns"]
+    assert corrected[k]["sensed"] == raw[k]["sensed"]
 
 
 def test_router_deployment_runs_the_loop_through_a_router(lab, tmp_path, runs_dir):
