@@ -293,3 +293,10 @@ def test_without_security_the_same_rogue_takes_over(runs_dir):
     assert np.any(np.all(np.isclose(trajectory["thrust_n"], [0.9, -0.9, 0.9]), axis=1))
     reference = _reference()
     assert np.abs(trajectory["state_m_mps"] - reference["state_m_mps"]).max() > 1.0
+
+
+def test_every_node_has_an_access_control_role():
+    """A node without a role would be denied everything in a secure run: fail here instead."""
+    from bench.runtime.node import NODES
+
+    assert set(NODES) <= set(acl.ROLES)
