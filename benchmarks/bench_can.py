@@ -83,6 +83,11 @@ def board_side(bus: can.BusABC, commands: int, ready: threading.Event | None = N
 def driver_side(bus: can.BusABC, commands: int) -> list[tuple[int, int]]:
     """Send `commands` commands, one every PERIOD_S; returns (alive counter, sent ns) each."""
     driver = MagnetorquerDriver(bus, DriverConfig(), BoardConfig(), p.Protocol())
+    # CiA 301: the board applies commands only once started; the driver, its NMT master, starts
+    # it when it hears a boot-up or pre-operational heartbeat.
+    deadline = time.monotonic() + PEER_WAIT_S
+    while driver.health().nmt_state != p.NMT_OPERATIONAL and time.monotonic() < deadline:
+        driver.poll(timeout_s=0.05)
     sent = []
     next_s = time.monotonic()
     for i in range(commands):

@@ -46,6 +46,9 @@ class Rig:
                                          clock=self.clock)
         self.events = []
         self.board_alive = True
+        # Boot: the board's boot-up heartbeat, the driver's NMT start, the board operational.
+        self.run(0.005, commanding=False)
+        assert self.board.nmt_state == p.NMT_OPERATIONAL, self.board.nmt_state
 
     def run(self, duration_s: float, dipole_am2=(0.1, -0.05, 0.02), commanding: bool = True):
         next_command = self.clock.t
@@ -145,8 +148,12 @@ def test_corrupted_repeated_and_stale_commands_are_never_applied(rig):
     rig.run(0.001, commanding=False)
     assert dict(rig.board.rejected) == {"WRONG_CRC": 1, "REPEATED": 1, "WRONG_SEQUENCE": 1}
     assert all(np.allclose(a.dipole_am2, [0.1, 0.0, 0.0]) for a in rig.applied)
+    # EMCY inhibit time: the first rejection is reported at once, the last of the others when
+    # the inhibit time has passed (the board's running count says how many there were).
+    rig.run(rig.board_config.emcy_inhibit_s + 0.002, commanding=False)
     rejected = [e.detail.split()[0] for e in rig.events if e.kind == "command_rejected"]
-    assert rejected == ["WRONG_CRC", "REPEATED", "WRONG_SEQUENCE"]
+    assert rejected == ["WRONG_CRC", "WRONG_SEQUENCE"]
+    assert rig.board.sent[p.EMCY] == 2
     assert rig.kinds().count("spoofed_command") == 3   # frames with our id we did not send
 
 
@@ -176,6 +183,10 @@ def test_malformed_frames_are_counted_by_board_and_driver(rig):
     assert rig.board.rejected == {"wrong_length": 1}
     assert "command_rejected" in rig.kinds()
     assert rig.driver.health().bad_frames == {"wrong_length": 1, "unknown_id": 1, "garbage": 1}
+    # A frame on the command identifier that the driver did not send is a spoof attempt: health
+    # is not ok for fault_hold_s, then ok again.
+    assert rig.driver.health().recent_faults == ["spoofed_command"] and not rig.driver.health().ok
+    rig.run(rig.driver_config.fault_hold_s)
     assert rig.driver.health().ok
 
 

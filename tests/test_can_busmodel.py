@@ -198,3 +198,42 @@ def test_error_frames_drive_the_transmitter_to_bus_off_and_back():
             driver.handle(d.msg)
     assert [e.kind for e in driver.events] == ["error_warning", "error_passive", "bus_off", "bus_restarted"]
     driver.bus.shutdown()
+
+
+def _bus_off_then(board_frames_after_restart: int):
+    """Five commands queued at T0; the first is destroyed 32 times (bus-off); the board sends
+    frames from the moment the flight controller's restart delay ends."""
+    bus = model(FaultSpec("error_frames", start_s=0.0, count=32, params={"restart_delay_s": 0.01}))
+    for k in range(5):
+        bus.submit(FLIGHT, PROTO.command([0.1, 0, 0], counter=k), T0)
+    deliveries = bus.run_until(T0 + 5 * MS)
+    bus_off_ns = round(deliveries[-1].msg.timestamp * 1e9)
+    assert errors.read_error_frame(deliveries[-1].msg) == (errors.ErrorState.BUS_OFF, False)
+    restart_ns = bus_off_ns + 10 * MS
+    telemetry = [PROTO.encode(p.TLM_DIPOLE, {}, counter=k) for k in range(board_frames_after_restart)]
+    bus.run_until(restart_ns - 1)
+    for msg in telemetry:
+        bus.submit(BOARD, msg, restart_ns)
+    deliveries = bus.run_until(T0 + 100 * MS)
+    restarted = [d for d in deliveries if d.msg.is_error_frame and d.destinations == (FLIGHT,)]
+    assert len(restarted) == 1 and errors.read_error_frame(restarted[0].msg) == (errors.ErrorState.ACTIVE, True)
+    return bus, restart_ns, round(restarted[0].msg.timestamp * 1e9), telemetry
+
+
+def test_bus_off_recovery_is_the_restart_delay_then_128_times_11_recessive_bits_and_the_queue_is_flushed():
+    bus, restart_ns, back_ns, _ = _bus_off_then(0)
+    assert back_ns - restart_ns == 1408 * 1000          # idle bus at 1 Mbit/s: 1408 bit times
+    assert bus.report()["dropped"] == {"bus_off": 1, "bus_off_flush": 4}
+
+
+def test_frames_during_recovery_count_once_each_and_a_lone_transmitter_stops_at_error_passive():
+    bus, restart_ns, back_ns, telemetry = _bus_off_then(3)
+    # Worked by hand. With the flight side bus-off the board is alone: no ACK. Each attempt runs
+    # to the ACK slot (frame bits - 13 tail + CRC delimiter + ACK slot) and an error frame (23
+    # bits), and ends in 11 recessive bits: one of the 128 occurrences recovery waits for. The
+    # attempts are back to back from the restart, so recovery takes 128 of them.
+    attempt_bits = bittiming.frame_bits(telemetry[0]) - 13 + 2 + 23
+    assert back_ns - restart_ns == 128 * attempt_bits * 1000
+    # ACK errors raise an error-passive transmitter's TEC no further (ISO 11898-1 rule 3, exception 1).
+    assert bus.stats.tec_max["board"] == 128 and not bus.counters["board"].bus_off
+    assert bus.stats.bus_errors["ack"] == 128          # then the flight side ACKs again

@@ -71,3 +71,20 @@ def test_mtq_applied_message_round_trips():
     message = MtqApplied(header=header("r1", 3, 0.0, board_received=1, applied=2), dipole_am2=[0.1, 0.0, -0.1],
                          coil_current_a=[0.05, 0.0, -0.05], safe_state=False, alive_counter=7)
     assert decode(encode(message), MtqApplied) == message
+
+
+def test_periods_come_from_the_dbc_cycle_times_and_send_types():
+    import cantools
+
+    from bench.bus.can import protocol as p
+    from bench.bus.can.config import CanConfig
+    db = cantools.database.load_file(str(p.DBC_PATH))     # read here with cantools, not through protocol.py
+    cycle_ms = {m.name: m.cycle_time for m in db.messages if m.send_type == "Cyclic"}
+    assert cycle_ms == {"MTQ_CMD": 20, "MTQ_CMD_AUTH": 20, "MTQ_TLM_DIPOLE": 50, "MTQ_TLM_COIL": 50,
+                        "MTQ_HEARTBEAT": 100}
+    assert {m.name for m in db.messages if m.send_type == "Spontaneous"} == {"MTQ_EMCY", "NMT"}
+    config = CanConfig()
+    assert config.driver.command_period_s == cycle_ms["MTQ_CMD"] / 1000
+    assert config.board.telemetry_period_s == cycle_ms["MTQ_TLM_DIPOLE"] / 1000
+    assert config.board.heartbeat_period_s == cycle_ms["MTQ_HEARTBEAT"] / 1000
+    assert p.cycle_time_s(p.EMCY) is None

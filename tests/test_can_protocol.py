@@ -66,11 +66,16 @@ def test_a_frame_protected_with_a_foreign_data_id_fails_for_every_counter(proto)
 
 
 def test_receiver_tells_repeated_lost_and_out_of_sequence_apart():
-    rx = p.E2EReceiver(max_delta_counter=2)
+    # E2E_P02Check by hand: every call widens MaxDeltaCounter by one (init 1), an accepted frame
+    # narrows it back; a wrong sequence re-synchronises after sync_counter (here 0) valid frames.
+    rx = p.E2EReceiver(max_delta_counter=1, sync_counter=0)
     statuses = [rx.check(c, True) for c in (5, 6, 6, 8, 12, 13)] + [rx.check(14, False)]
+    # 6 again: REPEATED (max delta now 2); 8: delta 2 <= 3, OK_SOME_LOST; 12: delta 4 > 2, WRONG_SEQUENCE
+    # and, with sync_counter 0, no re-sync: 13 is delta 5 from 8 > 3, WRONG_SEQUENCE again.
     assert statuses == [p.E2EStatus.INITIAL, p.E2EStatus.OK, p.E2EStatus.REPEATED, p.E2EStatus.OK_SOME_LOST,
-                        p.E2EStatus.WRONG_SEQUENCE, p.E2EStatus.OK, p.E2EStatus.WRONG_CRC]
-    assert [rx.check(c, True) for c in (14, 15, 0, 1)] == [p.E2EStatus.OK] * 4  # wraps at 16
+                        p.E2EStatus.WRONG_SEQUENCE, p.E2EStatus.WRONG_SEQUENCE, p.E2EStatus.WRONG_CRC]
+    rx = p.E2EReceiver(max_delta_counter=1)
+    assert [rx.check(c, True) for c in (14, 15, 0, 1)] == [p.E2EStatus.INITIAL] + [p.E2EStatus.OK] * 3  # wraps at 16
 
 
 def test_bad_frames_are_counted_by_reason_never_raised(proto):
@@ -80,15 +85,18 @@ def test_bad_frames_are_counted_by_reason_never_raised(proto):
         can.Message(arbitration_id=0x210, is_extended_id=True, data=bytes(8)),          # extended id
         can.Message(arbitration_id=0x710, is_extended_id=False, data=b"\x42"),          # no NMT state
         can.Message(arbitration_id=0x4, is_error_frame=True, is_extended_id=False, data=bytes(8)),
+        can.Message(arbitration_id=0x210, is_extended_id=False, is_remote_frame=True, dlc=8),   # RTR
+        can.Message(arbitration_id=0x210, is_extended_id=False, is_fd=True, data=bytes(8)),     # FD, classic id
     ]
-    assert [proto.decode(m) for m in bad] == [None] * 5
-    assert proto.bad.counts == {"wrong_length": 1, "unknown_id": 2, "garbage": 1, "error_frame": 1}
+    assert [proto.decode(m) for m in bad] == [None] * 7
+    assert proto.bad.counts == {"wrong_length": 1, "unknown_id": 2, "garbage": 1, "error_frame": 1,
+                                "remote_request": 1, "wrong_format": 1}
 
 
 def test_node_id_moves_every_identifier_like_canopen():
     proto = p.Protocol(node_id=0x22)
-    assert proto.frame_ids == {p.CMD: 0x222, p.TLM_DIPOLE: 0x1A2, p.TLM_COIL: 0x2A2,
-                               p.HEARTBEAT: 0x722, p.EMCY: 0xA2}
+    assert proto.frame_ids == {p.CMD: 0x222, p.CMD_AUTH: 0x322, p.TLM_DIPOLE: 0x1A2, p.TLM_COIL: 0x2A2,
+                               p.HEARTBEAT: 0x722, p.EMCY: 0xA2, p.NMT: 0x000}   # NMT: 0 for every node
     assert proto.decode(proto.command([0, 0, 0], counter=1)).crc_ok
     with pytest.raises(ValueError):
         p.Protocol(node_id=0x80)

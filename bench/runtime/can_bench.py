@@ -131,7 +131,7 @@ class CanBench:
                                 session_options=SessionOptions(connect=(self.hub,)))
         if hasattr(self.bus, "wait_for_peers"):
             self.bus.wait_for_peers(1, STARTUP_TIMEOUT_S)
-        self.driver = MagnetorquerDriver(self.bus, self.config.driver, self.config.board, p.Protocol(self.config.node_id))
+        self.driver = MagnetorquerDriver.from_config(self.bus, self.config)
         self._spawn("mtq")
         deadline = time.monotonic() + STARTUP_TIMEOUT_S
         while not self.driver.health().alive:   # the board's first heartbeat

@@ -33,7 +33,8 @@ for m in net/can/can.ko net/can/can-raw.ko net/can/can-gw.ko drivers/net/can/dev
 done
 ip link set lo up || setup_failed "ip link set lo up failed"
 for dev in vcan0 vcan1; do
-  { ip link add dev "$dev" type vcan && ip link set "$dev" up; } 2>>"$job/output" \
+  # mtu 72: CAN FD frames (the authenticated magnetorquer command is one).
+  { ip link add dev "$dev" type vcan && ip link set "$dev" mtu 72 && ip link set "$dev" up; } 2>>"$job/output" \
     || setup_failed "creating $dev failed"
 done
 

@@ -71,8 +71,59 @@ def _frame_bits(arbitration_id: int, data: bytes, extended: bool, remote: bool) 
     return len(stuff(frame_bits_unstuffed(arbitration_id, data, extended=extended, remote=remote))) + TAIL_BITS
 
 
+def arbitration_bits(arbitration_id: int, *, extended: bool = False, remote: bool = False) -> tuple[int, ...]:
+    """The bits a transmitter sends in the arbitration field (dominant = 0, so the lowest
+    sequence wins), with the IDE bit that settles standard against extended:
+    standard: ID10..ID0, RTR, IDE(0); extended: ID28..ID18, SRR(1), IDE(1), ID17..ID0, RTR.
+    Hence a standard frame beats an extended one with the same base identifier, a data frame (RTR
+    dominant) beats a remote frame with the same identifier, and a CAN FD frame (RRS dominant)
+    competes like a classic data frame."""
+    if extended:
+        return tuple(_field(arbitration_id >> 18, 11) + [1, 1] + _field(arbitration_id & 0x3FFFF, 18) + [int(remote)])
+    return tuple(_field(arbitration_id, 11) + [int(remote), 0])
+
+
+def message_arbitration_bits(msg: can.Message) -> tuple[int, ...]:
+    return arbitration_bits(msg.arbitration_id, extended=msg.is_extended_id, remote=msg.is_remote_frame)
+
+
+def fd_bits_unstuffed(arbitration_id: int, data: bytes, extended: bool = False) -> list[int]:
+    """A CAN FD frame's bits from start of frame to the end of the data field."""
+    if extended:
+        head = [0] + _field(arbitration_id >> 18, 11) + [1, 1] + _field(arbitration_id & 0x3FFFF, 18) + [0]
+    else:
+        head = [0] + _field(arbitration_id, 11) + [0, 0]          # RRS, IDE
+    head += [1, 0, 0, 0] + _field(can.util.len2dlc(len(data)), 4)  # FDF, res, BRS, ESI, DLC
+    for byte in data:
+        head += _field(byte, 8)
+    return head
+
+
+def stuffed_bits(msg: can.Message) -> list[int]:
+    """The frame's bits as they go on the wire from start of frame (dynamic stuffing applied)."""
+    if msg.is_fd:
+        return stuff(fd_bits_unstuffed(msg.arbitration_id, bytes(msg.data), msg.is_extended_id))
+    data = bytes(msg.data) if not msg.is_remote_frame else bytes(msg.dlc)
+    return stuff(frame_bits_unstuffed(msg.arbitration_id, data, extended=msg.is_extended_id, remote=msg.is_remote_frame))
+
+
+@lru_cache(maxsize=4096)
+def _fd_frame_bits(arbitration_id: int, data: bytes, extended: bool) -> int:
+    """A CAN FD frame without bit-rate switch (the whole frame at the nominal rate, as this model
+    has one bitrate). Dynamic stuffing from SOF to the end of the data field; then the stuff count
+    (3-bit Gray code and parity) and the CRC (17 bits up to 16 data bytes, 21 beyond) with fixed
+    stuff bits, one before the stuff count and one after every 4 bits (ISO 11898-1:2015 10.5)."""
+    head = fd_bits_unstuffed(arbitration_id, data, extended)
+    crc_bits = 17 if len(data) <= 16 else 21
+    checked = 4 + crc_bits
+    fixed_stuff = 1 + checked // 4
+    return len(stuff(head)) + checked + fixed_stuff + TAIL_BITS
+
+
 def frame_bits(msg: can.Message) -> int:
     """Bits on the wire for this frame, stuff bits and intermission included."""
+    if msg.is_fd:
+        return _fd_frame_bits(msg.arbitration_id, bytes(msg.data), msg.is_extended_id)
     data = bytes(msg.data) if not msg.is_remote_frame else bytes(msg.dlc)
     return _frame_bits(msg.arbitration_id, data, msg.is_extended_id, msg.is_remote_frame)
 

@@ -1,9 +1,21 @@
 """The virtual magnetorquer board: what a real coil-driver board does on its CAN bus.
 
-It accepts only commands that pass the E2E check, quantises each axis to its driver's resolution
-and saturates it, drives coil currents that follow with a first-order lag (the coil's L/R), turns
-the coils off when commands stop (safe state) or while the magnetometer samples, and sends
-heartbeat and telemetry at fixed periods and an emergency frame for every rejected command.
+It applies only commands of its profile's frame that pass, in this order, SecOC (profile "secoc":
+the MAC, then the freshness value: age at most one command period plus the stated margin, newer
+than the last applied) and the E2E profile-2 receiver state machine (protocol.E2EReceiver, ticked
+once per command period without a command and reset when the command timeout expires). It
+quantises each axis to its driver's resolution and saturates it, drives coil currents that follow
+with a first-order lag (the coil's L/R), turns the coils off when commands stop (safe state) or
+while the magnetometer samples, and sends heartbeat and telemetry at fixed periods. Every rejected
+command, and every command that shows earlier ones were lost, is reported by an emergency frame,
+no two closer than the EMCY inhibit time (CiA 301 0x1015): what is rejected within it is reported
+by the next one, with the running count of rejected frames.
+
+As a CANopen node (CiA 301) it boots into pre-operational (boot-up heartbeat, then heartbeats
+carrying its NMT state) and processes commands and sends telemetry only once an NMT master has
+started it (operational); stop and enter-pre-operational turn the coils off, reset node and
+reset communication boot it again. A cleared error (commands back after a timeout) is announced
+by an error-reset EMCY (code 0x0000).
 
 `step(now_s)` handles what arrived and what is due at `now_s`; `run(stop)` is the process loop.
 Time comes from the caller's clock, so unit tests drive the board deterministically.
@@ -22,7 +34,8 @@ import can
 import numpy as np
 
 from bench.bus.can import protocol as p
-from bench.bus.can.config import BoardConfig
+from bench.bus.can import secoc
+from bench.bus.can.config import BoardConfig, SecurityConfig
 
 log = logging.getLogger(__name__)
 
@@ -37,6 +50,7 @@ class AppliedCommand:
     alive_counter: int
     received_ns: int                # board decoded the frame
     applied_ns: int                 # board set the coil targets
+    age_s: float | None = None      # secoc: age from its freshness value when applied (board clock)
 
 
 @dataclass
@@ -56,7 +70,8 @@ class MagnetorquerBoard:
     def __init__(self, bus: can.BusABC, config: BoardConfig, protocol: p.Protocol,
                  clock: Callable[[], float] = time.monotonic,
                  on_applied: Callable[[AppliedCommand], None] | None = None,
-                 on_coils_changed: Callable[[BoardState], None] | None = None):
+                 on_coils_changed: Callable[[BoardState], None] | None = None,
+                 security: SecurityConfig | None = None):
         """on_applied: each accepted command. on_coils_changed: the coil target changed without a
         command (safe state entered, magnetometer window began or ended), so that whoever
         publishes the applied dipole never leaves a stale one standing."""
@@ -67,17 +82,35 @@ class MagnetorquerBoard:
         self.on_applied = on_applied
         self.on_coils_changed = on_coils_changed
         self.state = BoardState()
-        self.e2e = p.E2EReceiver(config.max_delta_counter)
+        self.e2e = p.E2EReceiver(config.max_delta_counter, config.sync_counter, config.max_no_new_or_repeated)
+        self.command_name = protocol.command_name
+        self.command_period_s = p.cycle_time_s(self.command_name)
+        self.freshness: secoc.FreshnessVerifier | None = None
+        if protocol.profile == "secoc":
+            security = security or SecurityConfig(profile="secoc")
+            if protocol.key is None:
+                raise ValueError("the secoc profile needs the key in the board's Protocol")
+            self.freshness = secoc.FreshnessVerifier(
+                protocol.key, p.secoc_data_id(self.command_name),
+                max_age_s=self.command_period_s + security.freshness_margin_s, max_future_s=security.max_future_s)
+        self.last_command_age_s: float | None = None
         self.rejected: Counter = Counter()     # by E2E status name or "wrong_length"
         self.accepted = 0
+        self.lost_commands = 0
+        self.host_overruns = 0                 # periodic frames sent more than half a period late
         self.sent: Counter = Counter()
         self.received: Counter = Counter()     # every frame heard, by name (frame accounting)
         self._tx_counter: Counter = Counter()  # alive counters of the board's own protected frames
         self._started_s: float | None = None
         self._last_update_s: float | None = None
         self._last_command_s: float | None = None
+        self._next_no_data_s: float | None = None    # next E2E check without a new command
+        self._last_emcy_s: float | None = None
+        self._pending_emcy: list[dict] = []         # held back by the inhibit time
         self._next_heartbeat_s = 0.0
         self._next_telemetry_s = 0.0
+        self.nmt_state = p.NMT_BOOT_UP
+        self.ignored: Counter = Counter()      # frames not for this NMT state (CiA 301: not processed)
 
     @property
     def applied_dipole_am2(self) -> np.ndarray:
@@ -92,11 +125,47 @@ class MagnetorquerBoard:
 
     # --- the loop -------------------------------------------------------------------------
     def start(self, now_s: float) -> None:
-        """Boot: announce ourselves (CANopen boot-up heartbeat) and schedule periodic frames."""
-        self._started_s = self._last_update_s = now_s
+        """Boot: announce ourselves (CANopen boot-up heartbeat), enter pre-operational, schedule
+        the periodic frames."""
+        if self._started_s is None:
+            self._started_s = self._last_update_s = now_s
         self._send(self.protocol.encode(p.HEARTBEAT, {"NmtState": p.NMT_BOOT_UP}))
+        self.nmt_state = p.NMT_PRE_OPERATIONAL
         self._next_heartbeat_s = now_s + self.config.heartbeat_period_s
         self._next_telemetry_s = now_s + self.config.telemetry_period_s
+
+    # --- CiA 301 NMT slave ----------------------------------------------------------------
+    def _on_nmt(self, frame: p.Frame, now_s: float) -> None:
+        if int(frame.signals["NodeId"]) not in (0, self.protocol.node_id):
+            return
+        command = int(frame.signals["Command"])
+        if command == p.NMT_START and self.nmt_state != p.NMT_OPERATIONAL:
+            self.nmt_state = p.NMT_OPERATIONAL
+            self._last_command_s = now_s            # the command timeout runs from the start
+            self.e2e.reset()
+        elif command in (p.NMT_STOP, p.NMT_ENTER_PRE_OPERATIONAL):
+            self.nmt_state = p.NMT_STOPPED if command == p.NMT_STOP else p.NMT_PRE_OPERATIONAL
+            self._coils_off(now_s)
+        elif command in (p.NMT_RESET_NODE, p.NMT_RESET_COMMUNICATION):
+            self._coils_off(now_s)
+            self.e2e.reset()
+            self._tx_counter.clear()
+            self._pending_emcy.clear()
+            self.start(now_s)                       # boot-up heartbeat, pre-operational
+
+    def _coils_off(self, now_s: float) -> None:
+        """Leaving operational: no commands will come, the coils must not hold the last one."""
+        s = self.state
+        self.update(now_s)
+        s.target_dipole_am2 = np.zeros(3)
+        s.mode = p.MODE_OFF
+        changed = not s.safe_state
+        s.safe_state = True
+        s.command_timeout = False
+        self._last_command_s = None
+        self._next_no_data_s = None
+        if changed and self.on_coils_changed is not None:
+            self.on_coils_changed(s)
 
     def step(self, now_s: float | None = None) -> None:
         """Handle every frame waiting on the bus, then advance the coils and send what is due."""
@@ -123,15 +192,47 @@ class MagnetorquerBoard:
         """One frame from the bus. Anything but a valid command is counted and ignored."""
         received_ns = time.monotonic_ns()
         self.received[p.frame_kind(self.protocol, msg)] += 1
-        if msg.arbitration_id == self.protocol.frame_ids[p.CMD] and len(msg.data) != 8 and not msg.is_error_frame:
-            self._reject("wrong_length", None, p.EMCY_PDO_LENGTH, 0)
+        command_id = self.protocol.frame_ids[self.command_name]
+        if (msg.arbitration_id == command_id and self.nmt_state == p.NMT_OPERATIONAL
+                and not msg.is_error_frame and not msg.is_remote_frame
+                and not msg.is_extended_id
+                and len(msg.data) != self.protocol.db.get_message_by_name(self.command_name).length):
+            self._reject("wrong_length", None, p.EMCY_PDO_LENGTH, 0, now_s)
         frame = self.protocol.decode(msg)
-        if frame is None or frame.name != p.CMD:
-            return  # other nodes' frames (our own telemetry echoed, a babbler) are not for us
-        status = self.e2e.check(frame.counter, frame.crc_ok)
-        if not status.accepted:
-            self._reject(status.name, frame.counter, p.EMCY_E2E_CHECK_FAILED, int(status))
+        if frame is not None and frame.name == p.NMT:
+            self._on_nmt(frame, now_s)
             return
+        if frame is None or frame.name not in p.COMMANDS:
+            return  # other nodes' frames (our own telemetry echoed, a babbler) are not for us
+        if self.nmt_state != p.NMT_OPERATIONAL:
+            self.ignored[f"{frame.name} while {_NMT_NAMES[self.nmt_state]}"] += 1   # PDOs run only when operational
+            return
+        if frame.name != self.command_name:
+            # A plain command where the profile wants an authenticated one (a downgrade).
+            status = p.E2EStatus.NOT_AUTHENTICATED if self.freshness is not None else None
+            if status is not None:
+                self._reject(status.name, frame.counter, p.EMCY_E2E_CHECK_FAILED, int(status), now_s)
+            return
+        freshness = None
+        if self.freshness is not None:
+            verdict, freshness, age_s = self.freshness.verify(bytes(msg.data), now_s)
+            if verdict is not secoc.Verdict.OK:
+                # Before E2E: a forged or stale frame must not move the receiver's state.
+                status = p.E2EStatus[verdict.value]
+                self._reject(status.name, frame.counter, p.EMCY_E2E_CHECK_FAILED, int(status), now_s)
+                return
+            self.last_command_age_s = age_s
+        status = self.e2e.check(frame.counter, frame.crc_ok)
+        self._next_no_data_s = now_s + 1.5 * self.command_period_s
+        if not status.accepted:
+            self._reject(status.name, frame.counter, p.EMCY_E2E_CHECK_FAILED, int(status), now_s)
+            return
+        if freshness is not None:
+            self.freshness.accept(freshness)
+        if status is p.E2EStatus.OK_SOME_LOST:
+            # Accepted, but commands were lost on the way: the flight side must hear of it.
+            self.lost_commands += self.e2e.lost_data
+            self._emergency(p.EMCY_E2E_CHECK_FAILED, int(status), frame.counter, now_s)
         self.update(now_s)  # coils run up to now on the old target before it changes
         self._apply(frame, now_s, received_ns)
 
@@ -144,20 +245,44 @@ class MagnetorquerBoard:
         s.mode = int(frame.signals["Mode"])
         s.target_dipole_am2 = saturated if s.mode == p.MODE_DIPOLE else np.zeros(3)
         s.last_command_counter = frame.counter
+        if s.command_timeout:
+            # CiA 301: the error is gone; say so with an error-reset EMCY and the error register now.
+            self._emergency(p.EMCY_NO_ERROR, 0, frame.counter, now_s, error_register=0)
         s.safe_state = s.command_timeout = False
         self._last_command_s = now_s
         self.accepted += 1
         if self.on_applied is not None:
-            self.on_applied(AppliedCommand(s.target_dipole_am2.copy(), frame.counter, received_ns, time.monotonic_ns()))
+            self.on_applied(AppliedCommand(s.target_dipole_am2.copy(), frame.counter, received_ns, time.monotonic_ns(),
+                                           self.last_command_age_s if self.freshness is not None else None))
 
-    def _reject(self, reason: str, counter: int | None, error_code: int, e2e_status: int) -> None:
+    def _reject(self, reason: str, counter: int | None, error_code: int, e2e_status: int, now_s: float) -> None:
         self.rejected[reason] += 1
         self.state.command_rejected_since_tlm = True
-        self._send(self.protocol.encode(p.EMCY, {
-            "ErrorCode": error_code, "ErrorRegister": ERROR_REGISTER_GENERIC | ERROR_REGISTER_COMMUNICATION,
-            "E2eStatus": e2e_status, "RejectedCounter": counter or 0,
-            "RejectedFrames": min(sum(self.rejected.values()), 0xFFFF),
-        }))
+        self._emergency(error_code, e2e_status, counter, now_s)
+
+    def _emergency(self, error_code: int, e2e_status: int, counter: int | None, now_s: float,
+                   error_register: int = ERROR_REGISTER_GENERIC | ERROR_REGISTER_COMMUNICATION) -> None:
+        """Send an EMCY now, or when the inhibit time since the last one has passed. Waiting EMCYs
+        queue in order; one of the same error code as the last waiting one replaces it (a burst
+        of rejections is one report; RejectedFrames carries the running count)."""
+        if self.nmt_state == p.NMT_STOPPED:
+            return   # CiA 301: a stopped node sends only its heartbeat
+        emcy = {"ErrorCode": error_code, "ErrorRegister": error_register, "E2eStatus": e2e_status,
+                "RejectedCounter": counter or 0}
+        if self._pending_emcy and self._pending_emcy[-1]["ErrorCode"] == error_code:
+            self._pending_emcy[-1] = emcy
+        else:
+            self._pending_emcy.append(emcy)
+        self._flush_emergency(now_s)
+
+    def _flush_emergency(self, now_s: float) -> None:
+        if not self._pending_emcy:
+            return
+        if self._last_emcy_s is not None and now_s - self._last_emcy_s < self.config.emcy_inhibit_s:
+            return
+        signals = self._pending_emcy.pop(0) | {"RejectedFrames": min(sum(self.rejected.values()), 0xFFFF)}
+        self._last_emcy_s = now_s
+        self._send(self.protocol.encode(p.EMCY, signals))
 
     # --- time -----------------------------------------------------------------------------
     def update(self, now_s: float) -> None:
@@ -166,8 +291,12 @@ class MagnetorquerBoard:
         changed = False
         if (self._last_command_s is not None and not s.safe_state
                 and now_s - self._last_command_s > c.command_timeout_s):
-            self._enter_safe_state()
+            self._enter_safe_state(now_s)
             changed = True
+        while self._next_no_data_s is not None and now_s >= self._next_no_data_s:
+            self.e2e.no_new_data()    # one E2E check per command period that brought none
+            self._next_no_data_s += self.command_period_s
+        self._flush_emergency(now_s)
         paused = self._in_mag_window(now_s)
         changed |= paused != s.actuation_paused
         s.actuation_paused = paused
@@ -175,18 +304,28 @@ class MagnetorquerBoard:
             self.on_coils_changed(s)
         target = np.zeros(3) if (s.safe_state or s.actuation_paused) else s.target_dipole_am2
         self._advance_coils(target / c.coil_gain_am2_per_a, now_s)
-        if now_s >= self._next_telemetry_s:
+        if now_s >= self._next_telemetry_s and self.nmt_state == p.NMT_OPERATIONAL:
+            self._count_late(now_s - self._next_telemetry_s, c.telemetry_period_s)
             self._send_telemetry()
             self._next_telemetry_s = _next_tick(self._next_telemetry_s, c.telemetry_period_s, now_s)
         if now_s >= self._next_heartbeat_s:
-            self._send(self.protocol.encode(p.HEARTBEAT, {"NmtState": p.NMT_OPERATIONAL}))
+            self._count_late(now_s - self._next_heartbeat_s, c.heartbeat_period_s)
+            self._send(self.protocol.encode(p.HEARTBEAT, {"NmtState": self.nmt_state}))
             self._next_heartbeat_s = _next_tick(self._next_heartbeat_s, c.heartbeat_period_s, now_s)
 
-    def _enter_safe_state(self) -> None:
+    def _count_late(self, late_s: float, period_s: float) -> None:
+        """A periodic frame more than half its period late: this process was not scheduled in
+        time (a host overrun, which the flight side would otherwise take for a bus fault)."""
+        if late_s > 0.5 * period_s:
+            self.host_overruns += 1
+
+    def _enter_safe_state(self, now_s: float) -> None:
         self.state.safe_state = self.state.command_timeout = True
+        # The stream is gone: whatever comes next starts a new one (E2E state reset after a timeout).
+        self.e2e.reset()
+        self._next_no_data_s = None
         log.warning("no valid command for %.3f s: coils off", self.config.command_timeout_s)
-        self._send(self.protocol.encode(p.EMCY, {"ErrorCode": p.EMCY_COMMAND_TIMEOUT,
-                                                 "ErrorRegister": ERROR_REGISTER_COMMUNICATION}))
+        self._emergency(p.EMCY_COMMAND_TIMEOUT, 0, None, now_s, ERROR_REGISTER_COMMUNICATION)
 
     def _in_mag_window(self, now_s: float) -> bool:
         c = self.config
@@ -230,6 +369,10 @@ class MagnetorquerBoard:
         except can.CanError as exc:  # a full or broken bus must not kill the board
             self.sent["send_failed"] += 1
             log.warning("send failed: %s", exc)
+
+
+_NMT_NAMES = {p.NMT_BOOT_UP: "boot_up", p.NMT_STOPPED: "stopped", p.NMT_OPERATIONAL: "operational",
+              p.NMT_PRE_OPERATIONAL: "pre_operational"}
 
 
 def _next_tick(previous_s: float, period_s: float, now_s: float) -> float:

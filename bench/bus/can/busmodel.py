@@ -32,11 +32,10 @@ from bench.bus.can.injector import SOURCE_INJECTOR, FaultInjector, Flood, Transm
 
 FLIGHT = "flight"
 BOARD = "board"
-NODES = (FLIGHT, BOARD)
-LISTENERS = {FLIGHT: (BOARD,), BOARD: (FLIGHT,)}   # who hears a node's frames (not itself)
-SOURCE_ORDER = (FLIGHT, BOARD, SOURCE_INJECTOR)    # tie-break between equal identifiers
+NODES = (FLIGHT, BOARD)   # the nodes of a bench bus; BusModel(nodes=...) takes any number
 LOAD_WINDOW_NS = 100_000_000
 CHANNEL_BUS, CHANNEL_DROPPED, CHANNEL_REPLACED = "bus", "dropped", "replaced"
+CHANNEL_ERRORS = "errors"   # error reports to nodes other than the flight side (not on the wire)
 
 
 @dataclass(frozen=True)
@@ -51,7 +50,10 @@ class _InFlight:
     msg: can.Message
     start_ns: int
     end_ns: int
-    destroyed_by: object | None = None
+    destroyed_by: object | None = None          # the error_frames fault that destroys it
+    error: errors.BusError | None = None        # a bus error the bus itself causes (collision, no ACK)
+    together: tuple[Transmission, ...] = ()     # other transmitters of the same frame (equal id, equal data)
+    collided: tuple[Transmission, ...] = ()     # other transmitters in an equal-id collision
 
 
 @dataclass
@@ -62,6 +64,7 @@ class BusStats:
     error_frames: int = 0
     bus_off: Counter = field(default_factory=Counter)         # by node
     tec_max: Counter = field(default_factory=Counter)
+    bus_errors: Counter = field(default_factory=Counter)      # by kind (bit, ack, ...)
     command_latency_ns: dict = field(default_factory=lambda: {"without_flood": [], "with_flood": []})
     load_windows: Counter = field(default_factory=Counter)    # window index -> busy ns
 
@@ -70,7 +73,8 @@ class BusModel:
     def __init__(self, injector: FaultInjector, protocol: p.Protocol, t0_ns: int, *,
                  bitrate_bps: int = bittiming.DEFAULT_BITRATE_BPS, tx_queue_frames: int = 8,
                  capture: Callable[[can.Message], None] | None = None,
-                 to_wall_s: Callable[[int], float] = lambda t_ns: t_ns / 1e9):
+                 to_wall_s: Callable[[int], float] = lambda t_ns: t_ns / 1e9,
+                 nodes: tuple[str, ...] = NODES):
         self.injector = injector
         self.protocol = protocol
         self.t0_ns = t0_ns
@@ -78,22 +82,43 @@ class BusModel:
         self.tx_queue_frames = tx_queue_frames
         self.capture = capture or (lambda msg: None)
         self.to_wall_s = to_wall_s
-        self.queues: dict[str, deque[Transmission]] = {s: deque() for s in NODES}   # controllers' FIFOs
+        self.nodes: list[str] = []
+        self.queues: dict[str, deque[Transmission]] = {}   # controllers' FIFOs
+        self.counters: dict[str, errors.ErrorCounters] = {}
+        self.tec = self.counters                            # its former name
+        for node in nodes:
+            self.add_node(node)
         self._held: list[Transmission] = []    # the injector's frames and frames it holds back, by time
-        self.tec = {node: errors.TransmitErrorCounter() for node in NODES}
         self.recover_at_ns: dict[str, int] = {}
+        self.restart_ns: dict[str, int] = {}
         self.in_flight: _InFlight | None = None
         self.bus_free_ns = t0_ns
         self.now_ns = t0_ns
         self.stats = BusStats()
-        self._cmd_id = protocol.frame_ids[p.CMD]
+        self._cmd_id = protocol.frame_ids[protocol.command_name]
+
+    def add_node(self, name: str) -> None:
+        """Another CAN controller on the bus, with its own queue and error counters."""
+        if name in self.queues or name == SOURCE_INJECTOR:
+            raise ValueError(f"node {name!r} is already on the bus")
+        self.nodes.append(name)
+        self.queues[name] = deque()
+        self.counters[name] = errors.ErrorCounters()
+
+    def listeners(self, source: str) -> tuple[str, ...]:
+        return tuple(n for n in self.nodes if n != source)
+
+    def _on_bus(self, node: str) -> bool:
+        return node not in self.recover_at_ns          # a bus-off node neither sends, hears nor ACKs
 
     # --- input ----------------------------------------------------------------------------
     def submit(self, source: str, msg: can.Message, t_ns: int) -> None:
         """A node asks to send a frame at t_ns (its controller queues it)."""
+        if source not in self.queues:
+            raise ValueError(f"unknown node {source!r} (nodes: {', '.join(self.nodes)})")
         if self.injector.t0_ns is None and source == FLIGHT and msg.arbitration_id == self._cmd_id:
             self.injector.arm(t_ns)
-        tx = Transmission(msg, source, t_ns, t_ns, LISTENERS[source])
+        tx = Transmission(msg, source, t_ns, t_ns, self.listeners(source))
         outcome = self.injector.on_submit(tx)
         for dropped, reason in outcome.dropped:
             self._log(dropped, CHANNEL_DROPPED, t_ns)
@@ -123,8 +148,11 @@ class BusModel:
                 deliveries += self._complete(self.in_flight)
                 self.in_flight = None
                 continue
-            deliveries += self._restart_recovered(t_ns)
             start_ns = self._next_start_ns()
+            due_ns = min(self.recover_at_ns.values(), default=None)
+            if due_ns is not None and due_ns <= t_ns and (start_ns is None or due_ns <= start_ns):
+                deliveries += self._restart_recovered(due_ns)   # in time order with the frames
+                continue
             if start_ns is None or start_ns > t_ns:
                 break
             self._arbitrate(start_ns)
@@ -141,8 +169,14 @@ class BusModel:
         return min(times) if times else None
 
     def _ready_heads(self) -> list[Transmission]:
-        heads = [q[0] for s, q in self.queues.items() if q and s not in self.recover_at_ns]
-        return heads + self._held[:1]
+        heads = [q[0] for s, q in self.queues.items() if q and self._on_bus(s)]
+        held = self._held[:1]
+        if held and held[0].after is not None and self._queued(held[0].after):
+            held = []   # waits until the frame it follows has gone
+        return heads + held
+
+    def _queued(self, tx: Transmission) -> bool:
+        return any(tx is queued for queued in self.queues.get(tx.source, ())) or any(tx is h for h in self._held)
 
     def _next_start_ns(self) -> int | None:
         readies = [tx.ready_ns for tx in self._ready_heads()]
@@ -154,79 +188,166 @@ class BusModel:
         return max(self.bus_free_ns, min(readies))
 
     def _arbitrate(self, start_ns: int) -> None:
-        contenders = [(tx.msg.arbitration_id, SOURCE_ORDER.index(tx.source), tx) for tx in self._ready_heads()
-                      if tx.ready_ns <= start_ns]
+        """Bitwise arbitration: every ready transmitter sends its arbitration field; a recessive
+        bit overwritten by a dominant one loses. Equal fields go on together: one frame if their
+        frames are identical, else a bit error where they first differ (both transmitters)."""
+        contenders: list[tuple[tuple[int, ...], object]] = [
+            (bittiming.message_arbitration_bits(tx.msg), tx) for tx in self._ready_heads() if tx.ready_ns <= start_ns]
         babbler = self.injector.babbler()
         if babbler is not None and babbler[1] <= start_ns:
-            flood = babbler[0]
-            contenders.append((flood.msg.arbitration_id, -1, flood))
-        _, _, winner = min(contenders, key=lambda c: (c[0], c[1]))
-        if isinstance(winner, Flood):
-            if winner.affected == 0:
-                self.injector.record(start_ns, winner.label, "injected", winner.msg)  # first of many
-            winner.sent(start_ns)
-            msg, tx = winner.msg, None
+            contenders.append((bittiming.message_arbitration_bits(babbler[0].msg), babbler[0]))
+        best = min(key for key, _ in contenders)
+        winners = [item for key, item in contenders if key == best]
+        first = winners[0]
+        if isinstance(first, Flood):
+            if first.affected == 0:
+                self.injector.record(start_ns, first.label, "injected", first.msg)  # first of many
+            first.sent(start_ns)
+            msg, tx = first.msg, None
         else:
-            msg, tx = winner.msg, winner
+            msg, tx = first.msg, first
+        others = tuple(w for w in winners[1:] if isinstance(w, Transmission))
+        frames = {_frame_identity(w.msg) for w in winners}
         bits = bittiming.frame_bits(msg)
-        destroyed_by = self.injector.destroys(tx, start_ns) if tx is not None and tx.source in NODES else None
-        if destroyed_by is not None:
-            bits = bits - bittiming.TAIL_BITS + bittiming.ERROR_FRAME_BITS
-        end_ns = start_ns + bittiming.duration_ns(bits, self.bitrate_bps)
-        self.in_flight = _InFlight(tx, msg, start_ns, end_ns, destroyed_by)
-        self.bus_free_ns = end_ns
-        self._account_busy(start_ns, end_ns)
+        flight = _InFlight(tx, msg, start_ns, 0)
+        if len(frames) > 1:
+            # Equal arbitration fields, different frames: a bit error at the first differing bit.
+            streams = [bittiming.stuffed_bits(w.msg) for w in winners]
+            differ = min(_first_difference(streams[0], s) for s in streams[1:])
+            bits = differ + 1 + bittiming.ERROR_FRAME_BITS
+            flight.error, flight.collided = errors.BusError.BIT, others
+        else:
+            flight.together = others
+            transmitters = {w.source for w in winners if isinstance(w, Transmission)}
+            if transmitters <= set(self.nodes) and tx is not None and not any(
+                    self._on_bus(n) for n in self.nodes if n not in transmitters):
+                # Nobody else on the bus to acknowledge: ACK error after the ACK slot.
+                bits = bits - bittiming.TAIL_BITS + 2 + bittiming.ERROR_FRAME_BITS
+                flight.error = errors.BusError.ACK
+            else:
+                flight.destroyed_by = self.injector.destroys(tx, start_ns) if tx is not None and tx.source in self.queues else None
+                if flight.destroyed_by is not None:
+                    bits = bits - bittiming.TAIL_BITS + bittiming.ERROR_FRAME_BITS
+        flight.end_ns = start_ns + bittiming.duration_ns(bits, self.bitrate_bps)
+        self.in_flight = flight
+        self.bus_free_ns = flight.end_ns
+        self._account_busy(start_ns, flight.end_ns)
+
+    def _flush_queue(self, node: str, t_ns: int) -> None:
+        """Bus-off: the controller's transmit buffers are cleared (nothing stale is sent later)."""
+        queue = self.queues[node]
+        while queue:
+            flushed = queue.popleft()
+            self._log(flushed.msg, CHANNEL_DROPPED, t_ns)
+            self.stats.dropped["bus_off_flush"] += 1
 
     def _complete(self, flight: _InFlight) -> list[Delivery]:
         tx = flight.tx
-        if flight.destroyed_by is not None:
+        frame_ns = flight.end_ns - flight.start_ns
+        eleven_bits_ns = bittiming.duration_ns(11, self.bitrate_bps)
+        for node, restart_ns in self.restart_ns.items():
+            if node in self.recover_at_ns and flight.start_ns >= restart_ns:
+                # A frame on the bus is one occurrence of 11 recessive bits (its end), not len/11.
+                self.recover_at_ns[node] += max(0, frame_ns - eleven_bits_ns)
+        if flight.destroyed_by is not None or flight.error is not None:
             return self._transmission_error(flight)
-        if tx is not None:
-            self._dequeue(tx)
-            if tx.source in NODES:
-                self.tec[tx.source].on_success()
+        deliveries: list[Delivery] = []
+        transmitters = [t for t in (tx, *flight.together) if t is not None]
+        for sender in transmitters:
+            self._dequeue(sender)
+            if sender.source in self.queues:
+                deliveries += self._count(sender.source, flight.end_ns, transmit=True, ok=True)
+        senders = {t.source for t in transmitters}
+        hearing = tuple(n for n in self.nodes if n not in senders and self._on_bus(n))
+        for node in hearing:
+            deliveries += self._count(node, flight.end_ns, transmit=False, ok=True)
         stamped = _stamped(flight.msg, self.to_wall_s(flight.end_ns), CHANNEL_BUS)
         self.capture(stamped)
         self.stats.frames[p.frame_kind(self.protocol, flight.msg)] += 1
         if tx is None:
-            return []   # no node's acceptance filter takes the babbler's identifier
+            return deliveries   # no node's acceptance filter takes the babbler's identifier
         if tx.source == FLIGHT and flight.msg.arbitration_id == self._cmd_id:
             key = "with_flood" if self.injector.flood_active(tx.submitted_ns) else "without_flood"
             self.stats.command_latency_ns[key].append(flight.end_ns - tx.submitted_ns)
-        return [Delivery(stamped, tx.destinations)]
+        destinations = tuple(n for n in dict.fromkeys(d for t in transmitters for d in t.destinations)
+                             if n not in senders and self._on_bus(n))
+        return [Delivery(stamped, destinations)] + deliveries
+
+    def _count(self, node: str, t_ns: int, *, transmit: bool, ok: bool,
+               error: errors.BusError | None = None) -> list[Delivery]:
+        """Apply one fault-confinement rule to a node; an error report when the controller would
+        send one: every change of its state, and every error it transmitted except a missing ACK
+        (a node alone retries back to back, thousands a second: SocketCAN reports those only with
+        berr-reporting on, and a bridge forwarding each would fall behind the wall clock)."""
+        counters = self.counters[node]
+        before = counters.state
+        if ok:
+            after = counters.on_transmit_success() if transmit else counters.on_receive_success()
+        else:
+            after = counters.on_transmit_error(error) if transmit else counters.on_receive_error()
+        self.stats.tec_max[node] = max(self.stats.tec_max[node], counters.tec)
+        if after is before and (ok or not transmit or error is errors.BusError.ACK):
+            return []
+        report = errors.error_frame(after, counters.tec, rec=counters.rec, error=None if ok else error,
+                                    transmitting=transmit, state_changed=after is not before,
+                                    timestamp_s=self.to_wall_s(t_ns))
+        return [self._report(report, node)]
+
+    def _report(self, report: can.Message, node: str) -> Delivery:
+        # The flight side's error frames are what its candump shows; others go to the accounting.
+        report.channel = CHANNEL_BUS if node == FLIGHT else f"{CHANNEL_ERRORS}:{node}"
+        self.capture(report)
+        if node == FLIGHT:
+            self.stats.error_frames += 1
+        return Delivery(report, (node,))
 
     def _transmission_error(self, flight: _InFlight) -> list[Delivery]:
-        """The frame was destroyed: error counter up; retry, or bus-off and drop it."""
-        tx = flight.tx
-        counter = self.tec[tx.source]
-        state = counter.on_error()
-        self.stats.error_frames += 1
-        self.stats.tec_max[tx.source] = max(self.stats.tec_max[tx.source], counter.tec)
-        if state is errors.ErrorState.BUS_OFF:
-            self._dequeue(tx)
-            self._log(tx.msg, CHANNEL_DROPPED, flight.end_ns)
-            self.stats.dropped["bus_off"] += 1
-            self.stats.bus_off[tx.source] += 1
-            recovery_ns = max(bittiming.duration_ns(bittiming.BUS_OFF_RECOVERY_BITS, self.bitrate_bps),
-                              round(flight.destroyed_by.spec.param("restart_delay_s") * 1e9))
-            self.recover_at_ns[tx.source] = flight.end_ns + recovery_ns
-        report = errors.error_frame(state, counter.tec, timestamp_s=self.to_wall_s(flight.end_ns))
-        report.channel = CHANNEL_BUS
-        self.capture(report)
-        return [Delivery(report, (tx.source,))]   # the controller reports its own errors
+        """The frame was destroyed: error counters change; retry, or bus-off and drop it."""
+        error = flight.error or errors.BusError.BIT
+        self.stats.bus_errors[error.value] += 1
+        deliveries: list[Delivery] = []
+        transmitters = [t for t in (flight.tx, *flight.collided) if t is not None]
+        for tx in transmitters:
+            if tx.source not in self.queues:
+                # The injector's frame in a collision: it gives up (no controller to retry it).
+                self._dequeue(tx)
+                self.injector.record(flight.end_ns, tx.fault or SOURCE_INJECTOR, "destroyed", tx.msg)
+                continue
+            deliveries += self._count(tx.source, flight.end_ns, transmit=True, ok=False, error=error)
+            if self.counters[tx.source].bus_off:
+                self._go_bus_off(tx, flight)
+        senders = {t.source for t in transmitters}
+        for node in self.nodes:
+            if node not in senders and self._on_bus(node) and error is not errors.BusError.ACK:
+                deliveries += self._count(node, flight.end_ns, transmit=False, ok=False)
+        return deliveries
+
+    def _go_bus_off(self, tx: Transmission, flight: _InFlight) -> None:
+        self._dequeue(tx)
+        self._log(tx.msg, CHANNEL_DROPPED, flight.end_ns)
+        self.stats.dropped["bus_off"] += 1
+        self.stats.bus_off[tx.source] += 1
+        self._flush_queue(tx.source, flight.end_ns)
+        # SocketCAN restarts the controller restart-ms after bus-off; the controller then joins
+        # the bus only after 128 occurrences of 11 recessive bits (ISO 11898-1): 1408 bit times
+        # on an idle bus, more when frames pass meanwhile (see _complete).
+        restart_s = flight.destroyed_by.spec.param("restart_delay_s") if flight.destroyed_by is not None else 0.1
+        restart_ns = flight.end_ns + round(restart_s * 1e9)
+        self.restart_ns[tx.source] = restart_ns
+        self.recover_at_ns[tx.source] = restart_ns + bittiming.duration_ns(bittiming.BUS_OFF_RECOVERY_BITS,
+                                                                            self.bitrate_bps)
 
     def _restart_recovered(self, t_ns: int) -> list[Delivery]:
         out = []
         for node, at_ns in list(self.recover_at_ns.items()):
             if at_ns <= t_ns:
                 del self.recover_at_ns[node]
-                self.tec[node].restart()
+                self.restart_ns.pop(node, None)
+                self.counters[node].restart()
                 report = errors.error_frame(errors.ErrorState.ACTIVE, 0, restarted=True,
                                             timestamp_s=self.to_wall_s(at_ns))
-                report.channel = CHANNEL_BUS
-                self.capture(report)
                 self.bus_free_ns = max(self.bus_free_ns, at_ns)
-                out.append(Delivery(report, (node,)))
+                out.append(self._report(report, node))
         return out
 
     def _dequeue(self, tx: Transmission) -> None:
@@ -267,10 +388,22 @@ class BusModel:
         }
 
 
+def _frame_identity(msg: can.Message) -> tuple:
+    return (msg.arbitration_id, msg.is_extended_id, msg.is_remote_frame, msg.is_fd, msg.dlc, bytes(msg.data))
+
+
+def _first_difference(a: list[int], b: list[int]) -> int:
+    """Index of the first bit where two transmitters differ (the shorter one's end if a prefix)."""
+    for i, (x, y) in enumerate(zip(a, b)):
+        if x != y:
+            return i
+    return min(len(a), len(b))
+
+
 def _stamped(msg: can.Message, timestamp_s: float, channel: str) -> can.Message:
     return can.Message(timestamp=timestamp_s, arbitration_id=msg.arbitration_id, is_extended_id=msg.is_extended_id,
                        is_remote_frame=msg.is_remote_frame, is_error_frame=msg.is_error_frame, dlc=msg.dlc,
-                       data=bytes(msg.data), channel=channel, is_rx=False)
+                       is_fd=msg.is_fd, data=bytes(msg.data), channel=channel, is_rx=False)
 
 
 def _percentiles_us(values_ns: list[int]) -> dict:

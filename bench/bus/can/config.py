@@ -10,6 +10,13 @@ from typing import Annotated, Literal
 import msgspec
 
 from bench.bus.can.faults import FaultSpec
+from bench.bus.can.protocol import CMD, HEARTBEAT, TLM_DIPOLE, cycle_time_s
+
+
+def _dbc_cycle_s(name: str):
+    """A default period from the DBC's GenMsgCycleTime, the protocol's nominal; a scenario may
+    override it (a deliberate deviation, e.g. a slow board)."""
+    return msgspec.field(default_factory=lambda: cycle_time_s(name))
 
 PositiveS = Annotated[float, msgspec.Meta(gt=0)]
 NonNegS = Annotated[float, msgspec.Meta(ge=0)]
@@ -22,30 +29,71 @@ class BoardConfig(msgspec.Struct, forbid_unknown_fields=True):
     coil_time_constant_s: PositiveS = 0.005          # L/R of a coil
     coil_gain_am2_per_a: PositiveS = 2.0             # turns x area: dipole per ampere
     command_timeout_s: PositiveS = 0.1               # no valid command this long: coils off
-    heartbeat_period_s: PositiveS = 0.1
-    telemetry_period_s: PositiveS = 0.05
+    heartbeat_period_s: PositiveS = _dbc_cycle_s(HEARTBEAT)          # 0.1 s in mtq.dbc
+    telemetry_period_s: PositiveS = _dbc_cycle_s(TLM_DIPOLE)         # 0.05 s (MTQ_TLM_COIL too)
     # Magnetometer sampling windows: coils held off for window_s every period_s (0: never).
     mag_window_period_s: NonNegS = 0.0
     mag_window_s: NonNegS = 0.0
     ambient_temperature_c: float = 20.0
-    max_delta_counter: Annotated[int, msgspec.Meta(ge=1, le=15)] = 2   # lost commands tolerated + 1
+    # E2E profile 2 receiver (protocol.E2EReceiver): MaxDeltaCounterInit (widened by one per
+    # command period or frame without a valid command), SyncCounterInit (valid commands ignored
+    # after the sequence was lost) and MaxNoNewOrRepeatedData.
+    max_delta_counter: Annotated[int, msgspec.Meta(ge=1, le=15)] = 1
+    sync_counter: Annotated[int, msgspec.Meta(ge=0, le=15)] = 2
+    max_no_new_or_repeated: Annotated[int, msgspec.Meta(ge=0, le=14)] = 14
+    # CiA 301 object 0x1015: least time between two emergency frames (a burst of bad frames must
+    # not crowd the bus with EMCY at identifier 0x090, which out-ranks every command).
+    emcy_inhibit_s: NonNegS = 0.01
 
     def __post_init__(self):
         if self.mag_window_period_s and self.mag_window_s >= self.mag_window_period_s:
             raise ValueError("mag_window_s must be shorter than mag_window_period_s")
 
 
+# A bench key, so that a scenario without one still runs; a scenario that names a threat sets its own.
+BENCH_KEY_HEX = "2b7e151628aed2a6abf7158809cf4f3c"
+
+
+class SecurityConfig(msgspec.Struct, forbid_unknown_fields=True):
+    """How commands are protected: "e2e" (integrity: MTQ_CMD) or "secoc" (authenticity and
+    freshness: MTQ_CMD_AUTH, CAN FD). Under "secoc" the board applies a command only if its age,
+    from the freshness value, is at most one command period (the DBC cycle time) plus
+    freshness_margin_s, and at most max_future_s ahead of the board's clock."""
+    profile: Literal["e2e", "secoc"] = "e2e"
+    key_hex: str = BENCH_KEY_HEX
+    freshness_margin_s: PositiveS = 0.02
+    max_future_s: NonNegS = 0.005
+
+    def __post_init__(self):
+        try:
+            key = bytes.fromhex(self.key_hex)
+        except ValueError:
+            raise ValueError("security.key_hex must be hexadecimal") from None
+        if len(key) != 16:
+            raise ValueError(f"security.key_hex must hold 16 bytes (AES-128), not {len(key)}")
+
+    @property
+    def key(self) -> bytes:
+        return bytes.fromhex(self.key_hex)
+
+
 class DriverConfig(msgspec.Struct, forbid_unknown_fields=True):
-    command_period_s: PositiveS = 0.02
+    command_period_s: PositiveS = _dbc_cycle_s(CMD)                  # 0.02 s in mtq.dbc
     # A board is lost when its heartbeat is this many heartbeat periods late (CANopen consumer time).
     heartbeat_timeout_periods: Annotated[float, msgspec.Meta(ge=1.0)] = 2.5
     telemetry_timeout_periods: Annotated[float, msgspec.Meta(ge=1.0)] = 3.0
-    max_delta_counter: Annotated[int, msgspec.Meta(ge=1, le=15)] = 2
+    max_delta_counter: Annotated[int, msgspec.Meta(ge=1, le=15)] = 1
     # Plausibility of the applied dipole against the command: beyond tolerance for longer than
     # mismatch_time_s (after the coils had settle_s to follow) is a stuck or corrupted actuator.
     dipole_tolerance_am2: PositiveS = 0.01
     settle_s: PositiveS = 0.06
     mismatch_time_s: PositiveS = 0.15
+    # After a spoofed command, an implausible applied dipole or bad telemetry, health is not ok
+    # for this long (a fault that stops is not forgotten at the next good frame).
+    fault_hold_s: PositiveS = 1.0
+    # The driver is the board's NMT master: it starts the board whenever it reports boot-up or
+    # pre-operational (CiA 301: a node processes commands only when operational).
+    nmt_auto_start: bool = True
 
 
 class DipoleStep(msgspec.Struct, forbid_unknown_fields=True):
@@ -68,6 +116,7 @@ class CanConfig(msgspec.Struct, forbid_unknown_fields=True):
     tx_queue_frames: Annotated[int, msgspec.Meta(ge=1, le=1024)] = 8   # a controller's transmit buffers
     board: BoardConfig = msgspec.field(default_factory=BoardConfig)
     driver: DriverConfig = msgspec.field(default_factory=DriverConfig)
+    security: SecurityConfig = msgspec.field(default_factory=SecurityConfig)
     # Scripted dipole (until the attitude law commands it): steps held until the next, repeated
     # every profile_repeat_s when that is set.
     dipole_profile: list[DipoleStep] = msgspec.field(default_factory=_default_profile)
@@ -79,6 +128,11 @@ class CanConfig(msgspec.Struct, forbid_unknown_fields=True):
         times = [s.t_s for s in self.dipole_profile]
         if times != sorted(times):
             raise ValueError("dipole_profile steps must be in increasing t_s")
+
+    def protocol(self):
+        """The protocol of this bus: node id, command profile and key."""
+        from bench.bus.can.protocol import Protocol
+        return Protocol(self.node_id, self.security.profile, self.security.key)
 
     def dipole_at(self, t_s: float) -> list[float]:
         """The scripted dipole at time t_s since the start of commanding."""

@@ -7,14 +7,27 @@ it noticed (the latency): a lost heartbeat counts from when the next one was due
 from when it was on the bus, a rejected command from when the driver sent it.
 
 What the driver detects, and from what evidence:
-- board lost / back: heartbeat (CANopen consumer) and telemetry deadlines;
+- board lost / back: heartbeat (CANopen consumer) and telemetry deadlines; as the NMT master it
+  starts the board (NMT start) whenever a heartbeat says boot-up or pre-operational;
 - corrupted, repeated, out-of-sequence or lost telemetry: the E2E check of each telemetry frame;
-- commands the board rejected (corrupted, repeated, out of sequence, wrong length) and its
-  command timeout: the board's emergency frames;
+- commands the board rejected (corrupted, repeated, out of sequence, re-synchronising, forged,
+  stale, wrong length), commands lost on the way (the board's E2E check saw the counter jump) and
+  its command timeout: the board's emergency frames;
 - spoofed or replayed commands: a frame with the command identifier that this driver did not
   send (a CAN controller never receives its own frames, so any such frame has another source);
 - stuck actuator or a command corrupted before protection: applied dipole against commanded;
-- its own controller's error-passive, bus-off and restart: SocketCAN error frames.
+- its own controller's error-passive, bus-off and restart: SocketCAN error frames; back from
+  bus-off also when the board is heard again after the ISO 11898 recovery time (128 x 11
+  recessive bits at the bitrate), so that one stray bus-off error frame cannot leave it bus-off;
+  every return to error-active is reported;
+- its own lateness: a command period that started more than half a period late is a host
+  overrun (counted and reported apart from bus faults); a board command timeout that followed a
+  gap in the driver's own commands is reported as caused by the host, not the bus.
+
+`health().ok` is false while the board is lost, in safe state or bus-off, while either telemetry
+frame is overdue (each has its own deadline; the applied dipole then shown is the last heard, and
+`telemetry_fresh` is false), and for `fault_hold_s` after a spoofed command, an implausible applied dipole or a
+corrupted, repeated or out-of-sequence telemetry frame.
 """
 from __future__ import annotations
 
@@ -46,9 +59,13 @@ class FaultEvent:
 KINDS = (
     "heartbeat_timeout", "heartbeat_resumed", "board_rebooted", "telemetry_timeout",
     "telemetry_corrupted", "telemetry_repeated", "telemetry_out_of_sequence", "telemetry_lost",
-    "command_rejected", "board_command_timeout", "spoofed_command", "actuator_mismatch",
-    "error_warning", "error_passive", "bus_off", "bus_restarted",
+    "command_rejected", "command_lost", "board_command_timeout", "spoofed_command", "actuator_mismatch",
+    "error_warning", "error_passive", "bus_off", "bus_restarted", "error_active", "host_overrun",
+    "board_error_reset",
 )
+# Events after which the board's word cannot be trusted for DriverConfig.fault_hold_s.
+HEALTH_FAULTS = frozenset({"spoofed_command", "actuator_mismatch", "telemetry_corrupted", "telemetry_repeated",
+                           "telemetry_out_of_sequence"})
 
 
 @dataclass
@@ -65,10 +82,14 @@ class BoardHealth:
     bus_state: str
     events: dict[str, int]
     bad_frames: dict[str, int]
+    telemetry_fresh: bool = True          # every telemetry frame within its deadline
+    recent_faults: list[str] = field(default_factory=list)   # HEALTH_FAULTS within fault_hold_s
+    host_overruns: int = 0                # command periods the driver itself started late
 
     @property
     def ok(self) -> bool:
-        return self.alive and not self.safe_state and self.bus_state != errors.ErrorState.BUS_OFF.value
+        return (self.alive and self.nmt_state == p.NMT_OPERATIONAL and not self.safe_state
+                and self.bus_state != errors.ErrorState.BUS_OFF.value and self.telemetry_fresh and not self.recent_faults)
 
 
 @dataclass
@@ -91,7 +112,8 @@ class MagnetorquerDriver:
     """One board's driver. Not thread-safe: command, poll and health from the owner's loop."""
 
     def __init__(self, bus: can.BusABC, config: DriverConfig, board: BoardConfig, protocol: p.Protocol,
-                 clock: Callable[[], float] = time.monotonic, wall_clock: Callable[[], float] = time.time):
+                 clock: Callable[[], float] = time.monotonic, wall_clock: Callable[[], float] = time.time,
+                 bitrate_bps: int = 1_000_000):
         self.bus = bus
         self.config = config
         self.board = board
@@ -100,14 +122,23 @@ class MagnetorquerDriver:
         self.wall_clock = wall_clock
         self.events: deque[FaultEvent] = deque(maxlen=MAX_EVENTS_KEPT)
         self.event_counts: Counter = Counter()
-        self.sent_frames = 0
+        self.sent_frames = 0                 # commands (NMT frames are counted in nmt_sent)
+        self.nmt_sent: Counter = Counter()
         self.last_sent_ns: int | None = None
         self.received: Counter = Counter()   # every frame heard, by name (frame accounting)
         self._counter = 0
         self._sent: deque[_Sent] = deque(maxlen=RECENT_COMMANDS)
+        self._command_ids = {protocol.frame_ids[name] for name in p.COMMANDS}
         self._rx_e2e = {name: p.E2EReceiver(config.max_delta_counter) for name in (p.TLM_DIPOLE, p.TLM_COIL)}
         self._heartbeat = _Deadline(board.heartbeat_period_s, board.heartbeat_period_s * config.heartbeat_timeout_periods)
-        self._telemetry = _Deadline(board.telemetry_period_s, board.telemetry_period_s * config.telemetry_timeout_periods)
+        self._telemetry = {name: _Deadline(board.telemetry_period_s, board.telemetry_period_s * config.telemetry_timeout_periods)
+                           for name in (p.TLM_DIPOLE, p.TLM_COIL)}
+        self._fault_seen_s: dict[str, float] = {}
+        self._bus_off_s: float | None = None
+        self.bus_off_recovery_s = errors.BUS_OFF_RECOVERY_BITS / bitrate_bps
+        self.host_overruns = 0
+        self._last_command_s: float | None = None
+        self._largest_gap_s = 0.0       # longest time between two of our commands, since the last timeout
         self._nmt_state: int | None = None
         self._tlm: dict[str, dict] = {}
         self._bus_state = errors.ErrorState.ACTIVE
@@ -118,7 +149,7 @@ class MagnetorquerDriver:
     @classmethod
     def from_config(cls, bus: can.BusABC, config: CanConfig, **clocks) -> "MagnetorquerDriver":
         """The driver for a scenario's [can] section, on an open bus (its flight channel)."""
-        return cls(bus, config.driver, config.board, p.Protocol(config.node_id), **clocks)
+        return cls(bus, config.driver, config.board, config.protocol(), bitrate_bps=config.bitrate_bps, **clocks)
 
     # --- commanding -----------------------------------------------------------------------
     def command(self, dipole_am2, mode: int = p.MODE_DIPOLE) -> int:
@@ -127,22 +158,26 @@ class MagnetorquerDriver:
         `last_sent_ns` is then the monotonic time it went to the bus (the "can_sent" stamp).
         """
         counter = self._counter
-        msg = self.protocol.command(dipole_am2, counter, mode)
+        sent_s = self.clock()
+        msg = self.protocol.command(dipole_am2, counter, mode, sent_s=sent_s if self.protocol.profile == "secoc" else None)
         self.last_sent_ns = time.monotonic_ns()
         self.bus.send(msg)
         self._counter = (counter + 1) % p.COUNTER_MODULO
         self.sent_frames += 1
         requested = np.asarray(dipole_am2, dtype=float) if mode == p.MODE_DIPOLE else np.zeros(3)
-        self._sent.append(_Sent(counter, requested, self.clock()))
+        self._sent.append(_Sent(counter, requested, sent_s))
+        if self._last_command_s is not None:
+            self._largest_gap_s = max(self._largest_gap_s, sent_s - self._last_command_s)
+        self._last_command_s = sent_s
         return counter
 
     # --- receiving ------------------------------------------------------------------------
     def poll(self, timeout_s: float = 0.0, max_frames: int = 1000) -> list[FaultEvent]:
         """Handle the frames that arrived (waiting up to timeout_s for the first), check deadlines.
 
-        Returns the events detected during this call.
+        Returns the events detected since the previous call (during it, and in between: a host
+        overrun the command loop reported).
         """
-        self._new_events = []
         msg = self.bus.recv(timeout=timeout_s)
         handled = 0
         while msg is not None:
@@ -152,7 +187,8 @@ class MagnetorquerDriver:
                 break  # a flood must not starve the deadline checks below
             msg = self.bus.recv(timeout=0.0)
         self.check_deadlines(self.clock())
-        return self._new_events
+        events, self._new_events = self._new_events, []
+        return events
 
     def handle(self, msg: can.Message) -> None:
         now_s = self.clock()
@@ -160,7 +196,12 @@ class MagnetorquerDriver:
         if msg.is_error_frame:
             self._on_error_frame(msg)
             return
-        if msg.arbitration_id == self.protocol.frame_ids[p.CMD] and not msg.is_extended_id:
+        if self._bus_state is errors.ErrorState.BUS_OFF and now_s - self._bus_off_s >= self.bus_off_recovery_s:
+            # A controller in bus-off hears nothing: a frame heard after the recovery time means it
+            # is back, whether or not a restart was reported (a stray bus-off error frame).
+            self._bus_state = errors.ErrorState.ACTIVE
+            self._event("error_active", 0.0, detail="frames heard after bus-off recovery time")
+        if msg.arbitration_id in self._command_ids and not msg.is_extended_id:
             # Our own identifier, sent by someone else.
             self._event("spoofed_command", self._wire_age_s(msg), p.CMD, f"data {bytes(msg.data).hex()}")
             return
@@ -180,18 +221,40 @@ class MagnetorquerDriver:
             self._event("board_rebooted", 0.0, p.HEARTBEAT)
         self._nmt_state = state
         self._arrived(self._heartbeat, now_s, "heartbeat_resumed", p.HEARTBEAT)
+        if self.config.nmt_auto_start and state in (p.NMT_BOOT_UP, p.NMT_PRE_OPERATIONAL):
+            self.nmt(p.NMT_START)
+
+    def nmt(self, command: int) -> None:
+        """Send a CiA 301 NMT command (p.NMT_START, ...) to this driver's board."""
+        try:
+            self.bus.send(self.protocol.encode(p.NMT, {"Command": command, "NodeId": self.protocol.node_id}))
+            self.nmt_sent[command] += 1
+        except can.CanError:
+            self.nmt_sent["send_failed"] += 1
 
     def _on_emergency(self, frame: p.Frame, msg: can.Message) -> None:
         code = int(frame.signals["ErrorCode"])
-        if code == p.EMCY_COMMAND_TIMEOUT:
-            self._event("board_command_timeout", self._wire_age_s(msg), p.EMCY)
+        if code == p.EMCY_NO_ERROR:
+            self._event("board_error_reset", 0.0, p.EMCY, f"error register {int(frame.signals['ErrorRegister']):#04x}")
+        elif code == p.EMCY_COMMAND_TIMEOUT:
+            # Our own silence longer than the board's timeout is the host's doing, not the bus's.
+            host = self._largest_gap_s > self.board.command_timeout_s
+            detail = f"cause host_overrun: driver command gap {self._largest_gap_s * 1e3:.1f} ms" if host else "cause bus"
+            if self._sent and self._last_command_s is not None and self.clock() - self._last_command_s > self.board.command_timeout_s:
+                detail = "cause driver stopped commanding"
+            self._event("board_command_timeout", self._wire_age_s(msg), p.EMCY, detail)
+            self._largest_gap_s = 0.0
         elif code in (p.EMCY_E2E_CHECK_FAILED, p.EMCY_PDO_LENGTH):
             status = int(frame.signals["E2eStatus"])
+            counter = int(frame.signals["RejectedCounter"])
+            if code == p.EMCY_E2E_CHECK_FAILED and status == p.E2EStatus.OK_SOME_LOST:
+                self._event("command_lost", self._command_age_s(counter, msg), p.EMCY,
+                            f"commands before counter {counter} lost")
+                return
             if code == p.EMCY_PDO_LENGTH:
                 reason = "WRONG_LENGTH"
             else:
                 reason = p.E2EStatus(status).name if status in p.E2EStatus._value2member_map_ else f"status {status}"
-            counter = int(frame.signals["RejectedCounter"])
             self._event("command_rejected", self._command_age_s(counter, msg), p.EMCY,
                         f"{reason} counter {counter}")
 
@@ -205,7 +268,7 @@ class MagnetorquerDriver:
         if not status.accepted:
             return
         self._tlm[frame.name] = frame.signals
-        self._arrived(self._telemetry, now_s, None, frame.name)
+        self._arrived(self._telemetry[frame.name], now_s, None, frame.name)
         if frame.name == p.TLM_DIPOLE:
             self._check_plausibility(frame.signals, now_s)
 
@@ -215,14 +278,18 @@ class MagnetorquerDriver:
             self._bus_state = errors.ErrorState.ACTIVE
             self._event("bus_restarted", self._wire_age_s(msg))
             return
-        if state is not self._bus_state and state is not errors.ErrorState.ACTIVE:
+        if state is not self._bus_state:
+            # Every change, the return to error-active included (SocketCAN: CAN_ERR_CRTL_ACTIVE).
             self._event(state.value, self._wire_age_s(msg), detail=f"tec {msg.data[6] if len(msg.data) > 6 else '?'}")
+        if state is errors.ErrorState.BUS_OFF and self._bus_state is not errors.ErrorState.BUS_OFF:
+            self._bus_off_s = self.clock()
         self._bus_state = state
 
     # --- deadlines and plausibility -------------------------------------------------------
     def check_deadlines(self, now_s: float) -> None:
-        for deadline, kind, frame in ((self._heartbeat, "heartbeat_timeout", p.HEARTBEAT),
-                                      (self._telemetry, "telemetry_timeout", p.TLM_DIPOLE)):
+        deadlines = [(self._heartbeat, "heartbeat_timeout", p.HEARTBEAT)]
+        deadlines += [(deadline, "telemetry_timeout", name) for name, deadline in self._telemetry.items()]
+        for deadline, kind, frame in deadlines:
             # Before the first frame, count from the driver's start: a board that never comes
             # up is as lost as one that went quiet.
             last_s = deadline.last_s if deadline.last_s is not None else self._start_s
@@ -262,6 +329,8 @@ class MagnetorquerDriver:
     # --- reporting ------------------------------------------------------------------------
     def _event(self, kind: str, latency_s: float, frame: str = "", detail: str = "") -> None:
         event = FaultEvent(kind, time.monotonic_ns(), max(0.0, latency_s), frame, detail)
+        if kind in HEALTH_FAULTS:
+            self._fault_seen_s[kind] = self.clock()
         self.events.append(event)
         self._new_events.append(event)
         self.event_counts[kind] += 1
@@ -278,8 +347,10 @@ class MagnetorquerDriver:
 
     def health(self) -> BoardHealth:
         now_s = self.clock()
+        # The last values heard; telemetry_fresh (and ok) say whether they are still the board's.
         dipole = self._tlm.get(p.TLM_DIPOLE, {})
         coil = self._tlm.get(p.TLM_COIL, {})
+        recent = sorted(k for k, t in self._fault_seen_s.items() if now_s - t < self.config.fault_hold_s)
         return BoardHealth(
             alive=self._heartbeat.last_s is not None and not self._heartbeat.lost,
             nmt_state=self._nmt_state,
@@ -292,7 +363,15 @@ class MagnetorquerDriver:
             bus_state=self._bus_state.value,
             events=dict(self.event_counts),
             bad_frames=dict(self.protocol.bad.counts),
+            telemetry_fresh=all(d.last_s is not None and not d.lost for d in self._telemetry.values()),
+            recent_faults=recent,
+            host_overruns=self.host_overruns,
         )
+
+    def host_overrun(self, late_s: float) -> None:
+        """The owner's loop started a command period late_s late (CommandLoop calls this)."""
+        self.host_overruns += 1
+        self._event("host_overrun", late_s, p.CMD, f"command period started {late_s * 1e3:.1f} ms late")
 
 
 class CommandLoop:
@@ -330,6 +409,9 @@ class CommandLoop:
         next_command_s = now
         while now < end and not (stop is not None and stop.is_set()):
             if commanding and now >= next_command_s:
+                late_s = now - next_command_s
+                if late_s > 0.5 * self.period_s:
+                    self.driver.host_overrun(late_s)   # our thread was late: the host, not the bus
                 self._command(now)
                 next_command_s += self.period_s
                 if next_command_s < now:   # woke late: skip the missed slots rather than burst

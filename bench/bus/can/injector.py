@@ -29,6 +29,7 @@ class Transmission:
     destinations: tuple[str, ...]
     fault: str | None = None     # the fault that injected or altered it
     held: bool = False           # held back on the bus (by the injector), not in its sender's queue
+    after: "Transmission | None" = None   # an injected frame goes only once this one has left its queue
 
 
 @dataclass(frozen=True)
@@ -50,7 +51,7 @@ class SubmitOutcome:
 
 def _copy(msg: can.Message, data: bytes | None = None) -> can.Message:
     return can.Message(arbitration_id=msg.arbitration_id, is_extended_id=msg.is_extended_id,
-                       is_remote_frame=msg.is_remote_frame, dlc=msg.dlc,
+                       is_remote_frame=msg.is_remote_frame, dlc=msg.dlc, is_fd=msg.is_fd,
                        data=bytes(msg.data) if data is None else data)
 
 
@@ -69,7 +70,8 @@ class ActiveFault:
         self.protocol = protocol
         self.start_ns: int | None = None   # set by arm(): nothing happens before
         self.end_ns: int | None = None
-        self.frame_ids = {protocol.frame_ids[name] for name in spec.target_frames()}
+        # MTQ_CMD names the command of the bus's profile (MTQ_CMD_AUTH under "secoc").
+        self.frame_ids = {protocol.frame_ids[protocol.resolve(name)] for name in spec.target_frames()}
         # One stream per fault: from the run's seed, the fault's place and its own seed parameter.
         self.rng = random.Random(f"{seed}:{index}:{spec.params.get('seed', 0)}")
         self.matched = 0
@@ -117,7 +119,7 @@ class Delay(ActiveFault):
 class Duplicate(ActiveFault):
     def apply(self, tx, outcome, injector):
         for _ in range(int(self.spec.param("copies"))):
-            injector.inject(tx.msg, tx.ready_ns, outcome, self.label)
+            injector.inject(tx.msg, tx.ready_ns, outcome, self.label, after=tx)
         return True
 
 
@@ -133,7 +135,7 @@ class Replay(ActiveFault):
             self.affected -= 1   # recording is not an injection
             return True
         if tx.submitted_ns - self.recorded_ns >= self.spec.param("after_s") * 1e9:
-            injector.inject(self.recorded, tx.ready_ns, outcome, self.label)
+            injector.inject(self.recorded, tx.ready_ns, outcome, self.label, after=tx)
         else:
             self.affected -= 1
         return True
@@ -163,14 +165,29 @@ class Corrupt(ActiveFault):
 
 
 class Spoof(ActiveFault):
+    """A forged command right after each genuine one, with the next alive counter. On the secoc
+    profile the spoofer knows everything but the key: the frame layout, the data ids, the
+    freshness scheme (it takes the genuine frame's freshness value plus one tick) and computes a
+    MAC with a key of its own."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.attacker = p.Protocol(self.protocol.node_id, self.protocol.profile,
+                                   key=bytes(self.rng.randrange(256) for _ in range(16)))
+
     def apply(self, tx, outcome, injector):
         frame = self.protocol.decode(tx.msg)
         counter = (frame.counter + 1) if frame is not None and frame.counter is not None else 0
         dipole = [self.spec.param("dipole_am2")] * 3
-        forged = self.protocol.command(dipole, counter)
+        freshness = None
+        if frame is not None and "Freshness" in frame.signals:
+            freshness = int(frame.signals["Freshness"]) + 1
+        forged = self.attacker.encode(self.attacker.command_name,
+                                      {"Mode": p.MODE_DIPOLE, **{f"Dipole{a}": v for a, v in zip(p.AXES, dipole)}},
+                                      counter, freshness if freshness is not None else 0)
         if not self.spec.param("knows_data_id"):
             forged = self.protocol.reprotect(forged, data_ids=(int(self.spec.param("data_id")),) * p.COUNTER_MODULO)
-        injector.inject(forged, tx.ready_ns, outcome, self.label)
+        injector.inject(forged, tx.ready_ns, outcome, self.label, after=tx)
         return True
 
 
@@ -314,9 +331,13 @@ class FaultInjector:
         outcome.dropped.append((tx.msg, label))
         self.record(tx.submitted_ns, label, "dropped", tx.msg)
 
-    def inject(self, msg: can.Message, ready_ns: int, outcome: SubmitOutcome, label: str) -> None:
+    def inject(self, msg: can.Message, ready_ns: int, outcome: SubmitOutcome, label: str,
+               after: Transmission | None = None) -> None:
+        """A frame of the injector's own, ready at ready_ns; `after`: only once that frame is sent
+        ("right after" it, rather than colliding with it on an equal identifier)."""
         t_ns = ready_ns
-        outcome.queued.append(Transmission(_copy(msg), SOURCE_INJECTOR, t_ns, t_ns, ("flight", "board"), label))
+        outcome.queued.append(Transmission(_copy(msg), SOURCE_INJECTOR, t_ns, t_ns, ("flight", "board"), label,
+                                           after=after))
         self.record(t_ns, label, "injected", msg)
 
     def replace(self, tx: Transmission, altered: can.Message, outcome: SubmitOutcome, label: str) -> None:

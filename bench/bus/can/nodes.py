@@ -38,7 +38,8 @@ def can_dir(run_dir: Path) -> Path:
 def open_node_bus(ctx, config: CanConfig, channel: str) -> can.BusABC:
     """A CAN bus for this node; over Zenoh it shares the node's own session (one per process)."""
     if config.transport == "zenoh":
-        return can.Bus(interface="zenoh", channel=channel, run_id=ctx.run_id, session=ctx.session, ignore_config=True)
+        return can.Bus(interface="zenoh", channel=channel, run_id=ctx.run_id, session=ctx.session, fd=True,
+                       ignore_config=True)
     return open_can_bus(config.transport, channel, run_id=ctx.run_id)
 
 
@@ -75,14 +76,14 @@ def run_board(ctx) -> int:
 
     def on_applied(command: AppliedCommand) -> None:
         applied.append({"counter": command.alive_counter, "dipole_am2": command.dipole_am2.tolist(),
-                        "applied_ns": command.applied_ns})
+                        "applied_ns": command.applied_ns, "age_s": command.age_s})
         publish(command.received_ns, command.alive_counter)
 
     def on_coils_changed(state) -> None:
         publish(None, state.last_command_counter)
 
-    board = MagnetorquerBoard(bus, config.board, p.Protocol(config.node_id), on_applied=on_applied,
-                              on_coils_changed=on_coils_changed)
+    board = MagnetorquerBoard(bus, config.board, config.protocol(), on_applied=on_applied,
+                              on_coils_changed=on_coils_changed, security=config.security)
     try:
         _wait_for_bus_peer(bus, config.board_channel, ctx)
         ctx.declare_ready([])   # the plant starts the loop once every node is ready
@@ -90,6 +91,8 @@ def run_board(ctx) -> int:
     finally:
         summary = {"sent": dict(board.sent), "received": dict(board.received), "accepted": board.accepted,
                    "rejected": dict(board.rejected), "bad_frames": dict(board.protocol.bad.counts),
+                   "ignored": dict(board.ignored), "lost_commands": board.lost_commands, "nmt_state": board.nmt_state,
+                   "host_overruns": board.host_overruns,
                    "applied": applied}
         (can_dir(ctx.run_dir) / BOARD_NAME).write_text(json.dumps(summary))
         ctx.log.info("board: sent %s, accepted %d, rejected %s", dict(board.sent), board.accepted, dict(board.rejected))
@@ -121,7 +124,7 @@ def run_bus_model(ctx) -> int:
     buses = {FLIGHT: open_node_bus(ctx, config, config.flight_channel),
              BOARD: open_node_bus(ctx, config, config.board_channel)}
     capture = Capture(Path(ctx.run_dir) / CAPTURE_NAME, out / ACCOUNTING_NAME) if config.capture else None
-    protocol = p.Protocol(config.node_id)
+    protocol = p.Protocol(config.node_id, config.security.profile)   # no key: the injector is no insider
     t0_ns = time.monotonic_ns()
     wall_offset_s = time.time() - t0_ns / 1e9
     injector = FaultInjector(config.faults, protocol, seed=ctx.scenario.run.seed)

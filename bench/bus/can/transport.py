@@ -60,7 +60,7 @@ def open_can_bus(
         # ignore_config keeps a user's ~/can.conf from adding arguments behind the bench's back.
         return can.Bus(
             interface="zenoh", channel=channel, run_id=run_id, session_options=session_options,
-            receive_own_messages=receive_own_messages, ignore_config=True,
+            receive_own_messages=receive_own_messages, fd=True, ignore_config=True,
         )
     if transport == "socketcan":
         if not kernel_has_can():
@@ -72,7 +72,8 @@ def open_can_bus(
                 f"CAN interface {channel!r} does not exist: create it with `bench vcan up` "
                 f'(as root) or use transport = "zenoh"'
             )
-        return can.Bus(interface="socketcan", channel=channel,
+        # fd=True: the authenticated command (MTQ_CMD_AUTH) is a CAN FD frame (vcan needs mtu 72).
+        return can.Bus(interface="socketcan", channel=channel, fd=True,
                        receive_own_messages=receive_own_messages, ignore_config=True)
     if transport == "virtual":
         # python-can's virtual channels are process-global: the run id keeps parallel runs apart.

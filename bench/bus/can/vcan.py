@@ -81,7 +81,8 @@ def up(names: tuple[str, ...] = DEFAULT_INTERFACES) -> list[str]:
             if result.returncode != 0:
                 raise VcanUnavailable(f"ip link add dev {name} type vcan failed: {result.stderr.strip()}; {USE_ZENOH}")
             report.append(f"{name}: created")
-        result = _run(["ip", "link", "set", "dev", name, "up"])
+        # mtu 72 carries CAN FD frames (the authenticated command, MTQ_CMD_AUTH, is one).
+        result = _run(["ip", "link", "set", "dev", name, "mtu", "72", "up"])
         if result.returncode != 0:
             raise VcanUnavailable(f"ip link set dev {name} up failed: {result.stderr.strip()}")
     return report

@@ -1,0 +1,104 @@
+"""The attitude plan message and the pure planning step behind `bench node planner` (seed 004).
+
+`plan_from_estimate` takes the current attitude estimate and the target and returns an
+`AttitudePlan` (MILQR states and dipoles, TVLQR gains along them, the time base) with an info dict;
+no Zenoh, no clock, no process: the planner node (to be wired by the lead) calls it outside the
+control deadline and publishes `to_message(plan, ...)`; the controller decodes with
+`bench.bus.schemas.decode(payload, AttitudePlanMessage)` and rebuilds the plan with `from_message`,
+which rejects inconsistent lengths and non-finite values with a ValueError naming the field.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Annotated
+
+import msgspec
+import numpy as np
+
+from bench.bus.schemas import Header, Message
+from bench.gnc import quaternion as qt
+from bench.gnc.attitude_planning import MagnetorquerAttitudeModel, field_along_orbit_t, gramian_horizon
+from bench.gnc.attitude_tracking import AttitudePlan, tvlqr_gains_along
+from bench.gnc.milqr import GeodesicAttitudeCost, MilqrOptions, milqr
+from bench.gnc.tvlqr import bryson_weights
+
+Vec3 = Annotated[list[float], msgspec.Meta(min_length=3, max_length=3)]
+State7 = Annotated[list[float], msgspec.Meta(min_length=7, max_length=7)]
+Gain18 = Annotated[list[float], msgspec.Meta(min_length=18, max_length=18)]   # 3x6 row-major
+
+
+class AttitudePlanMessage(Message, tag="attitude_plan"):
+    """A MILQR plan: N+1 states, N dipoles (body, A m^2) and N TVLQR gains (u = u_bar - K dx,
+    dx = [Rodrigues phi; d_omega]), sample k at start_time_s + k dt_s."""
+    plan_id: Annotated[int, msgspec.Meta(ge=0)]
+    start_time_s: float
+    dt_s: Annotated[float, msgspec.Meta(gt=0)]
+    states: list[State7]
+    dipoles_am2: list[Vec3]
+    gains: list[Gain18]
+    target_wxyz: Annotated[list[float], msgspec.Meta(min_length=4, max_length=4)]
+    stop_reason: str
+    iterations: Annotated[int, msgspec.Meta(ge=0)]
+    cost: float
+    planning_time_s: float
+
+
+def to_message(plan: AttitudePlan, header: Header, target_wxyz, info: dict) -> AttitudePlanMessage:
+    return AttitudePlanMessage(
+        header=header, plan_id=plan.plan_id, start_time_s=plan.start_time_s, dt_s=plan.dt_s,
+        states=plan.states.tolist(), dipoles_am2=plan.dipoles_am2.tolist(),
+        gains=plan.gains.reshape(plan.steps, 18).tolist(), target_wxyz=list(map(float, target_wxyz)),
+        stop_reason=info["stop_reason"], iterations=info["iterations"], cost=float(info["cost"]),
+        planning_time_s=float(info["wall_time_s"]))
+
+
+def from_message(message: AttitudePlanMessage) -> AttitudePlan:
+    """The plan carried by a decoded message; ValueError if its arrays do not fit together."""
+    n = len(message.dipoles_am2)
+    if len(message.states) != n + 1 or len(message.gains) != n:
+        raise ValueError(f"AttitudePlanMessage: {len(message.states)} states, {n} dipoles and "
+                         f"{len(message.gains)} gains (need N+1, N, N)")
+    return AttitudePlan(message.start_time_s, message.dt_s, np.array(message.states), np.array(message.dipoles_am2),
+                        np.array(message.gains).reshape(n, 3, 6), message.plan_id)
+
+
+@dataclass(frozen=True)
+class PlannerConfig:
+    """What the flight side believes and how it plans (weights of tests/milqr_reference.py's slew)."""
+    inertia_kgm2: np.ndarray
+    dipole_limit_am2: float = 0.2
+    dt_s: float = 20.0
+    gramian_condition_tolerance: float = 3.0
+    max_horizon_s: float = 5400.0
+    attitude_weight: float = 0.1
+    rate_weight: float = 10.0
+    dipole_weight: float = 1.0
+    final_attitude_weight: float = 1000.0
+    final_rate_weight: float = 1e7
+    tracking_attitude_deviation_rad: float = np.deg2rad(1.0)   # Bryson's rule for the tracker
+    tracking_rate_deviation_radps: float = 5e-4
+    milqr: MilqrOptions = MilqrOptions(max_wall_time_s=60.0)
+
+
+def plan_from_estimate(time_s: float, q_wxyz, omega_radps, target_wxyz, orbit, geomagnetic,
+                       config: PlannerConfig, plan_id: int = 0) -> tuple[AttitudePlan, dict]:
+    """MILQR from the estimate at time_s to rest at the target over the Gramian horizon from time_s."""
+    x0 = np.concatenate([qt.normalize(q_wxyz), np.asarray(omega_radps, dtype=float)])
+    if not np.all(np.isfinite(x0)) or not np.isfinite(time_s):
+        raise ValueError(f"plan_from_estimate: non-finite estimate (time {time_s}, state {x0})")
+    max_steps = int(np.ceil(config.max_horizon_s / config.dt_s))
+    field = field_along_orbit_t(orbit, geomagnetic, time_s, config.dt_s, max_steps)
+    horizon = gramian_horizon(field, config.dt_s, config.gramian_condition_tolerance)
+    model = MagnetorquerAttitudeModel(config.inertia_kgm2, field[:horizon.steps], config.dt_s)
+    cost = GeodesicAttitudeCost(target_wxyz, np.zeros(3), config.attitude_weight, config.rate_weight * np.eye(3),
+                                config.dipole_weight * np.eye(3), config.final_attitude_weight,
+                                config.final_rate_weight * np.eye(3))
+    limit = config.dipole_limit_am2
+    result = milqr(model, cost, x0, np.zeros((horizon.steps, 3)), -limit, limit, config.milqr)
+    Q, R = bryson_weights([np.tan(config.tracking_attitude_deviation_rad / 2)] * 3
+                          + [config.tracking_rate_deviation_radps] * 3, [limit] * 3)
+    gains = tvlqr_gains_along(model, result.states, result.dipoles_am2, Q, R, 10 * Q)
+    plan = AttitudePlan(time_s, config.dt_s, result.states, result.dipoles_am2, gains, plan_id)
+    info = dict(result.info, cost=result.cost, horizon_s=horizon.horizon_s, horizon_reached=horizon.reached,
+                gramian_condition_number=horizon.condition_number)
+    return plan, info

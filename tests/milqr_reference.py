@@ -1,0 +1,104 @@
+"""The MILQR slew problem transcribed for casadi + IPOPT (a general NLP solver; test/benchmark only).
+
+Single shooting over the same discrete map as `MagnetorquerAttitudeModel.step` (RK4 with the field
+held per step and rotated into the body at each stage, then q normalised), the same cost, the same
+dipole box. Written with casadi's own algebra, not by calling the planning module, so a
+disagreement in the dynamics shows up as a cost mismatch when IPOPT's controls are replayed.
+"""
+import time
+
+import casadi as ca
+import numpy as np
+
+from bench.gnc import quaternion as qt
+from bench.gnc.attitude_planning import MagnetorquerAttitudeModel, field_along_orbit_t, gramian_horizon
+from bench.gnc.milqr import GeodesicAttitudeCost
+from bench.plant.attitude import EARTH_RADIUS_M, CircularOrbit, TiltedDipole
+
+# The 90-degree slew used by tests/test_milqr.py and benchmarks/bench_milqr.py: a 3U-class CubeSat
+# at rest, yaw 90 deg, magnetorquers only (0.2 A m^2 per axis, the board's default limit), 500 km /
+# 51.6 deg circular orbit, tilted-dipole field, horizon from the Gramian.
+INERTIA = np.diag([0.03, 0.04, 0.02])
+LIMIT_AM2 = 0.2
+ORBIT = CircularOrbit(radius_m=EARTH_RADIUS_M + 500e3)     # 500 km, 51.6 deg
+GOAL = qt.exp(np.deg2rad(90.0) * np.array([0.0, 0.0, 1.0]))
+X0 = np.array([1.0, 0, 0, 0, 0, 0, 0])
+
+
+def slew_cost(goal=GOAL):
+    return GeodesicAttitudeCost(goal, np.zeros(3), attitude_weight=0.1, rate_weight=10.0 * np.eye(3),
+                                dipole_weight=np.eye(3), final_attitude_weight=1000.0,
+                                final_rate_weight=1e7 * np.eye(3))   # ends at rest (1e5 left 3e-4 rad/s)
+
+
+def slew_problem(dt_s):
+    horizon = gramian_horizon(field_along_orbit_t(ORBIT, TiltedDipole(), 0.0, dt_s, int(6000 / dt_s)), dt_s)
+    model = MagnetorquerAttitudeModel(INERTIA, field_along_orbit_t(ORBIT, TiltedDipole(), 0.0, dt_s, horizon.steps), dt_s)
+    return horizon, model
+
+
+def _quat_rate(q, w):
+    return 0.5 * ca.vertcat(-q[1] * w[0] - q[2] * w[1] - q[3] * w[2],
+                            q[0] * w[0] + q[2] * w[2] - q[3] * w[1],
+                            q[0] * w[1] - q[1] * w[2] + q[3] * w[0],
+                            q[0] * w[2] + q[1] * w[1] - q[2] * w[0])
+
+
+def _inertial_to_body(q, b):
+    # q* (x) [0, b] (x) q, expanded: quadratic in q (no normalisation inside the RK stages)
+    s, v = q[0], q[1:4]
+    return (s * s - ca.dot(v, v)) * b + 2 * ca.dot(v, b) * v - 2 * s * ca.cross(v, b)
+
+
+def discrete_step(inertia, dt_s):
+    x, u, b = ca.SX.sym("x", 7), ca.SX.sym("u", 3), ca.SX.sym("b", 3)
+    J = ca.DM(inertia)
+    J_inv = ca.DM(np.linalg.inv(inertia))
+
+    def f(z):
+        q, w = z[:4], z[4:]
+        tau = ca.cross(u, _inertial_to_body(q, b))
+        return ca.vertcat(_quat_rate(q, w), ca.mtimes(J_inv, tau - ca.cross(w, ca.mtimes(J, w))))
+
+    k1 = f(x)
+    k2 = f(x + dt_s / 2 * k1)
+    k3 = f(x + dt_s / 2 * k2)
+    k4 = f(x + dt_s * k3)
+    xt = x + dt_s / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+    return ca.Function("F", [x, u, b], [ca.vertcat(xt[:4] / ca.norm_2(xt[:4]), xt[4:])])
+
+
+def solve_with_ipopt(model, cost, x0, dipole_limit_am2, max_iter=500, max_cpu_time_s=240.0, print_level=0):
+    """Returns (objective, U (N,3), X (N+1,7), ipopt status, wall time).
+
+    Single shooting: the dipoles are the only variables and the states are the step map applied N
+    times. (Multiple shooting with free state variables diverged here: the step normalises q, so a
+    state's scale along q is free in the constraints while the cost, linear in q near the goal,
+    rewards growing it; IPOPT's first step went to |q| ~ 1e4.)
+    """
+    N, F = model.horizon_steps, discrete_step(model.inertia_kgm2, model.dt_s)
+    U = ca.SX.sym("U", 3, N)
+    qg, wg = ca.DM(cost.q_goal_wxyz), ca.DM(cost.omega_goal_radps)
+    Q, R, Qf = ca.DM(cost.rate_weight), ca.DM(cost.dipole_weight), ca.DM(cost.final_rate_weight)
+    x = ca.DM(x0)
+    obj = 0
+    states = [x]
+    for k in range(N):
+        dw = x[4:] - wg
+        obj += cost.attitude_weight * (1 - ca.fabs(ca.dot(qg, x[:4]))) + 0.5 * ca.bilin(Q, dw, dw) \
+            + 0.5 * ca.bilin(R, U[:, k], U[:, k])
+        x = F(x, U[:, k], ca.DM(model.field_inertial_t[k]))
+        states.append(x)
+    dw = x[4:] - wg
+    obj += cost.final_attitude_weight * (1 - ca.fabs(ca.dot(qg, x[:4]))) + 0.5 * ca.bilin(Qf, dw, dw)
+    solver = ca.nlpsol("slew", "ipopt", {"x": ca.vec(U), "f": obj},
+                       {"print_time": False,
+                        "ipopt": {"print_level": print_level, "max_iter": max_iter, "max_cpu_time": max_cpu_time_s,
+                                  "tol": 1e-10, "sb": "yes"}})
+    t = time.perf_counter()
+    # Start from zero dipole: nothing of MILQR's answer is given to IPOPT.
+    sol = solver(x0=np.zeros(3 * N), lbx=-dipole_limit_am2, ubx=dipole_limit_am2)
+    wall = time.perf_counter() - t
+    u_opt = np.array(sol["x"]).reshape(N, 3)          # vec() is column-major: U[:, k] contiguous
+    X = np.array(ca.Function("X", [U], [ca.horzcat(*states)])(u_opt.T)).T
+    return float(sol["f"]), u_opt, X, solver.stats()["return_status"], wall
