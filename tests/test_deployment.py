@@ -159,3 +159,14 @@ def test_router_deployment_runs_the_loop_through_a_router(lab, tmp_path, runs_di
     assert remote_codes == {"controller": 0, "estimator": 0}
     metrics = json.loads((runs_dir / "routed" / "metrics.json").read_text())
     assert metrics["process_stats"]["plant"]["published"]["truth"] == 20
+
+
+def test_node_on_the_wrong_host_and_router_without_one_are_one_line_and_exit_2(tmp_path, runs_dir):
+    deployment = write(tmp_path, GOOD)
+    assert run_bench_cli("certs", str(deployment), timeout_s=60).returncode == 0
+    wrong = run_bench_cli("node", "controller", "--run-id", "r", "--scenario", "rendezvous_lqr", "--deployment",
+                          str(deployment), "--host", "est", "--run-dir", str(runs_dir / "r"), timeout_s=60)
+    assert wrong.returncode == 2 and "not placed on host 'est'" in wrong.stderr
+    assert len(wrong.stderr.strip().splitlines()) == 1
+    router = run_bench_cli("router", "--deployment", str(deployment), timeout_s=60)
+    assert router.returncode == 2 and "names no router" in router.stderr
