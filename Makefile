@@ -13,8 +13,10 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install -q -e '.[test]'
 	touch $(STAMP)
 
+# `make run SCENARIO=attitude_quick` shows the attitude card in seconds (default: the bench's own).
+SCENARIO ?=
 run: $(STAMP)
-	$(VENV)/bin/bench run
+	$(VENV)/bin/bench run $(SCENARIO)
 
 test: $(STAMP)
 	bash tools/install-system-deps.sh

@@ -163,7 +163,12 @@ def write_metrics(run_dir: Path, scenario: Scenario, children: list[Child], stat
                   remote: dict[str, str] | None = None) -> dict:
     with np.load(run_dir / "trajectory.npz") as data:
         trajectory = {k: data[k] for k in data.files}
-    metrics = trajectory_metrics(trajectory["state_m_mps"], trajectory["thrust_n"], scenario.params())
+    if scenario.kind == "attitude":
+        from bench.report.attitude_metrics import attitude_metrics
+
+        metrics = attitude_metrics(trajectory, scenario)
+    else:
+        metrics = trajectory_metrics(trajectory["state_m_mps"], trajectory["thrust_n"], scenario.params())
     metrics.update({
         "scenario": scenario.name,
         "mode": scenario.run.mode,
@@ -188,7 +193,22 @@ def _print_summary(metrics: dict, run_dir: Path) -> None:
     table.add_column("metric")
     table.add_column("value", justify="right")
     latency = metrics["end_to_end_latency"]
-    rows = [
+    if metrics.get("kind") == "attitude":
+        from bench.report.attitude_metrics import summary_rows
+
+        rows = summary_rows(metrics) + [("plant-side missed steps", str(metrics["plant_missed_steps"])),
+                                        ("wall time", f"{metrics['wall_time_s']:.1f} s")]
+    else:
+        rows = _rendezvous_rows(metrics, latency)
+    for name, value in rows:
+        table.add_row(name, value)
+    console = Console(stderr=False)
+    console.print(table)
+    console.print(f"run directory: {run_dir}")
+
+
+def _rendezvous_rows(metrics: dict, latency: dict) -> list[tuple[str, str]]:
+    return [
         ("final position error", f"{metrics['final_position_error_m']:.1f} m"),
         ("final velocity error", f"{metrics['final_velocity_error_mps']:.3f} m/s"),
         ("input cost J_u", f"{metrics['input_cost']:.3f} N^2"),
@@ -199,11 +219,6 @@ def _print_summary(metrics: dict, run_dir: Path) -> None:
         ("plant-side missed steps", str(metrics["plant_missed_steps"])),
         ("wall time", f"{metrics['wall_time_s']:.1f} s"),
     ]
-    for name, value in rows:
-        table.add_row(name, value)
-    console = Console(stderr=False)
-    console.print(table)
-    console.print(f"run directory: {run_dir}")
 
 
 def _follow_run(session, run_id: str, children: list[Child], n_steps: int, show_progress: bool,

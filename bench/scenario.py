@@ -14,9 +14,12 @@ from typing import Annotated, Literal
 import msgspec
 
 from bench.bus.can.config import CanConfig
-from bench.controller.config import ControllerConfig
+from bench.controller.config import ATTITUDE_LAWS, AttitudeControlConfig, ControllerConfig
 from bench.estimator.config import EstimatorConfig
 from bench.gnc.cwh import RendezvousParams
+from bench.plant.config import (
+    AttitudeConfigError, AttitudePlantConfig, check_attitude_plant, check_unit_quaternion, inertia_matrix,
+)
 from bench.plant.config import PlantConfig
 
 BUILTIN_PACKAGE = "bench.scenarios"
@@ -59,12 +62,17 @@ class OnboardConfig(msgspec.Struct, forbid_unknown_fields=True):
 class Scenario(msgspec.Struct, forbid_unknown_fields=True):
     name: str
     description: str = ""
+    # "rendezvous": the translational loop (600 s steps). "attitude": the magnetorquer loop at the
+    # gyro rate ([attitude], [attitude_control]; issue 11).
+    kind: Literal["rendezvous", "attitude"] = "rendezvous"
     run: RunConfig = msgspec.field(default_factory=RunConfig)
     plant: PlantConfig = msgspec.field(default_factory=PlantConfig)
     estimator: EstimatorConfig = msgspec.field(default_factory=EstimatorConfig)
     controller: ControllerConfig = msgspec.field(default_factory=ControllerConfig)
     onboard: OnboardConfig = msgspec.field(default_factory=OnboardConfig)
     can: CanConfig | None = None
+    attitude: AttitudePlantConfig = msgspec.field(default_factory=AttitudePlantConfig)
+    attitude_control: AttitudeControlConfig = msgspec.field(default_factory=AttitudeControlConfig)
 
     def params(self) -> RendezvousParams:
         """The seed's params struct for this scenario (reference numbers, scenario overrides)."""
@@ -86,7 +94,16 @@ class Scenario(msgspec.Struct, forbid_unknown_fields=True):
 
     @property
     def n_steps(self) -> int:
+        if self.kind == "attitude":
+            if self.run.steps is not None:
+                return self.run.steps
+            return max(1, round(self.attitude.duration_s * self.attitude.sensors.gyro_rate_hz))
         return self.params().n_steps
+
+    @property
+    def step_s(self) -> float:
+        """Simulated time per plant step."""
+        return 1.0 / self.attitude.sensors.gyro_rate_hz if self.kind == "attitude" else self.plant.time_step_s
 
     def initial_state_m_mps(self):
         import numpy as np
@@ -96,7 +113,45 @@ class Scenario(msgspec.Struct, forbid_unknown_fields=True):
         return self.params().initial_state_m_mps(self.plant.initial_condition)
 
 
+# Real-time attitude runs keep simulated and wall time close: the board's command timeout (0.1 s)
+# and the driver's command period are wall-clock, so at a factor of 10 one 0.1 s plant step would
+# be shorter than the driver's 20 ms command period and the loop would sample stale commands.
+MAX_ATTITUDE_TIME_FACTOR = 2.0
+
+
+def _check_attitude(s: Scenario) -> None:
+    try:
+        check_attitude_plant(s.attitude)
+    except AttitudeConfigError as exc:
+        raise ScenarioError(str(exc)) from None
+    control = s.attitude_control
+    if control.law not in ATTITUDE_LAWS:
+        raise ScenarioError(f"attitude_control.law: unknown law {control.law!r} (known: {', '.join(sorted(ATTITUDE_LAWS))})")
+    if control.dipole_limit_am2 is not None:
+        limit = control.dipole_limit_am2
+        if not limit > 0:   # also NaN
+            raise ScenarioError(f"attitude_control.dipole_limit_am2: must be positive, got {limit}")
+        if s.can is not None and limit > s.can.board.max_dipole_am2:
+            raise ScenarioError(f"attitude_control.dipole_limit_am2: {limit} exceeds the board's "
+                                f"can.board.max_dipole_am2 = {s.can.board.max_dipole_am2}")
+    try:
+        check_unit_quaternion(control.target.q_wxyz, "attitude_control.target.q_wxyz")
+        if control.inertia_kgm2 is not None:
+            inertia_matrix(control.inertia_kgm2, "attitude_control.inertia_kgm2")
+    except AttitudeConfigError as exc:
+        raise ScenarioError(str(exc)) from None
+    if s.run.mode == "lock-step" and s.can is not None and s.can.board.mag_window_period_s > 0:
+        raise ScenarioError("can.board.mag_window_period_s: the board's magnetometer windows run on the wall "
+                            "clock, which a lock-step attitude run does not follow; use run.mode = \"real-time\"")
+    if s.run.mode == "real-time" and s.run.time_factor > MAX_ATTITUDE_TIME_FACTOR:
+        raise ScenarioError(f"run.time_factor: the attitude loop runs real-time near 1x (board timeout and "
+                            f"bus on the wall clock); got {s.run.time_factor}, at most {MAX_ATTITUDE_TIME_FACTOR}")
+
+
 def _check_semantics(s: Scenario) -> None:
+    if s.kind == "attitude":
+        _check_attitude(s)
+        return
     if s.plant.initial_state_m_mps is None:
         known = RendezvousParams.from_reference().initial_conditions_m_mps
         if s.plant.initial_condition not in known:

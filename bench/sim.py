@@ -1,15 +1,20 @@
 """The whole loop in one process: the reference the multi-process bench must reproduce.
 
 Same plant, estimator and controller-cycle objects as the processes use, called in the same order,
-with the same seeded noise; only the wiring differs.
+with the same seeded noise; only the wiring differs. For the attitude loop the CAN bus is replaced
+by what it does to a fault-free command (DBC scaling, the board's quantisation and saturation).
 """
 from __future__ import annotations
 
 import numpy as np
 
+from bench.controller.attitude_cycle import AttitudeCycle
 from bench.controller.cycle import ControlCycle
+from bench.estimator.attitude_frontend import AttitudeEstimator
 from bench.estimator.frontend import StateEstimator
+from bench.plant.attitude_plant import AttitudePlant
 from bench.plant.model import TranslationPlant
+from bench.plant.mtq_acceptance import DipoleAcceptance, board_dipole_without_bus
 from bench.report.run_metrics import trajectory_metrics
 from bench.scenario import Scenario
 from bench.studies.campaign_metrics import run_metrics
@@ -41,6 +46,40 @@ def simulate_in_process(scenario: Scenario) -> tuple[dict[str, np.ndarray], dict
     trajectory["estimate_m_mps"] = np.array(estimates)
     trajectory.update({name: np.array(values) for name, values in cycles.items()})
     return trajectory, trajectory_metrics(trajectory["state_m_mps"], trajectory["thrust_n"], plant.params)
+
+
+# ---- the attitude loop (issue 11) ---------------------------------------------------------------
+def estimate_for(estimator: AttitudeEstimator, plant: AttitudePlant, k: int):
+    """What the estimator makes of step k's sensors (or truth)."""
+    sample = plant.sense()
+    if estimator.needs_truth:
+        truth = plant.sim.truth()
+        return estimator.truth_step(truth.q_wxyz, truth.omega_body_radps, truth.gyro_bias_radps, plant.sim.field_body_t())
+    return estimator.step(k, plant.time_s, sample.gyro_radps, sample.field_inertial_t, sample.magnetometer_t,
+                          sample.star_tracker_wxyz)
+
+
+def simulate_attitude_in_process(scenario: Scenario) -> dict[str, np.ndarray]:
+    """Run an attitude scenario without processes; the arrays the plant process writes."""
+    n_steps = scenario.n_steps
+    plant = AttitudePlant(scenario.attitude, n_steps, scenario.run.seed)
+    estimator = AttitudeEstimator(scenario)
+    cycle = AttitudeCycle(scenario)
+    acceptance = DipoleAcceptance(scenario.can)
+    commanded, estimated_q, valid = [], [], []
+    for k in range(n_steps):
+        estimate = estimate_for(estimator, plant, k)
+        outcome = cycle.run(plant.time_s, estimate.valid, estimate.q_wxyz, estimate.omega_radps, estimate.field_body_t)
+        dipole, _ = acceptance.accept(board_dipole_without_bus(outcome.dipole_am2, scenario.can), None)
+        commanded.append(outcome.dipole_am2)
+        estimated_q.append(estimate.q_wxyz)
+        valid.append(estimate.valid)
+        plant.apply(dipole)
+    return plant.trajectory() | {
+        "att_dipole_commanded_am2": np.array(commanded).reshape(-1, 3),
+        "att_estimate_q_wxyz": np.array(estimated_q).reshape(-1, 4),
+        "att_estimate_valid": np.array(valid, dtype=bool),
+    }
 
 
 def campaign_case(scenario: Scenario) -> dict:

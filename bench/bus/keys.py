@@ -12,6 +12,11 @@ ESTIMATE_TRANSLATION = "estimate/translation"
 COMMAND_THRUST = "command/thrust"
 COMMAND_APPLIED = "command/applied"   # the command the plant applied, with its full stamp chain
 ACTUATOR_MTQ = "actuator/mtq"
+# The attitude loop (issue 11).
+SENSE_ATTITUDE = "sense/attitude"
+TRUTH_ATTITUDE = "truth/attitude"
+ESTIMATE_ATTITUDE = "estimate/attitude"
+COMMAND_DIPOLE = "command/dipole"
 EVENT_DEADLINE = "event/deadline"
 STATUS_STEP = "status/step"
 STATUS_STATS = "status/stats"

@@ -161,3 +161,50 @@ class MtqApplied(Message, tag="mtq_applied"):
     safe_state: bool                 # coils off: no valid command within the command timeout
     actuation_paused: bool = False   # coils off for a magnetometer sampling window
     alive_counter: NonNegInt = 0
+
+
+# --- the attitude loop (issue 11) ---------------------------------------------------------------
+Quat = Annotated[list[float], msgspec.Meta(min_length=4, max_length=4)]
+Cov3 = Annotated[list[float], msgspec.Meta(min_length=9, max_length=9)]
+
+
+class AttitudeSensors(Message, tag="attitude_sensors"):
+    """Plant -> estimator, every gyro tick k: the gyro's mean rate over the last step; the
+    magnetometer and the star tracker only on their own ticks (None otherwise, or in an outage).
+    `field_model_inertial_t` is the on-board field model's prediction at t_k (the flight side
+    carries the same model), which the estimator compares the magnetometer with."""
+    gyro_radps: Vec3
+    field_model_inertial_t: Vec3
+    magnetometer_t: Vec3 | None = None
+    star_tracker_wxyz: Quat | None = None
+
+
+class AttitudeTruth(Message, tag="attitude_truth"):
+    """Ground truth at t_k (recorder, reports and the truth-mode estimator only)."""
+    q_wxyz: Quat
+    omega_radps: Vec3
+    gyro_bias_radps: Vec3
+    field_body_t: Vec3
+    position_m: Vec3
+
+
+class AttitudeEstimate(Message, tag="estimate_attitude"):
+    """Estimator -> controller, every tick. valid = False until the smoother has its first fix
+    (the controller then runs only laws that need no attitude, B-dot)."""
+    valid: bool
+    q_wxyz: Quat
+    omega_radps: Vec3                 # gyro with the estimated bias removed, body axes
+    gyro_bias_radps: Vec3
+    field_body_t: Vec3                # the field the law should use: magnetometer, else model rotated
+    attitude_covariance_rad2: Cov3 | None = None
+
+
+class DipoleCommand(Message, tag="dipole_command"):
+    """Controller -> plant (lock-step pairing) and recorder: the dipole the law asked for at step k
+    and the alive counter of the first CAN command frame that carried it (-1: not sent)."""
+    dipole_am2: Vec3
+    alive_counter: int
+    law: str
+    saturated: bool = False
+    weak_field: bool = False
+    fallback: str | None = None

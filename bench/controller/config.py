@@ -1,4 +1,6 @@
-"""Scenario section [controller]: which controller and its weights (seed 003)."""
+"""Scenario sections [controller] (which translational controller and its weights, seed 003) and
+[attitude_control] (which attitude law, its gains and target, and what the flight side believes).
+"""
 from __future__ import annotations
 
 from typing import Annotated, Literal
@@ -85,3 +87,43 @@ class ControllerConfig(msgspec.Struct, forbid_unknown_fields=True):
     lqt_glide_fraction: Annotated[float, msgspec.Meta(gt=0, le=1)] = 0.35
     # Wall-clock budget per cycle, fallback on a miss, optional stress (used by bench/controller/deadline.py).
     deadline: DeadlineConfig = msgspec.field(default_factory=DeadlineConfig)
+
+
+# ---- [attitude_control] (issue 11) ------------------------------------------------------------
+Vec4 = Annotated[list[float], msgspec.Meta(min_length=4, max_length=4)]
+PositiveGain = Annotated[float, msgspec.Meta(gt=0)]
+
+# Attitude laws by the scenario's name: "module:builder", the builder taking the scenario and
+# returning an object with eval(AttitudeControlInput) -> (dipole_am2, info). Strings, so the
+# scenario checks names without importing the flight software; a new law is one line here.
+ATTITUDE_LAWS: dict[str, str] = {
+    "bdot": "bench.controller.attitude_laws:bdot",
+    "sliding_mode": "bench.controller.attitude_laws:sliding_mode",
+    "pd": "bench.controller.attitude_laws:pd",
+}
+# Laws that need no attitude estimate (they fly before the smoother's first fix).
+ATTITUDE_FREE_LAWS = {"bdot"}
+
+
+class AttitudeTargetConfig(msgspec.Struct, forbid_unknown_fields=True):
+    # "inertial": hold q_wxyz (target to inertial). "nadir": body z to nadir, body x along the
+    # velocity (the orbit of [attitude.orbit], which the flight side knows).
+    kind: Literal["inertial", "nadir"] = "inertial"
+    q_wxyz: Vec4 = msgspec.field(default_factory=lambda: [1.0, 0.0, 0.0, 0.0])
+
+
+class AttitudeControlConfig(msgspec.Struct, forbid_unknown_fields=True):
+    law: str = "bdot"                       # a key of ATTITUDE_LAWS above
+    # Not constrained here so that a zero or negative limit gets the scenario's own message.
+    dipole_limit_am2: float | None = None   # default: [can.board] max_dipole_am2
+    inertia_kgm2: list[float] | None = None  # believed; default: [attitude] inertia_kgm2
+    target: AttitudeTargetConfig = msgspec.field(default_factory=AttitudeTargetConfig)
+    # B-dot: m = -k dB/dt. Avanzini & Giulietti (2012) give k = 2 n (1 + sin xi) J_min / |B|^2,
+    # ~1e4 A m^2 s / T for the default body at 500 km. Measured here: 5e5 (too high) locks the spin
+    # to the field and stalls at ~2.7 deg/s for two orbits; 1e4 reaches 0.3 deg/s in 3200 s.
+    bdot_gain_am2_s_per_t: PositiveGain = 1.0e4
+    # Seed 002 sliding mode (lambda, k) and PD (kp, kd).
+    sliding_gain_radps: PositiveGain = 0.05
+    convergence_gain_radps: PositiveGain = 0.02
+    kp_nm: PositiveGain = 1.0e-5
+    kd_nms: PositiveGain = 5.0e-4

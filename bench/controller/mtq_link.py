@@ -20,12 +20,14 @@ DRIVER_REPORT_NAME = "driver.json"
 
 
 class MagnetorquerLink:
-    def __init__(self, ctx: NodeContext, config: CanConfig):
+    def __init__(self, ctx: NodeContext, config: CanConfig, scripted: bool = True):
+        """scripted: command the scenario's dipole profile; False: the dipole a law sets
+        (`self.loop.set_dipole`, zero until then)."""
         self.ctx = ctx
         self.bus = open_node_bus(ctx, config, config.flight_channel)
         self.driver = MagnetorquerDriver.from_config(self.bus, config)
-        self.loop = CommandLoop(self.driver, config.driver.command_period_s, dipole_at=config.dipole_at,
-                                on_events=self._log_events)
+        self.loop = CommandLoop(self.driver, config.driver.command_period_s,
+                                dipole_at=config.dipole_at if scripted else None, on_events=self._log_events)
         self._thread = threading.Thread(target=self.loop.run, args=(ctx.stop,), name="mtq-driver", daemon=True)
 
     def _log_events(self, events: list[FaultEvent]) -> None:

@@ -6,6 +6,7 @@ published as a DeadlineEvent as it happens. The monitor's summary goes to deadli
 """
 from __future__ import annotations
 
+import importlib
 import json
 import time
 
@@ -19,6 +20,9 @@ from bench.runtime.node import NodeContext
 
 
 def run(ctx: NodeContext) -> int:
+    if ctx.scenario.kind == "attitude":
+        # By name, as NODES finds nodes: the attitude process reuses this module's pieces.
+        return importlib.import_module("bench.controller.attitude_node").run(ctx)
     control = ControlCycle(ctx.scenario)
     mtq = MagnetorquerLink(ctx, ctx.scenario.can) if ctx.scenario.can is not None else None
     if mtq is not None:

@@ -10,6 +10,7 @@ at its sensing step inside the smoother's window and published with the next ste
 """
 from __future__ import annotations
 
+import importlib
 import queue
 import time
 
@@ -50,6 +51,9 @@ class CommandHistory:
 
 
 def run(ctx: NodeContext) -> int:
+    if ctx.scenario.kind == "attitude":
+        # By name, as NODES finds nodes: the attitude process reuses this module's pieces.
+        return importlib.import_module("bench.estimator.attitude_node").run(ctx)
     scenario = ctx.scenario
     estimator = StateEstimator(scenario)
     if estimator.needs_truth:

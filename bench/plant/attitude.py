@@ -15,9 +15,13 @@ Inertial frame: ECI-like, z along the Earth's spin axis. All units SI (T for the
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 from scipy.spatial.transform import Rotation
+
+from bench.gnc import quaternion as qt
+from bench.gnc.environment import cross3
 
 EARTH_RADIUS_M = 6.3712e6
 EARTH_ROTATION_RADPS = 7.2921159e-5
@@ -41,15 +45,19 @@ def quaternion_rate(q_wxyz: np.ndarray, omega_body_radps: np.ndarray) -> np.ndar
     ])
 
 
-def euler_rate(omega_body_radps: np.ndarray, torque_body_nm: np.ndarray, inertia_kgm2: np.ndarray) -> np.ndarray:
-    return np.linalg.solve(inertia_kgm2, torque_body_nm - np.cross(omega_body_radps, inertia_kgm2 @ omega_body_radps))
+def euler_rate(omega_body_radps: np.ndarray, torque_body_nm: np.ndarray, inertia_kgm2: np.ndarray,
+               inertia_inverse: np.ndarray | None = None) -> np.ndarray:
+    rhs = torque_body_nm - cross3(omega_body_radps, inertia_kgm2 @ omega_body_radps)
+    return inertia_inverse @ rhs if inertia_inverse is not None else np.linalg.solve(inertia_kgm2, rhs)
 
 
 def rk4_attitude_step(q_wxyz: np.ndarray, omega_body_radps: np.ndarray, torque_body_nm: np.ndarray,
                       inertia_kgm2: np.ndarray, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
     """One RK4 step of the rigid body with torque held constant over dt; q re-normalised."""
+    j_inv = np.linalg.inv(inertia_kgm2)
+
     def f(q, w):
-        return quaternion_rate(q, w), euler_rate(w, torque_body_nm, inertia_kgm2)
+        return quaternion_rate(q, w), euler_rate(w, torque_body_nm, inertia_kgm2, j_inv)
 
     k1q, k1w = f(q_wxyz, omega_body_radps)
     k2q, k2w = f(q_wxyz + 0.5 * dt_s * k1q, omega_body_radps + 0.5 * dt_s * k1w)
@@ -62,7 +70,7 @@ def rk4_attitude_step(q_wxyz: np.ndarray, omega_body_radps: np.ndarray, torque_b
 
 def magnetorquer_torque_nm(dipole_body_am2: np.ndarray, field_body_t: np.ndarray) -> np.ndarray:
     """tau = m x B (seed 004 section 7): no torque along the field, hence the under-actuation."""
-    return np.cross(dipole_body_am2, field_body_t)
+    return cross3(dipole_body_am2, field_body_t)
 
 
 def body_to_inertial(q_wxyz: np.ndarray) -> Rotation:
@@ -83,10 +91,14 @@ class CircularOrbit:
     def mean_motion_radps(self) -> float:
         return float(np.sqrt(self.gravitational_parameter_m3ps2 / self.radius_m**3))
 
+    @cached_property
+    def _inertial_from_orbit_plane(self) -> np.ndarray:
+        # Built once: scipy's Rotation costs ~50-300 us per construction, the plant asks every step.
+        return Rotation.from_euler("ZX", [self.raan_rad, self.inclination_rad]).as_matrix()
+
     def position_m(self, time_s: float) -> np.ndarray:
         u = self.initial_argument_of_latitude_rad + self.mean_motion_radps * time_s
-        in_plane = self.radius_m * np.array([np.cos(u), np.sin(u), 0.0])
-        return Rotation.from_euler("ZX", [self.raan_rad, self.inclination_rad]).apply(in_plane)
+        return self._inertial_from_orbit_plane @ (self.radius_m * np.array([np.cos(u), np.sin(u), 0.0]))
 
 
 @dataclass(frozen=True)
@@ -133,6 +145,7 @@ class AttitudeSensorSpec:
     star_tracker_noise_std_rad: float = 1.0e-4          # across the boresight, per axis
     star_tracker_boresight_noise_std_rad: float = 8.0e-4
     star_tracker_boresight_body: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    star_tracker_outages_s: tuple[tuple[float, float], ...] = ()   # (start, end): no fix (Sun or Earth in view)
 
     def __post_init__(self):
         for name in ("gyro_rate_hz", "magnetometer_period_s", "star_tracker_period_s"):
@@ -198,7 +211,7 @@ class AttitudeSimulation:
     def field_body_t(self) -> np.ndarray:
         """The true geomagnetic field in the body frame now (what a magnetorquer acts against)."""
         field_inertial = self.geomagnetic.field_t(self.orbit.position_m(self.time_s), self.time_s)
-        return body_to_inertial(self.q_wxyz).inv().apply(field_inertial)
+        return qt.rotation_matrix(self.q_wxyz).T @ field_inertial
 
     def step(self, torque_body_nm: np.ndarray = np.zeros(3)) -> AttitudeSample:
         """Advance one gyro period; the gyro reports the mean rate over it, the others the end state.
@@ -206,12 +219,19 @@ class AttitudeSimulation:
         The gyro measures the average rate over its sample period (an integrating rate gyro), so
         integrating its samples reproduces the attitude change up to the sensor noise.
         """
-        spec, dt = self.sensors, self.dt_s
+        dt = self.dt_s
         q_before = self.q_wxyz
         self.q_wxyz, self.omega_body_radps = rk4_attitude_step(
             self.q_wxyz, self.omega_body_radps, np.asarray(torque_body_nm, float), self.inertia_kgm2, dt)
         self.tick += 1
-        mean_rate = (body_to_inertial(q_before).inv() * body_to_inertial(self.q_wxyz)).as_rotvec() / dt
+        mean_rate = qt.log(qt.multiply(qt.conjugate(q_before), self.q_wxyz)) / dt
+        return self.measure(mean_rate)
+
+    def measure(self, mean_rate_radps: np.ndarray) -> AttitudeSample:
+        """The sensors at the current tick, the gyro reading `mean_rate_radps` (at tick 0, before
+        any step, the closed loop's first sample reads the initial rate)."""
+        spec, dt = self.sensors, self.dt_s
+        mean_rate = np.asarray(mean_rate_radps, dtype=float)
         # Bias is constant over the sample and then walks (what the preintegration assumes).
         gyro = mean_rate + self.gyro_bias_radps + self.rng.normal(0.0, spec.gyro_noise_density_radps_per_rthz / np.sqrt(dt), 3)
         self.gyro_bias_radps = self.gyro_bias_radps + self.rng.normal(
@@ -220,7 +240,7 @@ class AttitudeSimulation:
         if self._on_tick(spec.magnetometer_period_s):
             field_inertial = self.geomagnetic.field_t(self.orbit.position_m(self.time_s), self.time_s)
             sample.field_inertial_t = field_inertial
-            field_body = body_to_inertial(self.q_wxyz).inv().apply(field_inertial)
+            field_body = qt.rotation_matrix(self.q_wxyz).T @ field_inertial
             sample.magnetometer_t = (spec.magnetometer_scale * field_body + np.asarray(spec.magnetometer_bias_t)
                                      + self.rng.normal(0.0, spec.magnetometer_noise_std_t, 3))
         if self._on_tick(spec.star_tracker_period_s):
@@ -230,8 +250,9 @@ class AttitudeSimulation:
             z = self.rng.normal(0.0, 1.0, 3)
             rotvec = spec.star_tracker_noise_std_rad * z + (
                 spec.star_tracker_boresight_noise_std_rad - spec.star_tracker_noise_std_rad) * (axis @ z) * axis
-            error = Rotation.from_rotvec(rotvec)
-            sample.star_tracker_wxyz = (body_to_inertial(self.q_wxyz) * error).as_quat(scalar_first=True)
+            if not any(start <= self.time_s < end for start, end in spec.star_tracker_outages_s):
+                measured = qt.multiply(self.q_wxyz, qt.exp(rotvec))
+                sample.star_tracker_wxyz = measured if measured[0] >= 0 else -measured
         return sample
 
     def _on_tick(self, period_s: float) -> bool:

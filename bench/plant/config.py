@@ -1,9 +1,20 @@
-"""Scenario section [plant]: which dynamics, where the chaser starts, the sensors."""
+"""Scenario sections [plant] (translational: dynamics, where the chaser starts, the sensors) and
+[attitude] (the attitude loop's spacecraft, orbit, field, disturbances and sensors).
+
+[attitude] is the truth the plant simulates; what the flight side believes (its inertia, its law) is in
+[attitude_control], and the smoother's noise beliefs in [estimator.attitude].
+
+Defaults are a 1U CubeSat (1.3 kg, J ~ 2e-3 kg m^2) with 0.2 A m^2 coils (the [can.board] limit):
+in a ~3e-5 T field that is up to 6e-6 N m, ~3e-3 rad/s^2, so a detumble from 8 deg/s or a
+large slew takes minutes, a fraction of a 95-minute orbit, which keeps closed-loop runs short.
+"""
 from __future__ import annotations
 
+from datetime import datetime, timezone
 from typing import Annotated, Literal
 
 import msgspec
+import numpy as np
 
 from bench.data import load_reference
 
@@ -45,3 +56,145 @@ class PlantConfig(msgspec.Struct, forbid_unknown_fields=True):
         if self.navigation_frame == "curvilinear" and self.dynamics != "nonlinear":
             raise ValueError("navigation_frame = \"curvilinear\" needs dynamics = \"nonlinear\" "
                              "(the linear CWH plant is Cartesian by construction)")
+
+
+# ---- [attitude] (issue 11) ----------------------------------------------------------------------
+Vec3 = Annotated[list[float], msgspec.Meta(min_length=3, max_length=3)]
+Vec4 = Annotated[list[float], msgspec.Meta(min_length=4, max_length=4)]
+Window = Annotated[list[NonNegative], msgspec.Meta(min_length=2, max_length=2)]
+
+
+class AttitudeConfigError(ValueError):
+    """A physically impossible [attitude] value; the message starts with the field's path."""
+
+
+class OrbitConfig(msgspec.Struct, forbid_unknown_fields=True):
+    # "sgp4": propagate `tle` (two lines); "circular": the fast option below.
+    model: Literal["sgp4", "circular"] = "circular"
+    tle: list[str] | None = None
+    # The run's start (UTC, ISO 8601); also the IGRF date. Default for sgp4: the TLE's epoch.
+    epoch_utc: str | None = None
+    altitude_m: Positive = 500e3
+    inclination_deg: Annotated[float, msgspec.Meta(ge=0, le=180)] = 97.4
+    raan_deg: float = 0.0
+    initial_argument_of_latitude_deg: float = 0.0
+
+
+class FieldConfig(msgspec.Struct, forbid_unknown_fields=True):
+    # "igrf": IGRF-14 along the orbit, tabulated every grid_s and splined; "dipole": tilted dipole.
+    model: Literal["igrf", "dipole"] = "dipole"
+    grid_s: Annotated[float, msgspec.Meta(gt=0, le=60)] = 10.0
+
+
+class DisturbanceConfig(msgspec.Struct, forbid_unknown_fields=True):
+    gravity_gradient: bool = True
+    # The spacecraft's own magnetic moment (body axes); 1e-3 A m^2 is a tidy CubeSat.
+    residual_dipole_am2: Vec3 = msgspec.field(default_factory=lambda: [0.0, 0.0, 0.0])
+
+
+class AttitudeSensorsConfig(msgspec.Struct, forbid_unknown_fields=True):
+    """Rates and true noise levels (bench.plant.attitude.AttitudeSensorSpec)."""
+    gyro_rate_hz: Positive = 10.0            # the plant's step rate
+    gyro_noise_density_radps_per_rthz: NonNegative = 1.0e-4
+    gyro_bias_random_walk_radps2_per_rthz: NonNegative = 1.0e-6
+    initial_gyro_bias_std_radps: NonNegative = 1.0e-3
+    magnetometer_period_s: Positive = 1.0
+    magnetometer_noise_std_t: NonNegative = 1.0e-7
+    magnetometer_bias_t: Vec3 = msgspec.field(default_factory=lambda: [0.0, 0.0, 0.0])
+    star_tracker_period_s: Positive = 1.0
+    star_tracker_noise_std_rad: NonNegative = 1.0e-4
+    star_tracker_boresight_noise_factor: Annotated[float, msgspec.Meta(ge=1)] = 8.0
+    star_tracker_outages_s: list[Window] = []
+
+
+class AttitudePlantConfig(msgspec.Struct, forbid_unknown_fields=True):
+    duration_s: Positive = 60.0               # run.steps overrides (steps at the gyro rate)
+    # Principal moments [Jxx, Jyy, Jzz] or a full row-major 3x3 matrix, kg m^2.
+    inertia_kgm2: list[float] = msgspec.field(default_factory=lambda: [2.2e-3, 2.3e-3, 2.0e-3])
+    initial_q_wxyz: Vec4 = msgspec.field(default_factory=lambda: [1.0, 0.0, 0.0, 0.0])   # body to inertial
+    initial_rate_dps: Vec3 = msgspec.field(default_factory=lambda: [0.0, 0.0, 0.0])       # body axes
+    orbit: OrbitConfig = msgspec.field(default_factory=OrbitConfig)
+    field: FieldConfig = msgspec.field(default_factory=FieldConfig)
+    disturbances: DisturbanceConfig = msgspec.field(default_factory=DisturbanceConfig)
+    sensors: AttitudeSensorsConfig = msgspec.field(default_factory=AttitudeSensorsConfig)
+
+    def inertia_matrix(self) -> np.ndarray:
+        return inertia_matrix(self.inertia_kgm2, "attitude.inertia_kgm2")
+
+    def epoch(self) -> datetime | None:
+        return parse_epoch(self.orbit.epoch_utc, "attitude.orbit.epoch_utc")
+
+
+def inertia_matrix(values: list[float], field: str) -> np.ndarray:
+    """3 principal moments or 9 entries; symmetric positive definite, or AttitudeConfigError."""
+    j = np.asarray(values, dtype=float)
+    if j.size == 3:
+        j = np.diag(j)
+    elif j.size == 9:
+        j = j.reshape(3, 3)
+    else:
+        raise AttitudeConfigError(f"{field}: needs 3 principal moments or 9 matrix entries, got {j.size}")
+    if not np.all(np.isfinite(j)):
+        raise AttitudeConfigError(f"{field}: not finite")
+    if not np.allclose(j, j.T, rtol=0, atol=1e-12 * np.abs(j).max()):
+        raise AttitudeConfigError(f"{field}: not symmetric")
+    eigenvalues = np.linalg.eigvalsh(j)
+    if eigenvalues.min() <= 0:
+        raise AttitudeConfigError(f"{field}: not positive definite (eigenvalues {eigenvalues.tolist()})")
+    # A rigid body's principal moments obey the triangle inequality (J1 + J2 >= J3).
+    if eigenvalues[0] + eigenvalues[1] < eigenvalues[2] * (1 - 1e-9):
+        raise AttitudeConfigError(f"{field}: principal moments {eigenvalues.tolist()} break the triangle "
+                                  "inequality, no rigid body has them")
+    return j
+
+
+def check_unit_quaternion(values: list[float], field: str, tolerance: float = 1e-6) -> np.ndarray:
+    q = np.asarray(values, dtype=float)
+    if not np.all(np.isfinite(q)):
+        raise AttitudeConfigError(f"{field}: not finite ({values})")
+    norm = float(np.linalg.norm(q))
+    if abs(norm - 1.0) > tolerance:
+        raise AttitudeConfigError(f"{field}: not a unit quaternion (norm {norm:.9g}; scalar first [w, x, y, z])")
+    return q / norm
+
+
+def parse_epoch(text: str | None, field: str) -> datetime | None:
+    if text is None:
+        return None
+    try:
+        epoch = datetime.fromisoformat(text.replace("Z", "+00:00"))
+    except ValueError:
+        raise AttitudeConfigError(f"{field}: {text!r} is not an ISO 8601 time") from None
+    return epoch if epoch.tzinfo else epoch.replace(tzinfo=timezone.utc)
+
+
+def check_attitude_plant(config: AttitudePlantConfig) -> None:
+    """Everything msgspec's per-field types cannot say; raises AttitudeConfigError."""
+    config.inertia_matrix()
+    check_unit_quaternion(config.initial_q_wxyz, "attitude.initial_q_wxyz")
+    if not all(np.isfinite(config.initial_rate_dps)):
+        raise AttitudeConfigError("attitude.initial_rate_dps: not finite")
+    config.epoch()
+    orbit = config.orbit
+    if orbit.model == "sgp4":
+        if orbit.tle is None or len(orbit.tle) != 2:
+            raise AttitudeConfigError("attitude.orbit.tle: the sgp4 orbit needs the two lines of a TLE")
+        from bench.gnc.environment import Sgp4Orbit, TleError
+
+        try:
+            Sgp4Orbit.from_tle(*orbit.tle, config.epoch())
+        except TleError as exc:
+            raise AttitudeConfigError(f"attitude.orbit.tle: {exc}") from None
+    elif orbit.tle is not None:
+        raise AttitudeConfigError("attitude.orbit.tle: given but attitude.orbit.model is 'circular'")
+    if config.field.model == "igrf" and orbit.model == "circular" and orbit.epoch_utc is None:
+        raise AttitudeConfigError("attitude.orbit.epoch_utc: IGRF along a circular orbit needs a date")
+    s = config.sensors
+    for name in ("magnetometer_period_s", "star_tracker_period_s"):
+        ratio = getattr(s, name) * s.gyro_rate_hz
+        if abs(ratio - round(ratio)) > 1e-9 or round(ratio) < 1:
+            raise AttitudeConfigError(f"attitude.sensors.{name}: must be a whole number of gyro samples "
+                                      f"({getattr(s, name)} s at {s.gyro_rate_hz} Hz)")
+    for i, (start, end) in enumerate(s.star_tracker_outages_s):
+        if end <= start:
+            raise AttitudeConfigError(f"attitude.sensors.star_tracker_outages_s[{i}]: end must follow start")

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.report import canbus, plots
+from bench.report.attitude import attitude_section
 from bench.report.deadlines import DeadlineResult, deadlines
 from bench.report.document import Document, Figure, Section, Table, fmt, write
 from bench.report.estimation import AXES, estimation_error
@@ -53,8 +54,9 @@ def latency_table(summary: dict[str, dict]) -> Table:
 # --- sections ---------------------------------------------------------------------------------
 def summary_section(run: RunData, mission: dict) -> Section:
     s = run.scenario
-    text = (f"Scenario {s.name!r}, {s.run.mode}, controller {s.controller.type}, estimator {s.estimator.mode}, "
-            f"{s.n_steps} steps of {s.plant.time_step_s:g} s.")
+    controller = s.attitude_control.law if s.kind == "attitude" else s.controller.type
+    text = (f"Scenario {s.name!r}, {s.run.mode}, controller {controller}, estimator {s.estimator.mode}, "
+            f"{s.n_steps} steps of {s.step_s:g} s.")
     rows = [[name, fmt(mission.get(key))] for name, key in MISSION_ROWS if key in mission]
     return Section("Summary", [text], [Table(["metric", "value"], rows)])
 
@@ -205,7 +207,9 @@ def write_report(run_dir: str | Path) -> tuple[Path, Path]:
     est_section, est_metrics = estimation_section(run, plot_dir)
     can_sec, can_metrics = can_section(run, plot_dir)
     rec_section, rec_metrics = recording_section(run)
-    sections = [summary_section(run, mission), trajectory_section(run, plot_dir), latency_section(run, lat, plot_dir),
+    att_section, att_metrics = attitude_section(run, plot_dir)
+    sections = [summary_section(run, mission), att_section, trajectory_section(run, plot_dir),
+                latency_section(run, lat, plot_dir),
                 deadline_section(dl, plot_dir), est_section, can_sec, rec_section]
     doc = Document(f"Run {run.run_id}", [s for s in sections if s is not None])
     paths = write(doc, run.run_dir, "report")
@@ -218,5 +222,7 @@ def write_report(run_dir: str | Path) -> tuple[Path, Path]:
         "estimator_error": est_metrics,
         "can_bus": can_metrics,
     })
+    if att_metrics is not None:
+        metrics["attitude"] = att_metrics
     (run.run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
     return paths

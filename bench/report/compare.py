@@ -95,6 +95,10 @@ def write_comparison(run_dirs: list[str | Path], out_dir: str | Path | None = No
         figures.append(Figure(Path(PLOTS_DIR) / path.name, "Solve-time distribution per run"))
 
     runs_text = "Runs: " + "; ".join(f"{s.run.run_id} = {s.run.run_dir}" for s in summaries) + "."
-    doc = Document(f"Comparison of {len(summaries)} runs",
-                   [Section("Runs side by side", [runs_text], [comparison_table(summaries)], figures)])
+    sections = [Section("Runs side by side", [runs_text], [comparison_table(summaries)], figures)]
+    if all(s.run.scenario.kind == "attitude" for s in summaries):
+        from bench.report.attitude import comparison_section
+
+        sections.append(comparison_section([s.run for s in summaries], plot_dir))
+    doc = Document(f"Comparison of {len(summaries)} runs", sections)
     return write(doc, out_dir, "compare")

@@ -66,6 +66,14 @@ class BoardState:
     command_rejected_since_tlm: bool = False
 
 
+def coil_driver_dipole(requested_am2: np.ndarray, config: BoardConfig) -> tuple[np.ndarray, bool]:
+    """What the coil drivers are set to for a requested dipole: quantised to the DAC step, then
+    saturated per axis; True when an axis saturated. (Also the in-process loop's board model.)"""
+    quantised = np.round(np.asarray(requested_am2, float) / config.dipole_resolution_am2) * config.dipole_resolution_am2
+    saturated = np.clip(quantised, -config.max_dipole_am2, config.max_dipole_am2)
+    return saturated, bool(np.any(saturated != quantised))
+
+
 class MagnetorquerBoard:
     def __init__(self, bus: can.BusABC, config: BoardConfig, protocol: p.Protocol,
                  clock: Callable[[], float] = time.monotonic,
@@ -239,9 +247,7 @@ class MagnetorquerBoard:
     def _apply(self, frame: p.Frame, now_s: float, received_ns: int) -> None:
         s, c = self.state, self.config
         requested = np.array([frame.signals[f"Dipole{a}"] for a in p.AXES])
-        quantised = np.round(requested / c.dipole_resolution_am2) * c.dipole_resolution_am2
-        saturated = np.clip(quantised, -c.max_dipole_am2, c.max_dipole_am2)
-        s.saturated = bool(np.any(saturated != quantised))
+        saturated, s.saturated = coil_driver_dipole(requested, c)
         s.mode = int(frame.signals["Mode"])
         s.target_dipole_am2 = saturated if s.mode == p.MODE_DIPOLE else np.zeros(3)
         s.last_command_counter = frame.counter

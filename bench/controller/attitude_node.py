@@ -1,0 +1,90 @@
+"""The controller process of the attitude loop: estimate in, dipole out through the magnetorquer
+link, once per plant step, under the deadline monitor.
+
+reads:  estimate/attitude (AttitudeEstimate)
+writes: command/dipole (DipoleCommand: the law's dipole and the alive counter of the first CAN
+        frame that carried it), event/deadline; CAN command frames through the driver
+The driver's command loop (its own thread) sends the newest dipole every command period, so the
+board never times out between plant steps; the law only swaps the dipole it sends.
+Summary: deadline_controller.json; the driver's view of the bus: can/driver.json.
+"""
+from __future__ import annotations
+
+import json
+import threading
+import time
+
+import numpy as np
+
+from bench.bus import keys
+from bench.bus.schemas import AttitudeEstimate, DipoleCommand
+from bench.controller.attitude_cycle import AttitudeCycle
+from bench.controller.mtq_link import MagnetorquerLink
+from bench.runtime.node import NodeContext
+
+
+class DipoleSender:
+    """Hands the law's dipole to the driver's command loop and learns which frame carried it."""
+
+    def __init__(self, link: MagnetorquerLink):
+        self.link = link
+        self._lock = threading.Lock()
+        self._pending: tuple[list[float], threading.Event, list] | None = None
+        link.loop.on_command = self._on_command
+
+    def send(self, dipole_am2: np.ndarray, timeout_s: float) -> tuple[int, int | None]:
+        """(alive counter, can_sent ns) of the first frame with this dipole; (-1, None) on timeout."""
+        dipole = [float(x) for x in dipole_am2]
+        done, result = threading.Event(), []
+        self.link.loop.set_dipole(dipole)
+        with self._lock:
+            self._pending = (dipole, done, result)
+        if not done.wait(timeout_s):
+            with self._lock:
+                self._pending = None
+            return -1, None
+        return result[0], result[1]
+
+    def _on_command(self, counter: int, dipole: list[float], sent_ns: int) -> None:
+        with self._lock:
+            # A frame built from the previous dipole can be on its way when the new one is set:
+            # only a frame with the new values answers.
+            if self._pending is not None and list(dipole) == self._pending[0]:
+                _, done, result = self._pending
+                result.extend([counter, sent_ns])
+                self._pending = None
+                done.set()
+
+
+def run(ctx: NodeContext) -> int:
+    scenario = ctx.scenario
+    cycle = AttitudeCycle(scenario)
+    link = MagnetorquerLink(ctx, scenario.can, scripted=False) if scenario.can is not None else None
+    sender = DipoleSender(link) if link is not None else None
+    send_timeout_s = 5 * scenario.can.driver.command_period_s if scenario.can is not None else 0.0
+    estimates = ctx.subscribe_queue(keys.ESTIMATE_ATTITUDE, AttitudeEstimate)
+    ctx.declare_publisher(keys.EVENT_DEADLINE)
+    if link is not None:
+        link.start()
+    ctx.declare_ready([keys.COMMAND_DIPOLE])
+    for estimate in ctx.until_stopped(estimates):
+        received_ns = time.monotonic_ns()
+        hdr = estimate.header.stamped("controller_received", received_ns)
+        outcome = cycle.run(hdr.sim_time_s, estimate.valid, estimate.q_wxyz, estimate.omega_radps,
+                            estimate.field_body_t, start_ns=received_ns)
+        hdr = hdr.stamped("commanded", time.monotonic_ns())
+        counter = -1
+        if sender is not None:
+            counter, sent_ns = sender.send(outcome.dipole_am2, send_timeout_s)
+            if sent_ns is not None:
+                hdr = hdr.stamped("can_sent", sent_ns)
+        monitored = outcome.monitored
+        ctx.publish(keys.COMMAND_DIPOLE, DipoleCommand(
+            hdr, outcome.dipole_am2.tolist(), counter, cycle.law_name, outcome.saturated, outcome.weak_field,
+            monitored.fallback if monitored is not None else None))
+        if monitored is not None and monitored.has_event:
+            ctx.publish(keys.EVENT_DEADLINE, monitored.deadline_event(hdr))
+    if link is not None:
+        link.stop()
+    (ctx.run_dir / "deadline_controller.json").write_text(json.dumps(cycle.summary(), indent=2))
+    return 0

@@ -1,0 +1,76 @@
+"""The attitude estimate the controller gets every gyro tick, from the smoother or from truth.
+
+smoother: gyro samples go into the gtsam attitude smoother (bench.estimator.attitude), which solves
+at each magnetometer or star-tracker keyframe; between keyframes the last solution is carried
+forward by the bias-corrected gyro, so the controller has an estimate at the gyro rate. Before the
+first star-tracker fix the estimate is flagged invalid (only B-dot can fly on it).
+truth: the plant's truth passed through (seed 001's "full state knowledge" case).
+
+The field the law uses is the magnetometer's when it sampled this tick, else the on-board field
+model rotated into the estimated body axes (truth mode: the true body field).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from bench.estimator.attitude import AttitudeSmoother
+from bench.gnc import quaternion as qt
+from bench.scenario import Scenario
+
+
+@dataclass(frozen=True)
+class AttitudeEstimateOut:
+    valid: bool
+    q_wxyz: np.ndarray
+    omega_radps: np.ndarray
+    gyro_bias_radps: np.ndarray
+    field_body_t: np.ndarray
+    attitude_covariance_rad2: np.ndarray | None = None
+
+
+class AttitudeEstimator:
+    def __init__(self, scenario: Scenario):
+        self.mode = scenario.estimator.mode
+        self.dt_s = scenario.step_s
+        self.smoother = AttitudeSmoother(scenario.estimator.attitude) if self.mode == "smoother" else None
+        self._q = qt.IDENTITY_WXYZ.copy()
+        self._bias = np.zeros(3)
+        self._covariance: np.ndarray | None = None
+        self._valid = False
+
+    @property
+    def needs_truth(self) -> bool:
+        return self.mode == "truth"
+
+    @property
+    def failed_updates(self) -> int:
+        return self.smoother.failed_updates if self.smoother is not None else 0
+
+    def truth_step(self, q_wxyz, omega_radps, gyro_bias_radps, field_body_t) -> AttitudeEstimateOut:
+        return AttitudeEstimateOut(True, np.asarray(q_wxyz, float), np.asarray(omega_radps, float),
+                                   np.asarray(gyro_bias_radps, float), np.asarray(field_body_t, float))
+
+    def step(self, seq: int, sim_time_s: float, gyro_radps, field_model_inertial_t, magnetometer_t=None,
+             star_tracker_wxyz=None) -> AttitudeEstimateOut:
+        gyro = np.asarray(gyro_radps, dtype=float)
+        if seq > 0:
+            # The gyro sample of tick k is the mean rate over [t_k-1, t_k]: carry the estimate over it.
+            self.smoother.add_gyro(gyro, self.dt_s)
+            if self._valid:
+                self._q = qt.normalize(qt.multiply(self._q, qt.exp((gyro - self._bias) * self.dt_s)))
+        if magnetometer_t is not None or star_tracker_wxyz is not None:
+            mag = None if magnetometer_t is None else np.asarray(magnetometer_t, float)
+            result = self.smoother.update(seq, sim_time_s, mag, None if mag is None else np.asarray(field_model_inertial_t, float),
+                                          None if star_tracker_wxyz is None else np.asarray(star_tracker_wxyz, float))
+            if result is not None:
+                self._q, self._bias = result.q_wxyz, result.gyro_bias_radps
+                self._covariance = result.attitude_covariance_rad2
+                self._valid = True
+        if magnetometer_t is not None:
+            field_body = np.asarray(magnetometer_t, float)
+        else:
+            field_body = qt.rotation_matrix(self._q).T @ np.asarray(field_model_inertial_t, float)
+        return AttitudeEstimateOut(self._valid, self._q.copy(), gyro - self._bias, self._bias.copy(), field_body,
+                                   None if self._covariance is None else self._covariance.copy())

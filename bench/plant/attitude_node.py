@@ -1,0 +1,233 @@
+"""The plant process of the attitude loop: rigid body, environment and sensors at the gyro rate; the
+magnetorquer torque from the dipole the board reports as applied.
+
+reads:  command/dipole   (DipoleCommand: step k's dipole and the CAN alive counter that carried it)
+        actuator/mtq     (MtqApplied: what the board's coil drivers are set to)
+writes: sense/attitude   (AttitudeSensors, every step), truth/attitude (AttitudeTruth),
+        command/applied  (DipoleCommand as applied, with the full stamp chain), status/step,
+        event/deadline   (real-time: step k's command not in before step k+1)
+
+lock-step: publish step k, wait for command k, then for the board's report of a command frame at
+or after the one that carried it (alive counter c .. c+7 modulo 16: later frames of the driver's
+command loop carry the same dipole), integrate. The board and the driver stay on the wall clock:
+the driver keeps commanding the current dipole every command period while the plant waits, so the
+board never times out, and the plant pairs reports with commands by counter, not by time; that
+keeps lock-step deterministic without a simulated clock on the bus (fault windows, which are
+wall-clock, therefore belong in real-time runs).
+real-time: step k at t0 + k * dt / time_factor on the monotonic clock; the board's latest report
+is held over the step (zero-order hold), and is used only if current (DipoleAcceptance).
+Without a [can] section the commanded dipole goes through the in-process board model.
+"""
+from __future__ import annotations
+
+import threading
+import time
+
+import msgspec
+import numpy as np
+
+from bench.bus import keys
+from bench.bus.schemas import (
+    AttitudeSensors, AttitudeTruth, DipoleCommand, MtqApplied, StepDone, header,
+)
+from bench.runtime.node import NodeContext
+from bench.plant.attitude_plant import AttitudePlant
+from bench.plant.mtq_acceptance import DipoleAcceptance, board_dipole_without_bus
+from bench.plant.node import LoopBroken, RealTimeClock, StampLog, _wait_command_lockstep
+
+COUNTER_MODULO = 16
+COUNTER_WINDOW = 8        # reports of frames c .. c+7 answer command c (later frames, same dipole)
+EXACT_REPORT_WAIT_S = 0.5  # lock-step: far longer than a fault-free bus round trip (~5 ms)
+REPORT_WAIT_S = 1.0
+
+
+class BoardReports:
+    """The board's applied-dipole reports as they arrive (Zenoh thread), for the plant's loop."""
+
+    def __init__(self):
+        self._cond = threading.Condition()
+        self._reports: list[tuple[int, MtqApplied]] = []   # (received_ns, message)
+        self.latest: tuple[int, MtqApplied] | None = None
+
+    def add(self, message: MtqApplied) -> None:
+        with self._cond:
+            self.latest = (time.monotonic_ns(), message)
+            self._reports.append(self.latest)
+            del self._reports[:-64]
+            self._cond.notify_all()
+
+    def wait_for_report(self, counter: int, expected_am2: np.ndarray, since_ns: int) -> MtqApplied | None:
+        """The board's report of the frame with alive counter `counter` carrying the expected
+        dipole; if that frame was lost (faults), of a later frame (c+1 .. c+7) carrying it."""
+        exact = self._wait(lambda m: m.alive_counter == counter and np.array_equal(m.dipole_am2, expected_am2),
+                           since_ns, EXACT_REPORT_WAIT_S)
+        if exact is not None:
+            return exact
+        return self._wait(lambda m: (m.alive_counter - counter) % COUNTER_MODULO < COUNTER_WINDOW
+                          and np.array_equal(m.dipole_am2, expected_am2), since_ns, REPORT_WAIT_S)
+
+    def _wait(self, matches, since_ns: int, timeout_s: float) -> MtqApplied | None:
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            while True:
+                for received_ns, message in self._reports:
+                    if received_ns >= since_ns and matches(message):
+                        return message
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    return None
+                self._cond.wait(remaining)
+
+
+def _publish_step(ctx: NodeContext, plant: AttitudePlant, k: int) -> None:
+    sample = plant.sense()
+    hdr = header(ctx.run_id, k, plant.time_s, sensed=time.monotonic_ns())
+    truth = plant.sim.truth()
+    ctx.publish(keys.TRUTH_ATTITUDE, AttitudeTruth(
+        hdr, truth.q_wxyz.tolist(), truth.omega_body_radps.tolist(), truth.gyro_bias_radps.tolist(),
+        plant.sim.field_body_t().tolist(), plant.orbit.position_m(plant.time_s).tolist()))
+    ctx.publish(keys.SENSE_ATTITUDE, AttitudeSensors(
+        hdr, sample.gyro_radps.tolist(), sample.field_inertial_t.tolist(),
+        None if sample.magnetometer_t is None else sample.magnetometer_t.tolist(),
+        None if sample.star_tracker_wxyz is None else np.asarray(sample.star_tracker_wxyz, float).tolist()))
+
+
+class AppliedLog:
+    """Per step: the dipole commanded, the board's report used, what was applied and why not."""
+
+    def __init__(self, n_steps: int):
+        self.commanded = np.full((n_steps, 3), np.nan)
+        self.reported = np.full((n_steps, 3), np.nan)
+        self.counter = np.full(n_steps, -1, dtype=np.int64)
+        self.refused = np.zeros(n_steps, dtype=bool)
+        self.safe_state = np.zeros(n_steps, dtype=bool)
+        self.board_applied_ns = np.full(n_steps, -1, dtype=np.int64)   # board set its coils (sense-to-torque)
+
+
+def run(ctx: NodeContext) -> int:
+    scenario = ctx.scenario
+    n_steps = scenario.n_steps
+    plant = AttitudePlant(scenario.attitude, n_steps, scenario.run.seed)
+    acceptance = DipoleAcceptance(scenario.can)
+    commands = ctx.subscribe_queue(keys.COMMAND_DIPOLE, DipoleCommand)
+    reports = BoardReports()
+    if scenario.can is not None:
+        ctx.subscribe(keys.ACTUATOR_MTQ, MtqApplied, reports.add)
+    estimator_truth = scenario.estimator.mode == "truth"
+    for topic in (keys.SENSE_ATTITUDE, keys.TRUTH_ATTITUDE, keys.EVENT_DEADLINE, keys.COMMAND_APPLIED):
+        ctx.declare_publisher(topic)
+    ctx.declare_ready([keys.TRUTH_ATTITUDE if estimator_truth else keys.SENSE_ATTITUDE])
+    ctx.wait_for_tokens(keys.READY, ctx.peers, timeout_s=30.0)
+    ctx.watch_peers(ctx.peers)
+    ctx.log.info("peers ready (%s); attitude loop, %d steps of %.3f s in %s mode", ", ".join(ctx.peers), n_steps,
+                 plant.dt_s, scenario.run.mode)
+    realtime = scenario.run.mode == "real-time"
+    clock = RealTimeClock(plant.dt_s / scenario.run.time_factor) if realtime else None
+    stamps = StampLog(n_steps)
+    log = AppliedLog(n_steps)
+    last_command: DipoleCommand | None = None
+    step_started_ns = time.monotonic_ns()
+    try:
+        for k in range(n_steps):
+            if ctx.stop.is_set():
+                ctx.log.warning("stopped at step %d of %d", k, n_steps)
+                return 1
+            if ctx.lost_peers:
+                raise LoopBroken(f"peer '{ctx.lost_peers[0]}' lost at step {k}")
+            if realtime:
+                clock.sleep_until(clock.tick_s(k))
+            _publish_step(ctx, plant, k)
+            if realtime:
+                command = clock.collect_command(commands, k)
+                outcome = clock.deadline.check(k, time.monotonic() - clock.tick_s(k))
+                if outcome.has_event:
+                    ctx.publish(keys.EVENT_DEADLINE, outcome.deadline_event(header(ctx.run_id, k, plant.time_s), "plant"))
+                last_command = command or last_command
+                dipole, report = _realtime_dipole(scenario, acceptance, reports, last_command, log, k)
+            else:
+                command = _wait_command_lockstep(ctx, commands, k, scenario.run.command_timeout_s)
+                last_command = command
+                dipole, report = _lockstep_dipole(scenario, acceptance, reports, command, step_started_ns, log, k)
+            if report is not None:
+                log.board_applied_ns[k] = report.header.stamps_ns.get("applied", -1)
+            if command is not None:
+                hdr = command.header.stamped("plant_received", time.monotonic_ns())
+                if report is not None and "board_received" in report.header.stamps_ns:
+                    hdr = hdr.stamped("board_received", report.header.stamps_ns["board_received"])
+                applied = msgspec.structs.replace(command, header=hdr.stamped("applied", time.monotonic_ns()))
+                stamps.record(k, applied.header.stamps_ns)
+                ctx.publish(keys.COMMAND_APPLIED, applied)
+            step_started_ns = time.monotonic_ns()
+            plant.apply(dipole)
+            ctx.publish(keys.STATUS_STEP, StepDone(header(ctx.run_id, k, plant.time_s), n_steps, k == n_steps - 1))
+    except LoopBroken as exc:
+        ctx.log.error("%s", exc)
+        return 1
+    finally:
+        _write_trajectory(ctx, plant, stamps, clock, log, acceptance)
+    return 0
+
+
+def _lockstep_dipole(scenario, acceptance, reports, command, since_ns, log, k):
+    log.commanded[k] = command.dipole_am2
+    log.counter[k] = command.alive_counter
+    if scenario.can is None:
+        dipole, reason = acceptance.accept(board_dipole_without_bus(command.dipole_am2, None), None)
+        log.reported[k] = dipole
+        log.refused[k] = reason is not None
+        return dipole, None
+    report = None
+    if command.alive_counter >= 0:
+        expected = board_dipole_without_bus(command.dipole_am2, scenario.can)
+        report = reports.wait_for_report(command.alive_counter, expected, since_ns)
+    if report is None:
+        # No report of this command (never sent, or every frame lost for 2 s): coils as last
+        # reported if that is current, else off. Counted as a refusal of the command.
+        latest = reports.latest
+        report = latest[1] if latest else None
+        dipole, _ = acceptance.accept(report.dipole_am2, report.header.stamps_ns.get("applied")) if report else (np.zeros(3), None)
+        acceptance.rejected["no_report"] += 1
+        log.refused[k] = True
+    else:
+        dipole, reason = acceptance.accept(report.dipole_am2, None)
+        log.refused[k] = reason is not None
+        log.safe_state[k] = report.safe_state
+    log.reported[k] = dipole
+    return dipole, report
+
+
+def _realtime_dipole(scenario, acceptance, reports, command, log, k):
+    if command is not None:
+        log.commanded[k] = command.dipole_am2
+        log.counter[k] = command.alive_counter
+    if scenario.can is None:
+        requested = command.dipole_am2 if command is not None else np.zeros(3)
+        dipole, reason = acceptance.accept(board_dipole_without_bus(requested, None), None)
+        log.reported[k] = dipole
+        log.refused[k] = reason is not None
+        return dipole, None
+    latest = reports.latest
+    if latest is None:
+        log.reported[k] = 0.0
+        return np.zeros(3), None
+    report = latest[1]
+    dipole, reason = acceptance.accept(report.dipole_am2, report.header.stamps_ns.get("applied", latest[0]))
+    log.refused[k] = reason is not None
+    log.safe_state[k] = report.safe_state
+    log.reported[k] = dipole
+    return dipole, report
+
+
+def _write_trajectory(ctx, plant, stamps, clock, log: AppliedLog, acceptance: DipoleAcceptance) -> None:
+    n = len(plant.log.time_s)
+    arrays = plant.trajectory()
+    arrays.update({
+        "att_dipole_commanded_am2": log.commanded[:n], "att_board_report_am2": log.reported[:n],
+        "att_alive_counter": log.counter[:n], "att_refused": log.refused[:n], "att_safe_state": log.safe_state[:n],
+        "att_board_applied_ns": log.board_applied_ns[:n],
+    })
+    arrays.update({f"stamp_{stage}_ns": v[:n] for stage, v in stamps.stamps.items()})
+    arrays["plant_late_commands"] = np.array(clock.late_commands if clock else 0)
+    arrays["plant_missed_steps"] = np.array(clock.deadline.counter.misses if clock else 0)
+    arrays["plant_refused_reports"] = np.array(sum(acceptance.rejected.values()))
+    np.savez(ctx.run_dir / "trajectory.npz", **arrays)

@@ -1,0 +1,104 @@
+"""Attitude loop: how fast it runs in lock-step, and how late its torque is in real time.
+
+1. Lock-step loop rate: `bench run attitude_detumble --steps N` (six processes, the CAN bus on the
+   portable Zenoh transport) against the in-process loop of the same scenario in the same run; the
+   figure that travels between machines is the ratio.
+2. Sense-to-torque latency through CAN in real-time mode (`attitude_detumble_rt`): from the plant's
+   `sensed` stamp of step k to the board's `applied` stamp (coil drivers set) of the first command
+   frame that carried step k's dipole (DipoleCommand.alive_counter joined with MtqApplied in the
+   recording), percentiles, and the share of the 100 ms cycle it uses; the per-hop split.
+
+    PYTHONPATH=$PWD python benchmarks/bench_attitude_loop.py [--steps 600] [--rt-steps 300]
+"""
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import msgspec
+import numpy as np
+
+from bench.sim import simulate_attitude_in_process
+from bench.report.rundata import load_run
+from bench.scenario import load_scenario
+
+
+def bench_run(runs: Path, scenario: str, run_id: str, *extra: str) -> Path:
+    cmd = [sys.executable, "-m", "bench.cli", "run", scenario, "--run-id", run_id, "--runs-dir", str(runs),
+           "--no-progress", "--no-report", *extra]
+    subprocess.run(cmd, check=True, capture_output=True, text=True, timeout=1800)
+    return runs / run_id
+
+
+def lockstep_rate(runs: Path, steps: int) -> dict:
+    run = load_run(bench_run(runs, "attitude_detumble", "lockstep", "--steps", str(steps)))
+    sensed = run.trajectory["stamp_sensed_ns"]
+    # Steps per second between the first and the last step (process start-up excluded).
+    multi = (len(sensed) - 1) / ((sensed[-1] - sensed[0]) / 1e9)
+    scenario = msgspec.structs.replace(load_scenario("attitude_detumble"),
+                                       run=msgspec.structs.replace(load_scenario("attitude_detumble").run, steps=steps))
+    started = time.perf_counter()
+    simulate_attitude_in_process(scenario)
+    single = steps / (time.perf_counter() - started)
+    return {"steps": steps, "multi_process_steps_per_s": multi, "in_process_steps_per_s": single,
+            "ratio": multi / single, "real_time_margin_x": multi * scenario.step_s}
+
+
+def sense_to_torque(run_dir: Path) -> dict:
+    run = load_run(run_dir)
+    applied_by_counter: dict[int, list[tuple[int, int]]] = {}
+    for message in run.on("actuator/mtq"):
+        stamps = message.body["header"]["stamps_ns"]
+        if "applied" in stamps and "board_received" in stamps:
+            applied_by_counter.setdefault(message.body["alive_counter"], []).append(
+                (stamps["board_received"], stamps["applied"]))
+    hops = {"sense -> commanded": [], "commanded -> can_sent": [], "can_sent -> board applied": [],
+            "sense -> board applied (torque)": []}
+    for message in run.on("command/dipole"):
+        stamps, counter = message.body["header"]["stamps_ns"], message.body["alive_counter"]
+        if counter < 0 or "can_sent" not in stamps:
+            continue
+        later = [a for r, a in applied_by_counter.get(counter, []) if r >= stamps["can_sent"]]
+        if not later:
+            continue
+        applied = min(later)
+        hops["sense -> commanded"].append(stamps["commanded"] - stamps["sensed"])
+        hops["commanded -> can_sent"].append(stamps["can_sent"] - stamps["commanded"])
+        hops["can_sent -> board applied"].append(applied - stamps["can_sent"])
+        hops["sense -> board applied (torque)"].append(applied - stamps["sensed"])
+    cycle_ms = run.scenario.step_s * 1e3 / run.scenario.run.time_factor
+    out = {}
+    for hop, values in hops.items():
+        ms = np.array(values) / 1e6
+        out[hop] = {"n": len(ms), **{f"p{p}_ms": float(np.percentile(ms, p)) for p in (50, 90, 99)},
+                    "max_ms": float(ms.max()), "p50_share_of_cycle": float(np.percentile(ms, 50) / cycle_ms),
+                    "p99_share_of_cycle": float(np.percentile(ms, 99) / cycle_ms)}
+    return out
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--steps", type=int, default=600, help="lock-step steps (default 600)")
+    parser.add_argument("--rt-steps", type=int, default=300, help="real-time steps (default 300, 30 s)")
+    args = parser.parse_args()
+    with tempfile.TemporaryDirectory() as tmp:
+        runs = Path(tmp)
+        rate = lockstep_rate(runs, args.steps)
+        print(f"lock-step, {rate['steps']} steps: {rate['multi_process_steps_per_s']:.1f} steps/s as processes over CAN, "
+              f"{rate['in_process_steps_per_s']:.1f} steps/s in process (ratio {rate['ratio']:.2f}); "
+              f"{rate['real_time_margin_x']:.1f}x faster than real time")
+        latency = sense_to_torque(bench_run(runs, "attitude_detumble_rt", "realtime", "--steps", str(args.rt_steps)))
+        print("real time (10 Hz, 100 ms cycle), sense-to-torque through CAN:")
+        print(f"  {'hop':34s} {'n':>5s} {'p50 ms':>8s} {'p90 ms':>8s} {'p99 ms':>8s} {'max ms':>8s} {'p50 share':>10s} {'p99 share':>10s}")
+        for hop, s in latency.items():
+            print(f"  {hop:34s} {s['n']:5d} {s['p50_ms']:8.2f} {s['p90_ms']:8.2f} {s['p99_ms']:8.2f} {s['max_ms']:8.2f} "
+                  f"{s['p50_share_of_cycle']:10.1%} {s['p99_share_of_cycle']:10.1%}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

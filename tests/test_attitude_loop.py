@@ -1,0 +1,126 @@
+"""The attitude loop's parts in one process: scenario validation (a bad value names its field), the
+plant's acceptance of the board's reports, the law registry, the nadir target, and a short loop."""
+import copy
+import tomllib
+from importlib import resources
+
+import numpy as np
+import pytest
+
+from bench.report.attitude_metrics import applied_is_commanded_or_zero, attitude_metrics
+from bench.sim import simulate_attitude_in_process
+from bench.controller.attitude_laws import build_attitude_law, nadir_target
+from bench.controller.config import ATTITUDE_LAWS
+from bench.gnc import quaternion as qt
+from bench.plant.attitude import CircularOrbit
+from bench.plant.mtq_acceptance import DipoleAcceptance, board_dipole_without_bus
+from bench.scenario import ScenarioError, parse_scenario
+
+
+def builtin(name: str) -> dict:
+    return tomllib.loads(resources.files("bench.scenarios").joinpath(f"{name}.toml").read_text())
+
+
+def with_change(data: dict, path: str, value) -> dict:
+    data = copy.deepcopy(data)
+    *parents, leaf = path.split(".")
+    node = data
+    for part in parents:
+        node = node.setdefault(part, {})
+    node[leaf] = value
+    return data
+
+
+@pytest.mark.parametrize("path, value, field", [
+    ("attitude.initial_q_wxyz", [1.0, 0.2, 0.0, 0.0], "attitude.initial_q_wxyz"),
+    ("attitude.initial_q_wxyz", [float("nan"), 0.0, 0.0, 1.0], "attitude.initial_q_wxyz"),
+    ("attitude.inertia_kgm2", [2e-3, 0.0, 2e-3], "attitude.inertia_kgm2"),
+    ("attitude.inertia_kgm2", [1e-3, 2e-3, 0, 2e-3, 1e-3, 0, 0, 0, 1e-3], "attitude.inertia_kgm2"),
+    ("attitude_control.dipole_limit_am2", 0.0, "attitude_control.dipole_limit_am2"),
+    ("attitude_control.dipole_limit_am2", -0.1, "attitude_control.dipole_limit_am2"),
+    ("attitude_control.dipole_limit_am2", 0.5, "attitude_control.dipole_limit_am2"),    # above the board's
+    ("attitude_control.law", "lqr", "attitude_control.law"),
+    ("attitude_control.target.q_wxyz", [0.0, 0.0, 0.0, 0.0], "attitude_control.target.q_wxyz"),
+    ("attitude.orbit", {"model": "sgp4", "tle": ["1 00005U 58002B   00179.78495062  .00000023  00000-0  28098-4 0  4753",
+                                                 "2 00005  34.2682 348.7242 1859667 331.7664  19.3264 10.8241915741366X"]},
+     "attitude.orbit.tle"),
+    ("run.mode", "real-time", "run.time_factor"),          # the default factor 6000 is for 600 s steps
+    ("can.board.max_dipole_am2", 0.0, "can.board.max_dipole_am2"),
+])
+def test_bad_attitude_scenario_is_an_error_naming_the_field(path, value, field):
+    with pytest.raises(ScenarioError) as error:
+        parse_scenario(with_change(builtin("attitude_slew"), path, value), "test")
+    assert f"test: {field}" in str(error.value)
+
+
+def test_every_builtin_attitude_scenario_loads():
+    names = [n[:-5] for n in (p.name for p in resources.files("bench.scenarios").iterdir()) if n.startswith("attitude_")]
+    assert len(names) >= 8
+    for name in names:
+        assert parse_scenario(builtin(name), name).kind == "attitude"
+
+
+def test_acceptance_refuses_non_finite_out_of_envelope_and_stale_reports():
+    acceptance = DipoleAcceptance(None)      # default board: 0.2 A m^2, 1e-3 steps, 0.1 s timeout
+    now_ns = 10**12
+    assert acceptance.accept([0.1, -0.2, 0.0], now_ns - 50_000_000, now_ns)[1] is None
+    for dipole, reported_ns, reason in [([np.nan, 0, 0], now_ns, "not_finite"), ([0.3, 0, 0], now_ns, "out_of_envelope"),
+                                        ([0.1, 0, 0], now_ns - 200_000_000, "stale")]:
+        applied, why = acceptance.accept(dipole, reported_ns, now_ns)
+        assert why == reason and not np.any(applied)
+    assert sum(acceptance.rejected.values()) == 3
+
+
+def test_board_model_without_bus_quantises_and_saturates_as_the_board():
+    np.testing.assert_array_equal(board_dipole_without_bus([0.12345, -0.31, 0.0004], None), [0.123, -0.2, 0.0])
+
+
+def test_law_registry_builds_every_law_and_none_commands_non_finite_dipoles():
+    data = builtin("attitude_slew")
+    for law in ATTITUDE_LAWS:
+        scenario = parse_scenario(with_change(data, "attitude_control.law", law), law)
+        built = build_attitude_law(scenario)
+        from bench.gnc.attitude_law import AttitudeControlInput
+
+        for field_t in ([0.0, 0.0, 0.0], [np.nan, 1e-5, 0.0], [2e-5, -1e-5, 3e-5]):
+            for t in (0.0, 0.1):
+                dipole, _ = built.eval(AttitudeControlInput(t, np.array([0.5, 0.5, 0.5, 0.5]), np.array([0.01, 0.0, -0.02]),
+                                                            np.array(field_t)))
+                assert np.all(np.isfinite(dipole)) and np.all(np.abs(dipole) <= 0.2)
+
+
+def test_nadir_target_points_z_down_and_turns_at_the_orbit_rate():
+    orbit = CircularOrbit(radius_m=6.9e6, inclination_rad=np.deg2rad(60.0), raan_rad=0.4)
+    target = nadir_target(orbit)
+    for t in (0.0, 1234.5):
+        state = target(t)
+        z_inertial = qt.rotation_matrix(state.q_wxyz) @ np.array([0.0, 0.0, 1.0])
+        np.testing.assert_allclose(z_inertial, -orbit.position_m(t) / np.linalg.norm(orbit.position_m(t)), atol=1e-12)
+        # The LVLH frame turns about its -y axis at the mean motion (in its own axes).
+        np.testing.assert_allclose(state.omega_radps, [0.0, -orbit.mean_motion_radps, 0.0], atol=1e-9)
+
+
+def test_short_in_process_detumble_applies_only_what_was_commanded_and_slows_the_body():
+    scenario = parse_scenario(with_change(builtin("attitude_detumble"), "run.steps", 300), "short")
+    trajectory = simulate_attitude_in_process(scenario)
+    assert applied_is_commanded_or_zero(trajectory, scenario.can).all()
+    metrics = attitude_metrics(trajectory, scenario)
+    assert metrics["final_rate_dps"] < metrics["initial_rate_dps"]
+    # B-dot only removes energy: kinetic energy never rises by more than the disturbances could add.
+    omega = trajectory["att_omega_radps"]
+    inertia = scenario.attitude.inertia_matrix()
+    energy = 0.5 * np.einsum("ni,ij,nj->n", omega, inertia, omega)
+    disturbance_power = np.linalg.norm(trajectory["att_torque_disturbance_nm"], axis=1) * np.linalg.norm(omega, axis=1)
+    assert energy[-1] < 0.9 * energy[0]
+    assert np.all(np.diff(energy) <= 1.01 * disturbance_power[:-1] * scenario.step_s)
+
+
+def test_cycle_commands_zero_for_a_nan_or_non_unit_estimate_and_counts_it():
+    from bench.controller.attitude_cycle import AttitudeCycle
+
+    cycle = AttitudeCycle(parse_scenario(builtin("attitude_slew"), "slew"))
+    for q in ([np.nan, 0.0, 0.0, 1.0], [1.0, 0.1, 0.0, 0.0]):
+        outcome = cycle.run(0.0, True, q, [0.0, 0.0, 0.0], [2e-5, 0.0, 1e-5])
+        assert not np.any(outcome.dipole_am2)
+    assert cycle.bad_estimate_cycles == 2
+    assert np.any(cycle.run(0.0, True, [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 0.0], [2e-5, 0.0, 1e-5]).dipole_am2)
