@@ -300,3 +300,19 @@ def test_every_node_has_an_access_control_role():
     from bench.runtime.node import NODES
 
     assert set(NODES) <= set(acl.ROLES)
+
+
+def test_attitude_loop_with_the_can_board_runs_secure_and_equals_the_plain_run(runs_dir):
+    """The attitude loop's topics (sense/attitude, truth/attitude, estimate/attitude,
+    command/dipole, actuator/mtq) and the CAN channels over Zenoh pass the access-control table:
+    a secure lock-step run is the plain run, sample for sample."""
+    trajectories = {}
+    for name, extra in (("plain", []), ("secure", ["--secure"])):
+        result = run_bench_cli("run", "attitude_quick", "--run-id", f"att-{name}", "--runs-dir", str(runs_dir),
+                               "--no-progress", "--no-report", *extra, timeout_s=300)
+        assert result.returncode == 0, result.stderr + result.stdout
+        with np.load(runs_dir / f"att-{name}" / "trajectory.npz") as data:
+            trajectories[name] = {k: data[k] for k in ("att_omega_radps", "att_q_wxyz", "att_dipole_applied_am2")}
+    assert np.abs(trajectories["plain"]["att_dipole_applied_am2"]).max() > 0   # the board applied commands
+    for key, plain in trajectories["plain"].items():
+        np.testing.assert_array_equal(trajectories["secure"][key], plain)

@@ -50,13 +50,14 @@ _CAN = CanConfig()
 # to forward and says nothing itself. Attitude-loop topics join here as they are built.
 ROLES: dict[str, Role] = {
     "plant": Role(
-        publishes=(keys.TRUTH, "sense/*", keys.COMMAND_APPLIED, keys.EVENT_DEADLINE, keys.STATUS_STEP),
+        publishes=(keys.TRUTH, "truth/*", "sense/*", keys.COMMAND_APPLIED, keys.EVENT_DEADLINE, keys.STATUS_STEP),
         subscribes=("command/*", keys.ACTUATOR_MTQ),
     ),
     "estimator": Role(
         publishes=("estimate/*",),
-        # truth: the estimator's `truth` mode is the seeds' "full state knowledge" case.
-        subscribes=("sense/*", keys.TRUTH, keys.COMMAND_THRUST),
+        # truth: the estimator's `truth` mode is the seeds' "full state knowledge" case
+        # (`truth/attitude` for the attitude loop).
+        subscribes=("sense/*", keys.TRUTH, "truth/*", keys.COMMAND_THRUST),
     ),
     "controller": Role(
         publishes=("command/*", keys.EVENT_DEADLINE),
