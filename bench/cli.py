@@ -11,6 +11,7 @@ import sys
 
 COMMAND_MODULES = [
     "bench.launcher",          # run, node, scenarios
+    "bench.bus.deploy_cli",    # certs, router
     "bench.bus.can.vcan",      # vcan up/down
     "bench.report.cli",        # report, compare
     "bench.bus.can.cli",       # faults

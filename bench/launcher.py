@@ -12,7 +12,9 @@ state diverged, 130 interrupted (SIGINT), 143 terminated (SIGTERM).
 """
 from __future__ import annotations
 
+import dataclasses
 import fcntl
+import json
 import logging
 import os
 import queue
@@ -26,15 +28,16 @@ from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
 
-import json
 import zipfile
 
 import msgspec
 import numpy as np
 import zenoh
 
-from bench.bus import keys
+from bench.bus import acl, keys
 from bench.bus.schemas import ProcessStats, StepDone, decode, MalformedMessage
+from bench.bus.certs import CertificateError, identity_files, write_deployment_certs
+from bench.bus.deployment import LAUNCHER, Deployment, DeploymentError, load_deployment
 from bench.bus.session import SessionConfigError, SessionOptions, free_loopback_port, loopback_endpoint, open_session
 from bench.plant.acceptance import ACCEPTANCE_FILE
 from bench.plant.divergence import EXIT_DIVERGED, read_divergence
@@ -131,11 +134,12 @@ class ProcessGroup:
 
 
 def _spawn(name: str, run_id: str, scenario_path: Path, hub: str, run_dir: Path, peers: list[str],
-           zenoh_config: str | None, group: ProcessGroup | None = None) -> Child:
+           zenoh_config: str | None, group: ProcessGroup | None = None,
+           extra_args: list[str] | None = None) -> Child:
     log_path = run_dir / "logs" / f"{name}.log"
     group = group or ProcessGroup()
     process = start_node(name, run_id, scenario_path, hub, run_dir, log_path, peers, zenoh_config,
-                         popen_kwargs=group.popen_kwargs())
+                         popen_kwargs=group.popen_kwargs(), extra_args=extra_args)
     group.joined(process)
     return Child(name, process, log_path)
 
@@ -251,7 +255,7 @@ def _latency_percentiles_ms(trajectory: dict) -> dict:
 
 
 def write_metrics(run_dir: Path, scenario: Scenario, children: list[Child], stats: dict, wall_s: float,
-                  ending: "RunEnding | None" = None) -> dict:
+                  ending: "RunEnding | None" = None, remote: dict[str, str] | None = None) -> dict:
     """metrics.json from whatever the run left: a partial run is marked with the reason it ended."""
     metrics: dict = {}
     trajectory = _load_trajectory(run_dir, scenario)
@@ -275,6 +279,8 @@ def write_metrics(run_dir: Path, scenario: Scenario, children: list[Child], stat
             "plant_missed_steps": int(trajectory.get("plant_missed_steps", 0)),
             "plant_late_commands": int(trajectory.get("plant_late_commands", 0)),
         })
+    for name, host in (remote or {}).items():   # started on their own hosts: no pid of ours
+        metrics["processes"][name] = {"host": host, "pid": None, "exit_code": None}
     acceptance = _read_json(run_dir / ACCEPTANCE_FILE)
     if acceptance is not None:
         metrics["command_acceptance"] = acceptance
@@ -350,9 +356,13 @@ def _rendezvous_rows(metrics: dict, latency: dict) -> list[tuple[str, str]]:
 
 
 def _follow_run(session, run_id: str, children: list[Child], n_steps: int, show_progress: bool,
-                liveliness: LivelinessConfig, run_dir: Path, on_finished=None) -> None:
+                liveliness: LivelinessConfig, run_dir: Path, on_finished=None,
+                remote: dict[str, str] | None = None) -> None:
     """Block until the plant finishes; raise NodeFailed if any process dies or hangs first,
-    Diverged if the plant stopped on a diverged state."""
+    Diverged if the plant stopped on a diverged state.
+
+    remote: node -> host of the nodes on other hosts; their liveliness token is all we see of them.
+    """
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
     steps: queue.Queue[int] = queue.Queue()
@@ -394,6 +404,7 @@ def _follow_run(session, run_id: str, children: list[Child], n_steps: int, show_
                     _check_liveliness(children, lost, liveliness, final=True)
                     raise
                 _check_liveliness(children, lost, liveliness)
+                _check_remote(session, run_id, remote or {}, lost)
                 try:
                     done = max(done, min(steps.get(timeout=0.1) + 1, n_steps))
                     progress.update(task, completed=done)
@@ -409,6 +420,34 @@ def _follow_run(session, run_id: str, children: list[Child], n_steps: int, show_
     if plant.process.returncode != 0:
         _check_liveliness(children, lost, liveliness, final=True)
         _check_children([plant], allowed_done=set())
+
+
+def _check_remote(session, run_id: str, remote: dict[str, str], lost: dict[str, "TokenLoss"]) -> None:
+    """A node on another host whose token vanished died, hung, or lost its link.
+
+    Asked again before it is declared lost: with a router, a token's route can change while peers
+    connect to each other directly, and Zenoh then reports a delete of a token that is still there
+    (seen in the router test of tests/test_deployment.py).
+    """
+    for name in [n for n in lost if n in remote]:
+        replies = session.liveliness().get(keys.key(run_id, f"{keys.ALIVE}/{name}"), timeout=1.0)
+        if any(r.ok is not None for r in replies):
+            lost.pop(name)
+            continue
+        raise NodeFailed(f"process '{name}' on host '{remote[name]}' left the bus (its liveliness token "
+                         f"vanished: it died, hung, or its link to this host is down)")
+
+
+def _stop_remote(session, run_id: str, launcher_token, remote: dict[str, str], grace_s: float = SHUTDOWN_GRACE_S) -> None:
+    """Nodes on other hosts stop when the launcher's token vanishes; wait until their tokens go."""
+    launcher_token.undeclare()
+    deadline = time.monotonic() + grace_s
+    while remote and time.monotonic() < deadline:
+        alive = {str(r.ok.key_expr).rsplit("/", 1)[-1]
+                 for r in session.liveliness().get(keys.key(run_id, f"{keys.ALIVE}/*"), timeout=0.5) if r.ok is not None}
+        if not alive & set(remote):
+            return
+        time.sleep(0.05)
 
 
 class StatsCollector:
@@ -450,10 +489,11 @@ class StatsCollector:
         self._subscriber.undeclare()
 
 
-def _wait_alive(session, run_id: str, children: list[Child], timeout_s: float = STARTUP_TIMEOUT_S) -> None:
+def _wait_alive(session, run_id: str, children: list[Child], timeout_s: float = STARTUP_TIMEOUT_S,
+                remote: dict[str, str] | None = None) -> None:
     """Until every node's alive token is there. Past timeout_s, a node still starting is given up
     to three times that while its CPU time advances (slow on a busy machine), not while it idles."""
-    names = {c.name for c in children}
+    names = {c.name for c in children} | set(remote or {})
     started = time.monotonic()
     progress: dict[str, tuple[float, int]] = {}      # name -> (when its CPU time last advanced, ticks)
     while True:
@@ -545,14 +585,59 @@ class SignalGuard:
             timer.start()
 
 
+@dataclass
+class Placement:
+    """Where this run's sessions are: the hub's session options, what each local node is told,
+    and which nodes run on other hosts (node -> host). Local and plain unless asked otherwise."""
+
+    hub: SessionOptions
+    hub_endpoint: str
+    node_args: list[str]
+    remote: dict[str, str]
+
+
+def local_placement(port: int | None, zenoh_config: str | None, cert_dir: Path | None = None) -> Placement:
+    """`bench run` on this host: the hub on loopback; with cert_dir, mutual TLS and access control."""
+    protocol = "tls" if cert_dir else "tcp"
+    hub = loopback_endpoint(port or free_loopback_port(), protocol)
+    identity = identity_files(cert_dir, LAUNCHER) if cert_dir else None
+    options = SessionOptions(listen=(hub,), config_file=Path(zenoh_config) if zenoh_config else None, identity=identity)
+    return Placement(options, hub, ["--cert-dir", str(cert_dir)] if cert_dir else [], {})
+
+
+def deployment_placement(deployment: Deployment, deployment_file: Path, names: list[str],
+                         zenoh_config: str | None) -> Placement:
+    host = deployment.launcher_host
+    if deployment.host_of("plant") != host:
+        raise DeploymentError(f"the plant runs on {deployment.host_of('plant')!r}: it must be on the launcher's "
+                              f"host {host!r} (the launcher follows the plant's progress)")
+    deployment.check_certificates(host, names)
+    options = dataclasses.replace(deployment.hub_options(), config_file=Path(zenoh_config) if zenoh_config else None)
+    remote = {n: deployment.host_of(n) for n in names if deployment.host_of(n) != host}
+    return Placement(options, deployment.rendezvous, ["--deployment", str(Path(deployment_file).resolve()), "--host", host],
+                     remote)
+
+
+def make_local_certs(cert_dir: Path) -> Path:
+    """A throw-away CA and certificates for one secure local run (`bench run --secure`)."""
+    write_deployment_certs(cert_dir, "local", {name: ("127.0.0.1",) for name in acl.identities()})
+    return cert_dir
+
+
 def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None, show_progress: bool = True,
-              zenoh_config: str | None = None, write_report: bool = True) -> tuple[int, Path]:
-    """Run a scenario as separate processes. Returns (exit code, run directory)."""
-    hub = loopback_endpoint(port or free_loopback_port())
+              zenoh_config: str | None = None, write_report: bool = True,
+              placement: Placement | None = None) -> tuple[int, Path]:
+    """Run a scenario as separate processes. Returns (exit code, run directory).
+
+    placement: where the sessions are (default: this host, loopback, plain TCP).
+    """
+    placement = placement or local_placement(port, zenoh_config)
+    hub = placement.hub_endpoint
     # The session first: a taken port must fail before anything is written or started.
     lease_ms = int(round(scenario.run.liveliness.lease_s * 1000))
-    session = open_session(SessionOptions(listen=(hub,), config_file=Path(zenoh_config) if zenoh_config else None,
-                                          lease_ms=lease_ms))
+    session = open_session(dataclasses.replace(placement.hub, lease_ms=lease_ms))
+    launcher_token = session.liveliness().declare_token(keys.key(run_id, f"{keys.ALIVE}/{LAUNCHER}"))
+    remote = placement.remote
     run_dir = runs_dir / run_id
     try:
         claim = RunDirClaim(run_dir)
@@ -575,12 +660,16 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
             try:
                 loop_peers = [n for n in names if n != "plant"]
                 for name in names:
+                    if name in remote:
+                        continue
                     peers = loop_peers if name == "plant" else []
-                    children.append(_spawn(name, run_id, scenario_path, hub, run_dir, peers, zenoh_config, group))
-                _wait_alive(session, run_id, children, scenario.run.liveliness.startup_timeout_s)
+                    children.append(_spawn(name, run_id, scenario_path, hub, run_dir, peers, zenoh_config, group,
+                                           placement.node_args))
+                _wait_alive(session, run_id, children, scenario.run.liveliness.startup_timeout_s, remote)
                 _follow_run(session, run_id, children, scenario.n_steps, show_progress, scenario.run.liveliness, run_dir,
-                            on_finished=collector.accept)
+                            on_finished=collector.accept, remote=remote)
                 collector.accept()
+                _stop_remote(session, run_id, launcher_token, remote)
                 _stop_children(children)
                 time.sleep(0.1)   # the last stats samples are on their way
                 _check_children(children, allowed_done={c.name for c in children})
@@ -603,7 +692,8 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
                     _stop_children(children)
                 group.kill()     # anything a node started
                 collector.undeclare()
-            _finish(run_dir, scenario, children, stats, time.monotonic() - started, ending, write_report and not guard.hurry)
+            _finish(run_dir, scenario, children, stats, time.monotonic() - started, ending, write_report and not guard.hurry,
+                    remote)
         except RunInterrupted as exc:
             # The first signal came during the cleanup itself: the nodes go at once; only the
             # files may be missing, and `bench report RUN` can build them.
@@ -618,10 +708,10 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
 
 
 def _finish(run_dir: Path, scenario: Scenario, children: list[Child], stats: dict, wall_s: float,
-            ending: RunEnding, write_report: bool) -> None:
+            ending: RunEnding, write_report: bool, remote: dict[str, str] | None = None) -> None:
     """metrics.json and the report from whatever the run left; neither may turn an ending into a crash."""
     try:
-        metrics = write_metrics(run_dir, scenario, children, stats, wall_s, ending)
+        metrics = write_metrics(run_dir, scenario, children, stats, wall_s, ending, remote)
     except Exception as exc:     # noqa: BLE001 - a broken file must not hide how the run ended
         print(f"bench: could not write metrics.json: {exc}", file=sys.stderr)
         return
@@ -672,10 +762,20 @@ def cmd_run(args) -> int:
         run_id = keys.check_run_id(_new_run_id(scenario) if args.run_id is None else args.run_id)
         if args.port is not None and not 0 < args.port < 65536:
             raise ScenarioError(f"--port must be between 1 and 65535, got {args.port}")
+        placement = None
+        if args.deployment:
+            if args.port is not None:
+                raise DeploymentError("--port: the deployment file names the hub's endpoint")
+            placement = deployment_placement(load_deployment(args.deployment), Path(args.deployment),
+                                             nodes_for(scenario), args.zenoh_config)
+        elif args.secure:
+            # Not in runs/<run_id>: the run claims that directory new (a second run with a live id is refused).
+            cert_dir = Path(args.cert_dir) if args.cert_dir else make_local_certs(Path(args.runs_dir) / ".certs" / run_id)
+            placement = local_placement(args.port, args.zenoh_config, cert_dir)
         code, _ = run_bench(scenario, run_id, Path(args.runs_dir), args.port, not args.no_progress, args.zenoh_config,
-                            write_report=not args.no_report)
+                            write_report=not args.no_report, placement=placement)
         return code
-    except (ScenarioError, SessionConfigError, ValueError) as exc:
+    except (ScenarioError, SessionConfigError, DeploymentError, CertificateError, ValueError) as exc:
         print(f"bench: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
 
@@ -691,8 +791,14 @@ def cmd_node(args) -> int:
         run_dir = Path(args.run_dir or Path("runs") / run_id)
         run_dir.mkdir(parents=True, exist_ok=True)
         peers = [p for p in (args.wait_for or "").split(",") if p]
-        return run_node(args.name, run_id, scenario, node_options(args), run_dir, peers)
-    except (ScenarioError, SessionConfigError, ValueError) as exc:
+        options = node_options(args)
+        stop_with, host = None, None
+        if args.deployment:
+            host = args.host
+            if load_deployment(args.deployment).launcher_host != host:
+                stop_with = LAUNCHER   # the launcher cannot signal another host: its leaving ends the run
+        return run_node(args.name, run_id, scenario, options, run_dir, peers, stop_with=stop_with, host=host)
+    except (ScenarioError, SessionConfigError, DeploymentError, CertificateError, ValueError) as exc:
         print(f"bench node: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
 
@@ -712,6 +818,10 @@ def add_commands(subparsers) -> None:
     run.add_argument("--mode", choices=["lock-step", "real-time"], help="override the scenario's run.mode")
     run.add_argument("--steps", type=int, help="override the scenario's run.steps")
     run.add_argument("--zenoh-config", help="JSON5 Zenoh configuration applied under the bench's own settings")
+    run.add_argument("--secure", action="store_true",
+                     help="mutual TLS and access control on loopback, with certificates made for this run")
+    run.add_argument("--cert-dir", help="with --secure: certificates to use (default: new ones in the run directory)")
+    run.add_argument("--deployment", help="deployment TOML: which node runs on which host (see docs/security.md)")
     run.add_argument("--no-progress", action="store_true", help="no progress bar")
     run.add_argument("--no-report", action="store_true", help="skip report.html/report.md (bench report RUN_DIR later)")
     run.set_defaults(func=cmd_run)
@@ -725,6 +835,9 @@ def add_commands(subparsers) -> None:
     node.add_argument("--run-dir", help="run directory (default: runs/RUN_ID)")
     node.add_argument("--wait-for", help="comma-separated nodes whose ready token to await before starting")
     node.add_argument("--zenoh-config", help="JSON5 Zenoh configuration")
+    node.add_argument("--cert-dir", help="certificate directory: mutual TLS as this node, access control on")
+    node.add_argument("--deployment", help="deployment TOML (endpoints, certificates) ...")
+    node.add_argument("--host", help="... and which of its hosts this is")
     node.set_defaults(func=cmd_node)
 
     scenarios = subparsers.add_parser("scenarios", help="list the built-in scenarios")

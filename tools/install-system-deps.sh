@@ -4,7 +4,8 @@
 # with that reason.
 set -u
 PACKAGES=(
-  user-mode-linux kmod iproute2   # SocketCAN tests: a kernel with vcan in user-mode Linux (tools/uml)
+  user-mode-linux kmod iproute2   # SocketCAN tests: a kernel with vcan in user-mode Linux (tools/uml);
+                                  # iproute2 also: network-namespace hosts (tests/test_deployment.py, `ip`, `ss`)
   can-utils                       # cansend/canplayer against the board in UML (tests/test_can_utils_uml.py)
   chromium                        # report rendering test (tests/test_report_render.py)
 )

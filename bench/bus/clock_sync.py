@@ -40,9 +40,14 @@ class ClockOffset:
         return asdict(self)
 
 
-def declare_clock_responder(session: zenoh.Session, run_id: str, process: str) -> zenoh.Queryable:
-    """Answer clock pings for `process`; keep the returned queryable alive as long as the node."""
-    host = socket.gethostname()
+def declare_clock_responder(session: zenoh.Session, run_id: str, process: str,
+                            host: str | None = None) -> zenoh.Queryable:
+    """Answer clock pings for `process`; keep the returned queryable alive as long as the node.
+
+    host: the deployment's name of this host (default: the host name). Reports correct stamps of
+    processes whose host differs from the recorder's (network namespaces share one host name).
+    """
+    host = host or socket.gethostname()
     key_expr = keys.key(run_id, f"{CLOCK}/{process}")
 
     def on_query(query: zenoh.Query) -> None:

@@ -5,6 +5,9 @@ bench must not announce itself on the host's network, so every session here is b
 explicit configuration: multicast scouting off, gossip on (peers that know one endpoint find the
 rest through it), loopback listen endpoints unless the user names others, and a short liveliness
 lease (the run's `[run.liveliness] lease_s`) so a dead or hung peer is noticed within seconds.
+Secure sessions (an `identity`: the node's certificate, key and the deployment's CA, see
+certs.py) speak TLS only, with mutual authentication, and carry the bench's access-control table
+(acl.py), so every process enforces on each of its links who may say and hear what.
 """
 from __future__ import annotations
 
@@ -14,6 +17,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import zenoh
+
+from bench.bus import acl
+from bench.bus.certs import CertificateError, Identity, check_identity
 
 LOOPBACK_HOST = "127.0.0.1"
 # Liveliness lease: tokens of a peer that stops answering vanish after about this long. A bench
@@ -42,6 +48,19 @@ class SessionOptions:
     config_file: Path | None = None
     mode: str = "peer"
     lease_ms: int = LEASE_MS
+    # Mutual TLS with this identity's certificate (CN = the node name) and the deployment's CA.
+    identity: Identity | None = None
+    # With an identity: enforce the bench's access-control table (acl.ROLES) on every link. Only
+    # tests that play a rogue process turn it off.
+    access_control: bool = True
+
+    @property
+    def secure(self) -> bool:
+        return self.identity is not None
+
+    @property
+    def link_protocol(self) -> str:
+        return "tls" if self.secure else "tcp"
 
 
 @dataclass
@@ -50,8 +69,8 @@ class _Checked:
     connect: list[str] = field(default_factory=list)
 
 
-def loopback_endpoint(port: int) -> str:
-    return f"tcp/{LOOPBACK_HOST}:{port}"
+def loopback_endpoint(port: int, protocol: str = "tcp") -> str:
+    return f"{protocol}/{LOOPBACK_HOST}:{port}"
 
 
 def free_loopback_port() -> int:
@@ -67,9 +86,9 @@ def check_port_free(endpoint: str) -> None:
     Zenoh reports a taken port deep inside its own error text; a user deserves one line.
     """
     proto, _, address = endpoint.partition("/")
-    if proto != "tcp":
+    if proto not in ("tcp", "tls"):
         return
-    host, _, port_text = address.rpartition(":")
+    host, _, port_text = address.partition("#")[0].rpartition(":")
     host = host.strip("[]")
     try:
         port = int(port_text)
@@ -111,18 +130,18 @@ def build_config(options: SessionOptions) -> zenoh.Config:
     else:
         config = zenoh.Config()
     checked = _Checked(
-        listen=[_validate_endpoint(e) for e in options.listen] or [loopback_endpoint(0)],
+        listen=[_validate_endpoint(e) for e in options.listen] or [loopback_endpoint(0, options.link_protocol)],
         connect=[_validate_endpoint(e) for e in options.connect],
     )
     if not 100 <= options.lease_ms <= 60_000:
         raise SessionConfigError(f"lease of {options.lease_ms} ms is outside 100-60000 ms")
-    if options.mode not in {"peer", "client"}:
-        raise SessionConfigError(f"zenoh mode {options.mode!r} must be 'peer' or 'client'")
+    if options.mode not in {"peer", "client", "router"}:
+        raise SessionConfigError(f"zenoh mode {options.mode!r} must be 'peer', 'client' or 'router'")
     settings = {
         "mode": json.dumps(options.mode),
         "scouting/multicast/enabled": "false",
         "scouting/gossip/enabled": "true",
-        "listen/endpoints": json.dumps(checked.listen if options.mode == "peer" else []),
+        "listen/endpoints": json.dumps(checked.listen if options.mode != "client" else []),
         "connect/endpoints": json.dumps(checked.connect),
         "transport/link/tx/lease": str(options.lease_ms),
         "transport/link/tx/keep_alive": str(KEEP_ALIVE_PER_LEASE),
@@ -130,9 +149,57 @@ def build_config(options: SessionOptions) -> zenoh.Config:
         "transport/shared_memory/enabled": "false",
         "adminspace/enabled": "false",
     }
+    if options.secure:
+        settings.update(_tls_settings(options, checked))
     for key, value in settings.items():
         config.insert_json5(key, value)
     return config
+
+
+def _tls_settings(options: SessionOptions, checked: _Checked) -> dict[str, str]:
+    """Mutual TLS on every link, nothing else, and the access-control table.
+
+    verify_name_on_connect is off: a bench host is named by its address in the deployment file,
+    not by DNS, and what a peer may do is decided by the CN of the certificate it proved it holds
+    (enable_mtls), which the access-control table keys on. close_link_on_expiration drops a link
+    whose peer's certificate expires during a run.
+    """
+    plain = [e for e in checked.listen + checked.connect if not e.startswith("tls/")]
+    if plain:
+        raise SessionConfigError(f"endpoint {plain[0]!r}: a secure session uses tls/ endpoints only")
+    identity = options.identity
+    try:
+        check_identity(identity)
+    except CertificateError as exc:
+        raise SessionConfigError(str(exc)) from exc
+    tls = {
+        "root_ca_certificate": str(identity.ca_path),
+        "listen_certificate": str(identity.cert_path),
+        "listen_private_key": str(identity.key_path),
+        "connect_certificate": str(identity.cert_path),
+        "connect_private_key": str(identity.key_path),
+        "enable_mtls": True,
+        "verify_name_on_connect": False,
+        "close_link_on_expiration": True,
+    }
+    settings = {"transport/link/protocols": json.dumps(["tls"]), "transport/link/tls": json.dumps(tls)}
+    if options.access_control:
+        settings["access_control"] = json.dumps(acl.access_control_config())
+    return settings
+
+
+# Zenoh's own log (it writes to stdout), for secure sessions: the TLS listener's line naming why it refused a
+# peer ("invalid peer certificate: certificate expired ...", "... UnknownIssuer") is the one a
+# user needs; everything else stays at error. RUST_LOG overrides it.
+TLS_LOG_FILTER = "error,zenoh_link_tls::unicast=warn"
+_log_initialised = False
+
+
+def _init_tls_log() -> None:
+    global _log_initialised
+    if not _log_initialised:
+        zenoh.init_log_from_env_or(TLS_LOG_FILTER)
+        _log_initialised = True
 
 
 def open_session(options: SessionOptions | None = None) -> zenoh.Session:
@@ -144,6 +211,8 @@ def open_session(options: SessionOptions | None = None) -> zenoh.Session:
     for endpoint in options.listen:
         check_port_free(_validate_endpoint(endpoint))
     config = build_config(options)
+    if options.secure:
+        _init_tls_log()
     try:
         return zenoh.open(config)
     except Exception as exc:

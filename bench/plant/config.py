@@ -22,6 +22,7 @@ import numpy as np
 from bench.data import load_reference
 
 MODEL = load_reference()["model"]     # the defaults below are the reference's (seed 003)
+Positive = Annotated[float, msgspec.Meta(gt=0, le=1e12)]
 NonNegative = Annotated[float, msgspec.Meta(ge=0, le=1e9)]
 # 1e9 m is 2.5 times the Moon's distance: no relative-motion scenario starts farther out.
 StateValue = Annotated[float, msgspec.Meta(ge=-1e9, le=1e9)]

@@ -24,6 +24,8 @@ import zenoh
 
 from bench.bus import keys
 from bench.bus.clock_sync import declare_clock_responder
+from bench.bus.certs import identity_files
+from bench.bus.deployment import DeploymentError, load_deployment
 from bench.bus.schemas import MalformedMessage, Message, ProcessStats, decode, encode, header
 from bench.bus.session import SessionOptions, open_session
 from bench.runtime.ownership import die_with_launcher
@@ -193,16 +195,61 @@ class NodeContext:
 
 
 def node_options(args) -> SessionOptions:
+    """Session options of `bench node`: from --deployment/--host, or --cert-dir, or plain endpoints."""
+    config_file = Path(args.zenoh_config) if args.zenoh_config else None
+    deployment_file = getattr(args, "deployment", None)
+    if deployment_file:
+        if not getattr(args, "host", None):
+            raise ValueError("--deployment needs --host NAME (which of the file's hosts this is)")
+        deployment = load_deployment(deployment_file)
+        if args.host not in deployment.hosts:
+            raise DeploymentError(f"--host: {args.host!r} is not one of the hosts ({', '.join(deployment.hosts)})")
+        deployment.check_certificates(args.host, [args.name])
+        options = deployment.node_options(args.name, args.host)
+        extra_connect = tuple(e for e in (args.connect or ()) if e not in options.connect)
+        return dataclasses.replace(options, listen=tuple(args.listen or ()) or options.listen,
+                                   connect=options.connect + extra_connect, config_file=config_file)
+    identity = identity_files(Path(args.cert_dir), args.name) if getattr(args, "cert_dir", None) else None
     return SessionOptions(
         listen=tuple(args.listen or ()),
         connect=tuple(args.connect or ()),
-        config_file=Path(args.zenoh_config) if args.zenoh_config else None,
+        config_file=config_file,
+        identity=identity,
     )
 
 
+def stop_when_gone(ctx: NodeContext, process: str) -> None:
+    """Stop the node when `process`'s alive token vanishes (the launcher, for nodes on other hosts:
+    it cannot signal them, so it ends the run by leaving the bus)."""
+
+    key_expr = keys.key(ctx.run_id, f"{keys.ALIVE}/{process}")
+
+    def confirm() -> None:
+        # Asked again first: with a router Zenoh can report the delete of a token that is still
+        # there while peers reconnect directly (launcher.py `_check_remote`). Not in Zenoh's
+        # callback thread: a query from there would wait on that same thread.
+        try:
+            if any(r.ok is not None for r in ctx.session.liveliness().get(key_expr, timeout=1.0)):
+                return
+        except Exception:   # the session is closing: stopping anyway
+            pass
+        ctx.log.info("'%s' left the bus: stopping", process)
+        ctx.stop.set()
+
+    def on_token(sample: zenoh.Sample) -> None:
+        if sample.kind == zenoh.SampleKind.DELETE:
+            threading.Thread(target=confirm, name=f"{process}-gone", daemon=True).start()
+
+    ctx._keepalive.append(ctx.session.liveliness().declare_subscriber(key_expr, on_token))
+
+
 def run_node(name: str, run_id: str, scenario: Scenario, options: SessionOptions, run_dir: Path,
-             peers: list[str] | None = None) -> int:
-    """Open the session, install signal handlers, run the node, always close cleanly."""
+             peers: list[str] | None = None, stop_with: str | None = None, host: str | None = None) -> int:
+    """Open the session, install signal handlers, run the node, always close cleanly.
+
+    stop_with: also stop when that process's alive token vanishes (nodes on other hosts than the
+    launcher). host: the deployment's name of this host, reported with the clock offsets.
+    """
     import importlib
 
     if name not in NODES:
@@ -222,8 +269,10 @@ def run_node(name: str, run_id: str, scenario: Scenario, options: SessionOptions
     signal.signal(signal.SIGTERM, request_stop)
     signal.signal(signal.SIGINT, request_stop)
     try:
+        if stop_with:
+            stop_when_gone(ctx, stop_with)
         ctx.declare_alive()
-        ctx._keepalive.append(declare_clock_responder(session, run_id, name))   # clock offsets (recorder)
+        ctx._keepalive.append(declare_clock_responder(session, run_id, name, host))   # clock offsets (recorder)
         code = module.run(ctx)
         ctx.publish_stats()
         time.sleep(0.05)  # let the stats sample leave before the session closes

@@ -1,0 +1,154 @@
+"""Who may say what on the bus: the Zenoh access-control table, from one place.
+
+Each bench identity (the CN of its certificate, see certs.py) has a `Role`: the topics it
+publishes, the topics it subscribes to, and the CAN channels it is attached to. A new topic is
+one entry in ROLES. `access_control_config()` turns the table into Zenoh's `access_control`
+section, deny by default, which every secure session carries (nodes, the launcher's hub, a
+router), so every process enforces the table on each of its links:
+
+- ingress (what a remote identity sends to us): its puts only on its own publications, its
+  subscriber declarations only on its own subscriptions, its liveliness tokens only under its own
+  name (`alive/<cn>`, `ready/<cn>`), its clock queryable only `clock/<cn>`;
+- egress (what we send to a remote identity): puts only on what it subscribes to, so the
+  estimator never receives `truth` unless its role reads it, and a rogue cannot subscribe its way
+  to the commands.
+
+Declarations going out (our subscribers, queryables, tokens) and liveliness queries are allowed
+towards every identity of the deployment: they say what we listen to, not what we say, and a
+router must forward them for the topics to match. A link with no certificate of the deployment's
+CA matches no subject and gets the default: deny.
+
+Key expressions are `bench/*/<topic>` so one table serves every run id (a router outlives runs).
+Zenoh allows a message when a rule's key expression *includes* the message's (authorization.rs,
+`nodes_including`), so a wildcard subscription such as the recorder's `bench/<run>/**` needs a
+rule with `**`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from bench.bus import keys
+from bench.bus.can.config import CanConfig
+
+ANY_RUN = "*"
+
+
+@dataclass(frozen=True)
+class Role:
+    """What one identity may do. Topics are relative to `bench/<run_id>/`."""
+
+    publishes: tuple[str, ...] = ()
+    subscribes: tuple[str, ...] = ()
+    can_channels: tuple[str, ...] = ()   # CAN frames over Zenoh: bench/<run>/can/<channel>
+    queries_clocks: bool = False         # the reference clock: pings every process's clock
+    extra_liveliness: tuple[str, ...] = field(default=())
+
+
+_CAN = CanConfig()
+# The bench's identities. The nodes are those of bench.runtime.node.NODES; `launcher` is the hub
+# session of `bench run` (progress, stats, liveliness); `router` forwards everything it is allowed
+# to forward and says nothing itself. Attitude-loop topics join here as they are built.
+ROLES: dict[str, Role] = {
+    "plant": Role(
+        publishes=(keys.TRUTH, "truth/*", "sense/*", keys.COMMAND_APPLIED, keys.EVENT_DEADLINE, keys.STATUS_STEP),
+        subscribes=("command/*", keys.ACTUATOR_MTQ),
+    ),
+    "estimator": Role(
+        publishes=("estimate/*",),
+        # truth: the estimator's `truth` mode is the seeds' "full state knowledge" case
+        # (`truth/attitude` for the attitude loop).
+        subscribes=("sense/*", keys.TRUTH, "truth/*", keys.COMMAND_THRUST),
+    ),
+    "controller": Role(
+        publishes=("command/*", keys.EVENT_DEADLINE),
+        subscribes=("estimate/*", "plan/*"),
+        can_channels=(_CAN.flight_channel,),   # the magnetorquer driver lives in the controller
+    ),
+    "mtq": Role(publishes=(keys.ACTUATOR_MTQ,), can_channels=(_CAN.board_channel,)),
+    "canbus": Role(can_channels=(_CAN.flight_channel, _CAN.board_channel)),
+    "recorder": Role(subscribes=("**",), queries_clocks=True),
+    "launcher": Role(subscribes=(keys.STATUS_STEP, f"{keys.STATUS_STATS}/*")),
+    "router": Role(),
+}
+
+# Every message kind Zenoh's ACL knows (DEFAULT_CONFIG.json5 of zenoh 1.10).
+_DECLARATIONS = ["declare_subscriber", "declare_queryable", "liveliness_token", "declare_liveliness_subscriber",
+                 "liveliness_query"]
+
+
+def _k(topic: str) -> str:
+    return keys.key(ANY_RUN, topic)
+
+
+def _own_stats(name: str) -> str:
+    return f"{keys.STATUS_STATS}/{name}"
+
+
+def publications(name: str) -> list[str]:
+    role = ROLES[name]
+    topics = list(role.publishes)
+    if name not in ("router", "launcher"):
+        topics.append(_own_stats(name))      # every node publishes its own counters at the end
+    topics += [f"can/{ch}" for ch in role.can_channels]
+    return topics
+
+
+def subscriptions(name: str) -> list[str]:
+    role = ROLES[name]
+    return list(role.subscribes) + [f"can/{ch}" for ch in role.can_channels]
+
+
+def _own_tokens(name: str) -> list[str]:
+    tokens = [f"{keys.ALIVE}/{name}", f"{keys.READY}/{name}"]
+    return tokens + [f"can/{ch}/member/*" for ch in ROLES[name].can_channels]
+
+
+def _rule(rule_id: str, flow: str, messages: list[str], topics: list[str]) -> dict:
+    return {"id": rule_id, "permission": "allow", "flows": [flow], "messages": messages,
+            "key_exprs": sorted({_k(t) for t in topics})}
+
+
+def _rules_for(name: str) -> list[dict]:
+    """Allow-rules for the remote identity `name` (deny is the default)."""
+    rules = []
+    pubs, subs = publications(name), subscriptions(name)
+    clock = f"clock/{name}"
+    if pubs:
+        rules.append(_rule(f"{name}-sends", "ingress", ["put", "delete"], pubs))
+    if subs:
+        rules.append(_rule(f"{name}-receives", "egress", ["put", "delete"], subs))
+        rules.append(_rule(f"{name}-subscribes", "ingress", ["declare_subscriber"], subs))
+    if name not in ("router", "launcher"):
+        # The node's clock answers the reference clock's pings (clock_sync.py).
+        rules.append(_rule(f"{name}-clock", "ingress", ["declare_queryable", "reply"], [clock]))
+        rules.append(_rule(f"{name}-pinged", "egress", ["query"], ["clock/*"]))
+    if ROLES[name].queries_clocks:
+        rules.append(_rule(f"{name}-pings", "ingress", ["query"], ["clock/*"]))
+        rules.append(_rule(f"{name}-pongs", "egress", ["reply"], ["clock/*"]))
+    if name != "router":
+        rules.append(_rule(f"{name}-tokens", "ingress", ["liveliness_token"], _own_tokens(name)))
+        rules.append(_rule(f"{name}-watches", "ingress", ["declare_liveliness_subscriber", "liveliness_query"],
+                           [f"{keys.ALIVE}/*", f"{keys.READY}/*", "can/*/member/*"]))
+    # What we tell this identity about ourselves: declarations and liveliness, never data.
+    rules.append(_rule(f"{name}-told", "egress", _DECLARATIONS, ["**"]))
+    return rules
+
+
+def access_control_config(names: list[str] | None = None) -> dict:
+    """Zenoh's `access_control` section: deny by default, each identity its own rules."""
+    names = list(names or ROLES)
+    unknown = [n for n in names if n not in ROLES]
+    if unknown:
+        raise ValueError(f"no access-control role for {', '.join(unknown)} (add it to bench.bus.acl.ROLES)")
+    rules, subjects, policies = [], [], []
+    for name in names:
+        own = _rules_for(name)
+        rules += own
+        subjects.append({"id": f"cn-{name}", "cert_common_names": [name]})
+        policies.append({"id": f"policy-{name}", "rules": [r["id"] for r in own], "subjects": [f"cn-{name}"]})
+    return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
+            "policies": policies}
+
+
+def identities() -> list[str]:
+    return list(ROLES)
