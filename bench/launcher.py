@@ -26,6 +26,7 @@ import zenoh
 from bench.bus import keys
 from bench.bus.schemas import ProcessStats, StepDone, decode, MalformedMessage
 from bench.bus.session import SessionConfigError, SessionOptions, free_loopback_port, loopback_endpoint, open_session
+from bench.controller.config import PLANNED_LAWS
 from bench.report.run_metrics import trajectory_metrics
 from bench.runtime.node import NODES, node_options, run_node
 from bench.runtime.process import start_node
@@ -52,7 +53,10 @@ def nodes_for(scenario: Scenario) -> list[str]:
     names = ["recorder"] if "recorder" in NODES else []
     if scenario.can is not None:
         names += ["canbus", "mtq"]
-    return names + ["plant", "estimator", "controller"]
+    names += ["plant", "estimator", "controller"]
+    if scenario.kind == "attitude" and scenario.attitude_control.law in PLANNED_LAWS:
+        names.append("planner")    # MILQR plans for the controller's tracker (issue 12)
+    return names
 
 
 # ------------------------------------------------------------------------------------------------

@@ -29,6 +29,7 @@ from mcap.writer import Writer
 
 from bench.bus import clock_sync, keys
 from bench.bus.schemas import SCHEMA_VERSION, Message, ProcessStats, json_schema
+from bench.planner import plan as _plan_message   # noqa: F401  registers AttitudePlanMessage (issue 12)
 
 RECORDING_FILE = "recording.mcap"
 COUNTS_FILE = "recorder_counts.json"
