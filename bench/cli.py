@@ -15,6 +15,7 @@ COMMAND_MODULES = [
     "bench.report.cli",        # report, compare
     "bench.bus.can.cli",       # faults
     "bench.studies.cli",       # tune-lqr, compare-controllers
+    "bench.studies.campaign_cli",   # campaign, campaign-report
 ]
 
 

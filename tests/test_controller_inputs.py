@@ -72,6 +72,8 @@ def test_factory_builds_every_controller_type(params):
         assert u.shape == (3,) and set(info) >= {"ctrl_feas", "objective", "solve_time", "iterations", "status"}
         assert info["ctrl_feas"], (kind, info["status"])
         assert np.all(np.abs(u) <= 1 + 1e-6)
+        if kind != "lqr":            # every MPC returns its plan, for the shifted-plan fallback
+            assert info["u_plan"].shape == (30, 3) and np.array_equal(info["u_plan"][0], u), kind
 
 
 def test_traj_constraints_on_a_hand_made_trajectory(params):
@@ -124,3 +126,27 @@ def test_lqr_tuning_picks_the_cheapest_feasible_q(params):
     assert none is None
     with pytest.raises(ValueError, match="6 weights"):
         lqr_tuning(x0, np.ones((2, 5)), params)
+
+
+def test_tuning_survives_a_dare_failure_at_one_candidate(params, monkeypatch):
+    """Issue 17: a q whose DARE fails is an infeasible row, not the end of the study."""
+    import bench.studies.tuning as tuning
+
+    real = tuning.lqr_trajectory
+    bad_q = np.array([94.0, 0.1579, 500.0, 0.01, 0.10, 0.01])
+    failing_qs = [bad_q]
+
+    def failing(x0, q, p):
+        if any(np.allclose(q, b) for b in failing_qs):
+            raise np.linalg.LinAlgError("Failed to find a finite solution.")
+        return real(x0, q, p)
+
+    monkeypatch.setattr(tuning, "lqr_trajectory", failing)
+    x0 = params.scaled.to_scaled(params.initial_state_m_mps("A"))
+    tuned = [108.55, 0.0887937, 372.281, 0.000133352, 0.00133352, 0.00133352]     # feasible from A
+    rows, best = tuning.lqr_tuning(x0, np.array([bad_q, tuned]), params)
+    assert not rows[0].metrics.feasible and rows[0].metrics.input_cost_n2 == np.inf
+    assert best == 1
+    failing_qs.append(np.array(tuned))         # the centre of refine_q's out-of-plane grid
+    q, j_u = tuning.refine_q(x0, tuned, params, rounds=1, points_in_plane=3, points_out_of_plane=3, span_decades=0.02)
+    assert np.isfinite(j_u)

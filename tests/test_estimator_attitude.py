@@ -155,3 +155,39 @@ def test_bad_attitude_input_is_named():
     smoother.update(1, 1.0, star_tracker_wxyz=[1.0, 0.0, 0.0, 0.0])
     with pytest.raises(ValueError, match="no gyro samples"):
         smoother.update(2, 2.0, star_tracker_wxyz=[1.0, 0.0, 0.0, 0.0])
+
+
+def test_restart_keeps_the_joint_covariance_in_the_new_body_frame():
+    # The same sensor data into two smoothers; gtsam fails once in the second, on a keyframe with
+    # the magnetometer only, while the body turns at ~0.4 rad/s. The restart's prior is the last
+    # joint (attitude, bias) covariance carried by the gyro: rotated into the new body frame, the
+    # attitude / bias correlation propagated through d(deltaR)/d(bias). The restarted smoother must
+    # then go on as the intact one does (gtsam's AHRS factor is the independent reference here).
+    spec = AttitudeSensorSpec(star_tracker_period_s=5.0)
+    sim = AttitudeSimulation(INERTIA, Rotation.random(random_state=4).as_quat(scalar_first=True),
+                             [0.3, -0.2, 0.25], spec, seed=4)
+    intact, restarted = AttitudeSmoother(AttitudeSmootherConfig()), AttitudeSmoother(AttitudeSmootherConfig())
+    keyframe = 0
+    for _ in range(300):
+        s = sim.step()
+        for smoother in (intact, restarted):
+            smoother.add_gyro(s.gyro_radps, sim.dt_s)
+        if s.magnetometer_t is None and s.star_tracker_wxyz is None:
+            continue
+        keyframe += 1
+        if keyframe == 17:
+            restarted._smoother = FailingSmoother(restarted._smoother)
+        r1 = intact.update(keyframe, s.time_s, s.magnetometer_t, s.field_inertial_t, s.star_tracker_wxyz)
+        r2 = restarted.update(keyframe, s.time_s, s.magnetometer_t, s.field_inertial_t, s.star_tracker_wxyz)
+        if keyframe < 17:
+            continue
+        cov1 = np.block([[r1.attitude_covariance_rad2, np.zeros((3, 3))], [np.zeros((3, 3)), r1.gyro_bias_covariance]])
+        cov2 = np.block([[r2.attitude_covariance_rad2, np.zeros((3, 3))], [np.zeros((3, 3)), r2.gyro_bias_covariance]])
+        if r1.joint_covariance is not None:
+            cov1, cov2 = r1.joint_covariance, r2.joint_covariance
+        sigma = np.sqrt(np.diag(cov1))
+        attitude_difference = gtsam.Rot3.Logmap(r1.rotation.between(r2.rotation))
+        assert np.all(np.abs(attitude_difference) < 1e-3 * sigma[:3]), keyframe
+        assert np.all(np.abs(r1.gyro_bias_radps - r2.gyro_bias_radps) < 1e-3 * sigma[3:]), keyframe
+        assert np.max(np.abs(cov1 - cov2) / np.outer(sigma, sigma)) < 1e-3, keyframe
+    assert restarted.failed_updates == 1

@@ -46,4 +46,4 @@ def test_params_with_mean_motion_round_trips_and_rejects_nonsense():
     with pytest.raises(ValueError, match="mean_motion_radps must be positive"):
         params_with_mean_motion(PARAMS, -1.0)
     with pytest.raises(ValueError, match="process_noise_psd_m2ps3"):
-        CwhMotionModel(PARAMS.mass_kg, PARAMS.time_step_s, 0.0)
+        CwhMotionModel(PARAMS.mass_kg, PARAMS.time_step_s, -1e-9)

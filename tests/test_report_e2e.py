@@ -118,7 +118,8 @@ def test_stressed_controller_misses_are_counted_exactly_and_the_fallback_holds(t
             if channel.topic == keys.COMMAND_THRUST:
                 commands[body["header"]["seq"]] = body
     assert sorted(e["header"]["seq"] for e in events) == expected
-    assert all(e["cycle_time_s"] > STRESS_EXTRA_S and e["fallback"] == "hold" for e in events)
+    # The solve runs on in the solver worker; the fallback left at the budget, not after the solve.
+    assert all(STRESS_BUDGET_S < e["cycle_time_s"] < STRESS_EXTRA_S and e["fallback"] == "hold" for e in events)
     assert [k for k, c in sorted(commands.items()) if c["fallback"]] == expected
     for k in expected:      # hold: the command sent is the previous one
         assert commands[k]["thrust_n"] == commands[k - 1]["thrust_n"]

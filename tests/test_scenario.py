@@ -15,8 +15,6 @@ BAD_SCENARIOS = {
     "unknown initial condition": ('name = "x"\n[plant]\ninitial_condition = "Z"\n', "plant.initial_condition", "Z"),
     "short state": ('name = "x"\n[plant]\ninitial_state_m_mps = [1.0, 2.0]\n', "plant.initial_state_m_mps", "length"),
     "not toml": ('name = "x\n', "not valid TOML", ""),
-    "sensor the plant lacks": ('name = "x"\n[estimator]\nmode = "smoother"\ntranslation.sensor = "range_bearing"\n',
-                               "estimator.translation.sensor", "relpos"),
 }
 
 

@@ -6,6 +6,7 @@ import re
 PREFIX = "bench"
 
 SENSE_RELPOS = "sense/relpos"
+SENSE_RANGE_BEARING = "sense/range_bearing"
 TRUTH = "truth"
 ESTIMATE_TRANSLATION = "estimate/translation"
 COMMAND_THRUST = "command/thrust"

@@ -60,6 +60,13 @@ class RelativePosition(Message, tag="relpos"):
     noise_std_m: float
 
 
+class RangeBearing(Message, tag="range_bearing"):
+    """Noisy range, azimuth atan2(y, x) and elevation asin(z / r) of the chaser in LVLH."""
+    range_m: Annotated[float, msgspec.Meta(gt=0)]
+    azimuth_rad: float
+    elevation_rad: float
+
+
 class TruthState(Message, tag="truth"):
     """Ground truth; read by the truth-mode estimator, the recorder and reports only."""
     state_m_mps: Vec6
@@ -70,6 +77,11 @@ class TranslationEstimate(Message, tag="estimate_translation"):
     state_m_mps: Vec6
     covariance: Cov6 | None = None          # row-major 6x6, SI units
     mean_motion_radps: float | None = None  # set when the estimator also estimates the orbit
+    # Normalised innovation squared of this step's measurement against the prediction (None
+    # without one), its degrees of freedom, and whether the innovation gate rejected it.
+    nis: float | None = None
+    nis_dof: NonNegInt = 0
+    measurement_rejected: bool = False
 
 
 class ThrustCommand(Message, tag="thrust"):

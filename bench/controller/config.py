@@ -53,7 +53,15 @@ class DeadlineConfig(msgspec.Struct, forbid_unknown_fields=True):
     # Wall-clock budget from the estimate's arrival to the command being ready. The default is
     # half the step period of real-time mode at its default rate (10 steps per wall second).
     budget_s: PositiveSeconds = 0.05
+    # "shifted_plan" replays the last on-time plan shifted by the cycles missed, then falls back
+    # to LQR (to "hold" if no LQR law is given).
     fallback: FallbackPolicy = "hold"
+    # Real-time mode runs the law in a worker process (bench/runtime/solver_worker.py); a request
+    # outstanding this long gets its worker killed and restarted.
+    hard_limit_s: PositiveSeconds = 2.0
+    # Real-time mode: SCHED_FIFO priority of the controller's cycle thread (0: default scheduler).
+    # Without it the fallback left up to 8 ms late on the loaded bench machine (solver_worker.py).
+    realtime_priority: Annotated[int, msgspec.Meta(ge=0, le=99)] = 10
     stress: StressConfig = msgspec.field(default_factory=StressConfig)
 
 
@@ -61,7 +69,8 @@ class ControllerConfig(msgspec.Struct, forbid_unknown_fields=True):
     # lqr: u = K x (task 6). mpc: LQR terminal cost (17). mpc_te: terminal equality (18).
     # mpc_ts: terminal set X_LQR (19). mpc_ts_sc: mpc_ts with soft state constraints (20).
     # mpc_tube: tube MPC (23) on the out-of-plane axis [z, vz], mpc with LQR terminal cost in plane.
-    type: Literal["lqr", "mpc", "mpc_te", "mpc_ts", "mpc_ts_sc", "mpc_tube"] = "lqr"
+    # lqt: finite-horizon LQ tracking of a glide slope over the run (seed 001, bench/gnc/lqt.py).
+    type: Literal["lqr", "lqt", "mpc", "mpc_te", "mpc_ts", "mpc_ts_sc", "mpc_tube"] = "lqr"
     # Q = diag(q_diag), R = diag(r_diag), on the scaled state (seed 003); defaults are Q*, R*.
     q_diag: PositiveWeights = msgspec.field(default_factory=lambda: list(SEED_WEIGHTS["q_star"]))
     r_diag: PositiveWeights = msgspec.field(default_factory=lambda: [1.0, 1.0, 1.0])
@@ -73,6 +82,9 @@ class ControllerConfig(msgspec.Struct, forbid_unknown_fields=True):
     tube_poles: Annotated[list[Annotated[float, msgspec.Meta(gt=-1, lt=1)]], msgspec.Meta(min_length=2, max_length=2)] = \
         msgspec.field(default_factory=lambda: list(SEED_WEIGHTS["tube_poles"]))
     tube_horizon: Horizon = SEED_WEIGHTS["tube_horizon"]
+    # lqt: the glide slope reaches the target after this fraction of the run (then the LQR terminal law).
+    # 0.35: from A with the tuned weights, 82 m on CWH and 36 m on the nonlinear plant; 0.75 ends 430 m off.
+    lqt_glide_fraction: Annotated[float, msgspec.Meta(gt=0, le=1)] = 0.35
     # Wall-clock budget per cycle, fallback on a miss, optional stress (used by bench/controller/deadline.py).
     deadline: DeadlineConfig = msgspec.field(default_factory=DeadlineConfig)
 

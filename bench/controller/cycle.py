@@ -9,29 +9,64 @@ from __future__ import annotations
 
 import numpy as np
 
-from bench.controller.deadline import DeadlineMonitor, lqr_fallback_law
+from bench.controller.config import StressConfig
+from bench.controller.deadline import DeadlineMonitor, StressInjector, lqr_fallback_law
 from bench.controller.thrust import ThrustLaw
 from bench.runtime.deadline import CycleOutcome
+from bench.runtime.solver_worker import WorkerLaw, set_realtime_priority
 from bench.scenario import Scenario
 
 
 class ControlCycle:
+    """Real-time mode runs the law in a solver worker process (the command leaves by the deadline
+    whatever the solver does, and a mean-motion update builds the new law there while the old one
+    serves); lock-step mode runs it in-process, where the plant waits for every command anyway."""
+
     def __init__(self, scenario: Scenario):
-        self.law = ThrustLaw(scenario)
+        real_time = scenario.run.mode == "real-time"
+        self.law = ThrustLaw(scenario, in_process=not real_time)
         deadline = scenario.controller.deadline
-        lqr_law = lqr_fallback_law(scenario.controller, self.law.params) if deadline.fallback == "lqr" else None
-        self.monitor = DeadlineMonitor(deadline, n_inputs=3, lqr_law=lqr_law,
-                                       apply_fallback=scenario.run.mode == "real-time")
+        lqr_law = (lqr_fallback_law(scenario.controller, self.law.params)
+                   if deadline.fallback in ("lqr", "shifted_plan") else None)
+        stress = StressInjector(deadline.stress, "controller")
+        self.worker = None
+        self.realtime_priority_granted = False
+        if real_time:
+            # The stress acts on the solve, in the worker, as a slow solver would.
+            self.worker = WorkerLaw(self.law.factory, nx=6, nu=3, plan_rows=max(scenario.controller.horizon, 1),
+                                    hard_limit_s=deadline.hard_limit_s, stress=stress)
+            self.worker.wait_ready()
+            stress = StressInjector(StressConfig(), "controller")
+            # The thread that builds the cycle runs it (the node's main loop).
+            self.realtime_priority_granted = (deadline.realtime_priority > 0
+                                              and set_realtime_priority(deadline.realtime_priority))
+        self.monitor = DeadlineMonitor(deadline, n_inputs=3, lqr_law=lqr_law, stress=stress,
+                                       apply_fallback=real_time)
         self.max_abs_thrust_n = self.law.params.max_abs_thrust_n
         self.saturated_cycles = 0
 
     def run(self, state_m_mps: np.ndarray, mean_motion_radps: float | None = None,
             start_ns: int | None = None) -> CycleOutcome:
         """start_ns: when the estimate arrived, so time spent queued counts against the budget."""
-        self.law.update_model(mean_motion_radps)
-        outcome = self.monitor.run_cycle(self.law.to_scaled(state_m_mps), self.law.controller.eval, start_ns)
+        if self.law.update_model(mean_motion_radps) and self.worker is not None:
+            self.worker.replace(self.law.factory)
+        compute = self.worker if self.worker is not None else self.law.controller.eval
+        outcome = self.monitor.run_cycle(self.law.to_scaled(state_m_mps), compute, start_ns)
         saturated = np.clip(outcome.thrust_n, -self.max_abs_thrust_n, self.max_abs_thrust_n)
         if not np.array_equal(saturated, outcome.thrust_n):
             self.saturated_cycles += 1
             outcome.thrust_n = saturated
         return outcome
+
+    def summary(self) -> dict:
+        out = self.monitor.summary() | {"saturated_cycles": self.saturated_cycles,
+                                        "model_updates": self.law.model_updates}
+        if self.worker is not None:
+            out["solver_worker"] = self.worker.stats.summary()
+            out["stress_injected_cycles"] = self.worker.stats.stress_injected     # applied in the worker
+            out["realtime_priority_granted"] = self.realtime_priority_granted
+        return out
+
+    def close(self) -> None:
+        if self.worker is not None:
+            self.worker.close()

@@ -101,6 +101,7 @@ class DeadlineMonitor:
         self.counter = MissCounter()
         self.fallbacks_applied: dict[str, int] = {}
         self._last = _LastGood(command=np.zeros(n_inputs))
+        self.cycle_times_s: list[float] = []
 
     # --- the cycle ---------------------------------------------------------------------------
     def run_cycle(
@@ -113,13 +114,25 @@ class DeadlineMonitor:
         stamp), so time spent queued in the node counts against the budget; default now."""
         start_ns = self.clock_ns() if start_ns is None else start_ns
         cycle_index = self.counter.cycles
-        u, info = compute(x)
-        self.stress.apply(cycle_index)
+        evaluate = getattr(compute, "evaluate", None)
+        if evaluate is not None:
+            # A law in a worker process (WorkerLaw): it answers by the deadline or not at all.
+            deadline_ns = start_ns + int(self.budget_s * 1e9) if self.apply_fallback else None
+            result = evaluate(x, deadline_ns, cycle_index)
+        else:
+            result = compute(x)
+            self.stress.apply(cycle_index)
         cycle_time_s = (self.clock_ns() - start_ns) / 1e9
-        missed = cycle_time_s > self.budget_s
+        if result is None:
+            u, info = None, {"ctrl_feas": False, "status": "NO_RESULT_BY_DEADLINE", "solve_time": cycle_time_s,
+                             "iterations": 0}
+        else:
+            u, info = result
+        missed = result is None or cycle_time_s > self.budget_s
         was_missing = self.counter.consecutive_misses > 0
         self.counter.record(cycle_time_s, missed)
-        if missed and self.apply_fallback:
+        self.cycle_times_s.append(cycle_time_s)
+        if missed and (self.apply_fallback or result is None):
             u, fallback = self._fallback(x)
             self.fallbacks_applied[fallback] = self.fallbacks_applied.get(fallback, 0) + 1
         else:
@@ -146,22 +159,26 @@ class DeadlineMonitor:
             self._last.cycles_since_plan = 0
 
     def _fallback(self, x: np.ndarray) -> tuple[np.ndarray, str]:
-        """The command the configured fallback gives; "shifted_plan" degrades to "hold" when
-        there is no plan or it is used up, and the name returned says which one acted."""
+        """The command the configured fallback gives. "shifted_plan" replays entry k of the last
+        on-time plan after k missed cycles; with no plan, or past its end, LQR acts if a law was
+        given, else "hold". The name returned says which one acted."""
         policy = self.config.fallback
-        if policy == "lqr":
-            return np.asarray(self.lqr_law(x), dtype=float), "lqr"
         if policy == "shifted_plan" and self._last.plan is not None:
             self._last.cycles_since_plan += 1
             if self._last.cycles_since_plan < len(self._last.plan):
                 return self._last.plan[self._last.cycles_since_plan].copy(), "shifted_plan"
+        if policy in ("lqr", "shifted_plan") and self.lqr_law is not None:
+            return np.asarray(self.lqr_law(x), dtype=float), "lqr"
         return self._last.command.copy(), "hold"
 
     # --- for the report ------------------------------------------------------------------
     def summary(self) -> dict:
         """Numbers for metrics.json: cycles, misses, worst cycle time, fallbacks applied."""
+        times = np.asarray(self.cycle_times_s) if self.cycle_times_s else np.zeros(1)
         return {
             **self.counter.summary(),
+            "cycle_time_p50_s": float(np.percentile(times, 50)),
+            "cycle_time_p99_s": float(np.percentile(times, 99)),
             "budget_s": self.budget_s,
             "fallback": self.config.fallback,
             "fallbacks_applied": dict(self.fallbacks_applied),

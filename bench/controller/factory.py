@@ -12,6 +12,7 @@ import numpy as np
 from bench.controller.config import ControllerConfig
 from bench.gnc.cwh import RendezvousParams, Z_INPUTS, Z_STATES, z_subsystem
 from bench.gnc.lqr import LQR, dlqr
+from bench.gnc.lqt import TrackingLQT
 from bench.gnc.mpc import MPC, MPC_TE, MPC_TS, MPC_TS_SC
 from bench.gnc.sets import lqr_max_pi
 from bench.gnc.tube import design_tube_mpc
@@ -40,6 +41,11 @@ def build_controller(cfg: ControllerConfig, params: RendezvousParams):
     model = params.scaled
     if cfg.type == "lqr":
         return LQR(Q, R, model.A, model.B)
+    if cfg.type == "lqt":
+        _, p_inf = dlqr(model.A, model.B, Q, R)
+        # Reference velocities per step -> the scaled velocity unit (km/s from Mm per step).
+        velocity_per_step = model.scaling[3] / model.scaling[0] / params.time_step_s
+        return TrackingLQT(Q, R, p_inf, model.A, model.B, params.n_steps, cfg.lqt_glide_fraction, velocity_per_step)
     if cfg.type == "mpc":
         return MPC(Q, R, cfg.horizon, model)
     if cfg.type == "mpc_te":
@@ -75,7 +81,14 @@ class SplitController:
         u = np.empty(3)
         u[list(IN_PLANE_INPUTS)] = u_in
         u[list(Z_INPUTS)] = u_z
+        plan = None
+        if "u_plan" in info_in and "u_plan" in info_z:      # both solved: the joint plan, shortest horizon
+            rows = min(len(info_in["u_plan"]), len(info_z["u_plan"]))
+            plan = np.empty((rows, 3))
+            plan[:, list(IN_PLANE_INPUTS)] = info_in["u_plan"][:rows]
+            plan[:, list(Z_INPUTS)] = info_z["u_plan"][:rows]
         return u, {
+            **({"u_plan": plan} if plan is not None else {}),
             "ctrl_feas": info_in["ctrl_feas"] and info_z["ctrl_feas"],
             "objective": info_in["objective"] + info_z["objective"],
             "solve_time": time.perf_counter() - start,

@@ -1,6 +1,7 @@
 """The controller process: estimate in, thrust command out, once per plant step, under a deadline.
 
-Every cycle runs under the deadline monitor; a miss applies the configured fallback and is
+Every cycle runs under the deadline monitor (in real-time mode the law runs in a solver worker
+process, bench/runtime/solver_worker.py, so the command leaves by the deadline); a miss applies the configured fallback and is
 published as a DeadlineEvent as it happens. The monitor's summary goes to deadline.json.
 """
 from __future__ import annotations
@@ -43,7 +44,7 @@ def run(ctx: NodeContext) -> int:
             ctx.publish(keys.EVENT_DEADLINE, outcome.deadline_event(hdr))
     if mtq is not None:
         mtq.stop()
-    summary = control.monitor.summary() | {"saturated_cycles": control.saturated_cycles,
-                                           "model_updates": control.law.model_updates}
+    control.close()
+    summary = control.summary()
     (ctx.run_dir / "deadline_controller.json").write_text(json.dumps(summary, indent=2))
     return 0

@@ -6,6 +6,9 @@ estimated mean motion, so the controller's A and B are the estimated ones.
 """
 from __future__ import annotations
 
+from dataclasses import replace
+from functools import partial
+
 import numpy as np
 
 from bench.controller.factory import build_controller
@@ -18,7 +21,11 @@ MODEL_REFRESH_REL = 1e-3
 
 
 class ThrustLaw:
-    def __init__(self, scenario: Scenario):
+    """in_process=False: only the factory is kept (`self.factory`); the law is built elsewhere
+    (a solver worker), so a model update never builds a terminal set in a control cycle."""
+
+    def __init__(self, scenario: Scenario, in_process: bool = True):
+        self.in_process = in_process
         self.config = scenario.controller
         self.model_updates = 0
         self._build(scenario.onboard_params())   # the flight side knows only the believed orbit
@@ -26,7 +33,13 @@ class ThrustLaw:
     def _build(self, params: RendezvousParams) -> None:
         self.params = params
         self.scaled = params.scaled
-        self.controller = build_controller(self.config, params)
+        previous = getattr(self, "controller", None)
+        self.factory = partial(build_controller, self.config, params)
+        self.controller = self.factory() if self.in_process else None
+        if previous is not None and self.controller is not None and hasattr(self.controller, "continue_from"):
+            # A law with a clock and a plan (LQT) keeps them across a model update. (In a solver
+            # worker the law is rebuilt there from the factory and starts its plan afresh.)
+            self.controller.continue_from(previous)
 
     def update_model(self, mean_motion_radps: float | None) -> bool:
         """Rebuild on an estimated mean motion that moved past the dead band; True if rebuilt."""

@@ -6,8 +6,12 @@ inertial) and the gyro bias b_k (rad/s). Factors:
   `AHRSFactor` (R_{k-1}, R_k, b_{k-1}): it fixes all three degrees of freedom of R_k;
 - bias random walk b_k - b_{k-1} ~ N(0, sigma_bw^2 dt): linear, so a whitened JacobianFactor; it
   fixes b_k. With these two, every new key is fully constrained whatever else arrives;
-- `MagFactor1` for the magnetometer against the on-board field model (two degrees of freedom);
-- a Rot3 prior for a star-tracker fix (three degrees of freedom).
+- `MagFactor1` for the magnetometer against the on-board field model (two degrees of freedom),
+  with the believed bias and scale factor; or, with `estimate_magnetometer_calibration`, a factor
+  on the attitude and one constant calibration variable m = [bias (uT); scale - 1] (its timestamp
+  refreshed every update so it never leaves the window), which has a prior from the beliefs;
+- a Rot3 prior for a star-tracker fix (three degrees of freedom), its covariance larger about the
+  star tracker's boresight than across it.
 The smoother starts at the first star-tracker fix (the magnetometer alone cannot fix attitude).
 A failed gtsam update is logged, counted, and the smoother restarts from the last good estimate
 carried forward by the gyro; bad input raises ValueError naming the problem.
@@ -19,9 +23,12 @@ from dataclasses import dataclass
 
 import gtsam
 import numpy as np
+from scipy.linalg import block_diag
+from scipy.stats import chi2
 
 from bench.estimator import factors
 from bench.estimator.config import AttitudeSmootherConfig
+from bench.gnc.quaternion import skew
 
 log = logging.getLogger(__name__)
 
@@ -34,6 +41,9 @@ def bias_key(seq: int) -> int:
     return gtsam.symbol("b", seq)
 
 
+MAGNETOMETER_CALIBRATION_KEY = gtsam.symbol("m", 0)
+
+
 @dataclass(frozen=True)
 class AttitudeEstimateResult:
     seq: int
@@ -44,6 +54,16 @@ class AttitudeEstimateResult:
     gyro_bias_covariance: np.ndarray      # (3, 3), (rad/s)^2
     failed_updates: int
     reinitialised: bool
+    # (6, 6) joint covariance of [attitude error; gyro bias], the cross terms included.
+    joint_covariance: np.ndarray | None = None
+    # The magnetometer calibration, when it is estimated: bias (body frame, T) and scale factor.
+    magnetometer_bias_t: np.ndarray | None = None
+    magnetometer_scale: float | None = None
+    # Normalised innovation squared of this keyframe's measurements (magnetometer and/or star
+    # tracker, stacked) against the gyro prediction, and its degrees of freedom (3 per sensor).
+    nis: float | None = None
+    nis_dof: int = 0
+    measurement_rejected: bool = False    # the innovation gate rejected this keyframe's measurements
 
     @property
     def rotation(self) -> gtsam.Rot3:
@@ -55,9 +75,17 @@ class _GoodEstimate:
     seq: int
     sim_time_s: float
     rotation: gtsam.Rot3
-    rotation_cov: np.ndarray
     bias: np.ndarray
-    bias_cov: np.ndarray
+    covariance: np.ndarray    # joint, [attitude error (body frame); gyro bias; calibration if estimated]
+    calibration: np.ndarray | None = None    # [magnetometer bias uT; scale - 1] when estimated
+
+    @property
+    def rotation_cov(self) -> np.ndarray:
+        return self.covariance[:3, :3]
+
+    @property
+    def bias_cov(self) -> np.ndarray:
+        return self.covariance[3:6, 3:6]
 
 
 class AttitudeSmoother:
@@ -69,10 +97,21 @@ class AttitudeSmoother:
         self._gyro_params = gtsam.PreintegratedRotationParams()
         self._gyro_params.setGyroscopeCovariance(np.eye(3) * config.gyro_noise_density_radps_per_rthz**2)
         self._magnetometer_noise = gtsam.noiseModel.Isotropic.Sigma(3, config.magnetometer_noise_std_t)
-        self._star_tracker_noise = gtsam.noiseModel.Isotropic.Sigma(3, config.star_tracker_noise_std_rad)
+        self._star_tracker_covariance = star_tracker_covariance(
+            config.star_tracker_noise_std_rad, config.star_tracker_boresight_noise_std_rad,
+            config.star_tracker_boresight_body)
+        self._star_tracker_noise = gtsam.noiseModel.Gaussian.Covariance(self._star_tracker_covariance)
+        self._nis: tuple[float | None, int] = (None, 0)
+        self._rejected = False
+        self.rejected_measurements = 0
         self._smoother: gtsam.IncrementalFixedLagSmoother | None = None
         self._last: _GoodEstimate | None = None
         self._preintegrated: gtsam.PreintegratedAhrsMeasurements | None = None
+        self._d_rotation_d_bias = np.zeros((3, 3))
+
+    @property
+    def estimates_magnetometer_calibration(self) -> bool:
+        return self.config.estimate_magnetometer_calibration
 
     def add_gyro(self, omega_radps: np.ndarray, dt_s: float) -> None:
         """One gyro sample (mean body rate over dt_s, bias included). Ignored before the first fix."""
@@ -83,6 +122,11 @@ class AttitudeSmoother:
             raise ValueError(f"gyro dt_s must be positive and finite, got {dt_s}")
         if self._preintegrated is not None:
             self._preintegrated.integrateMeasurement(omega, float(dt_s))
+            # d(deltaRij)/d(bias), as gtsam's PreintegratedRotation keeps it (delRdelBiasOmega,
+            # not exposed in Python): D <- Exp(theta)^T D - Jr(theta) dt, theta = (omega - b) dt.
+            theta = (omega - self._preintegrated.biasHat()) * dt_s
+            increment = gtsam.Rot3.Expmap(theta).matrix()
+            self._d_rotation_d_bias = increment.T @ self._d_rotation_d_bias - gtsam.Rot3.ExpmapDerivative(theta) * dt_s
 
     def update(self, seq: int, sim_time_s: float, magnetometer_t: np.ndarray | None = None,
                field_inertial_t: np.ndarray | None = None,
@@ -90,6 +134,7 @@ class AttitudeSmoother:
         """A keyframe at `seq`: the measured body-frame field with the model's inertial field, and/or
         a star-tracker quaternion (body to inertial). None until the first star-tracker fix."""
         measurement_factors = self._measurement_factors(seq, magnetometer_t, field_inertial_t, star_tracker_wxyz)
+        self._nis, self._rejected = (None, 0), False
         if self._last is None:
             if star_tracker_wxyz is None:
                 return None
@@ -106,6 +151,16 @@ class AttitudeSmoother:
         if self._preintegrated.deltaTij() <= 0.0:
             raise ValueError(f"no gyro samples between keyframe {self._last.seq} and {seq}: "
                              "the new attitude would be unconstrained")
+        self._nis = self._innovation(magnetometer_t, field_inertial_t, star_tracker_wxyz)
+        self._rejected = False
+        nis, dof = self._nis
+        if self.config.gate_probability is not None and nis is not None and nis > chi2.ppf(self.config.gate_probability, dof):
+            # The gyro alone still constrains the new keys (AHRS and bias-walk factors).
+            self._rejected = True
+            self.rejected_measurements += 1
+            log.info("attitude keyframe %d: measurements rejected by the innovation gate (NIS %.1f, %d dof)",
+                     seq, nis, dof)
+            measurement_factors = []
         if self._smoother is None:
             return self._restart(seq, sim_time_s, measurement_factors)
 
@@ -140,12 +195,56 @@ class AttitudeSmoother:
             strength = float(np.linalg.norm(model))
             if strength == 0.0:
                 raise ValueError("field_inertial_t is zero: no direction to compare with")
-            out.append(gtsam.MagFactor1(attitude_key(seq), measured, strength, gtsam.Unit3(model), np.zeros(3),
-                                        self._magnetometer_noise))
+            if self.estimates_magnetometer_calibration:
+                out.append(factors.magnetometer_calibrated_factor(
+                    attitude_key(seq), MAGNETOMETER_CALIBRATION_KEY, measured, model, self._magnetometer_noise))
+            else:
+                out.append(gtsam.MagFactor1(attitude_key(seq), measured, self.config.magnetometer_scale * strength,
+                                            gtsam.Unit3(model), np.asarray(self.config.magnetometer_bias_t, dtype=float),
+                                            self._magnetometer_noise))
         if star_tracker_wxyz is not None:
             out.append(gtsam.PriorFactorRot3(attitude_key(seq), _rotation("star_tracker_wxyz", star_tracker_wxyz),
                                              self._star_tracker_noise))
         return out
+
+    def _innovation(self, magnetometer_t, field_inertial_t, star_tracker_wxyz) -> tuple[float | None, int]:
+        """NIS of this keyframe's measurements against the gyro prediction (first order).
+
+        Errors are in the smoother's variables: attitude e (R_true = R Exp(e)), gyro bias, and the
+        magnetometer calibration when it is estimated; the prediction's joint covariance is the
+        restart's (`_predict_joint_covariance`).
+        """
+        rows, innovations, noise = [], [], []
+        rotation, _ = self._predict_last()
+        covariance = self._predict_joint_covariance()
+        size = covariance.shape[0]
+        if magnetometer_t is not None:
+            field = np.asarray(field_inertial_t, dtype=float)
+            body = rotation.unrotate(field)
+            c = self._last.calibration
+            if c is None:
+                scale, bias_t = self.config.magnetometer_scale, np.asarray(self.config.magnetometer_bias_t, dtype=float)
+            else:
+                scale, bias_t = 1.0 + c[3], c[:3] * factors.MAGNETOMETER_BIAS_UNIT_T
+            h = np.zeros((3, size))
+            h[:, :3] = scale * skew(body)
+            if c is not None:
+                h[:, 6:9] = np.eye(3) * factors.MAGNETOMETER_BIAS_UNIT_T
+                h[:, 9] = body
+            rows.append(h)
+            innovations.append(np.asarray(magnetometer_t, dtype=float) - (scale * body + bias_t))
+            noise.append(np.eye(3) * self.config.magnetometer_noise_std_t**2)
+        if star_tracker_wxyz is not None:
+            h = np.zeros((3, size))
+            h[:, :3] = np.eye(3)
+            rows.append(h)
+            innovations.append(gtsam.Rot3.Logmap(rotation.between(_rotation("star_tracker_wxyz", star_tracker_wxyz))))
+            noise.append(self._star_tracker_covariance)
+        if not rows:
+            return None, 0
+        h, innovation = np.vstack(rows), np.concatenate(innovations)
+        s = h @ covariance @ h.T + block_diag(*noise)
+        return float(innovation @ np.linalg.solve(s, innovation)), innovation.size
 
     def _bias_walk_factor(self, previous: int, seq: int):
         # Isotropic: the whitening is 1 / (sigma_bw sqrt(dt)), no factorisation needed.
@@ -156,8 +255,16 @@ class AttitudeSmoother:
     def _first_prior(self, seq: int, star_tracker_wxyz) -> list:
         # The star-tracker fix (a measurement factor) fixes R_0; the bias needs its prior.
         bias_var = self.config.initial_gyro_bias_std_radps**2
-        return [factors.prior_factor(bias_key(seq), np.zeros(3), np.eye(3) * bias_var)], \
-            _rotation("star_tracker_wxyz", star_tracker_wxyz), np.zeros(3)
+        priors = [factors.prior_factor(bias_key(seq), np.zeros(3), np.eye(3) * bias_var)]
+        calibration = None
+        if self.estimates_magnetometer_calibration:
+            c = self.config
+            calibration = np.array([*np.asarray(c.magnetometer_bias_t) / factors.MAGNETOMETER_BIAS_UNIT_T,
+                                    c.magnetometer_scale - 1.0])
+            sigmas = np.array([c.magnetometer_bias_prior_std_t / factors.MAGNETOMETER_BIAS_UNIT_T] * 3
+                              + [c.magnetometer_scale_prior_std])
+            priors.append(factors.prior_factor(MAGNETOMETER_CALIBRATION_KEY, calibration, np.diag(sigmas**2)))
+        return priors, _rotation("star_tracker_wxyz", star_tracker_wxyz), np.zeros(3), calibration
 
     def _predict_last(self) -> tuple[gtsam.Rot3, np.ndarray]:
         """Last estimate carried across the preintegrated gyro interval (the new keys' guess)."""
@@ -168,39 +275,56 @@ class AttitudeSmoother:
     # ---- starting and restarting --------------------------------------------------------------
 
     def _start(self, seq, sim_time_s, prior, measurement_factors, reinitialised: bool = False):
-        prior_factors, rotation_guess, bias_guess = prior
+        prior_factors, rotation_guess, bias_guess, calibration_guess = prior
         graph = gtsam.NonlinearFactorGraph()
         for f in [*prior_factors, *measurement_factors]:
             graph.add(f)
         guess = gtsam.Values()
         guess.insert(attitude_key(seq), rotation_guess)
         guess.insert(bias_key(seq), np.asarray(bias_guess, dtype=float))
+        if calibration_guess is not None:
+            guess.insert(MAGNETOMETER_CALIBRATION_KEY, np.asarray(calibration_guess, dtype=float))
         smoother = gtsam.IncrementalFixedLagSmoother(self.config.lag_s, self._isam_params())
         result = self._apply(smoother, seq, sim_time_s, graph, guess, reinitialised)
         self._smoother = smoother
         return result
 
+    def _predict_joint_covariance(self) -> np.ndarray:
+        """The last joint covariance carried across the preintegrated gyro interval.
+
+        With R_true = R Exp(e) and the bias error db: e_k = dR' e_{k-1} + D db + n, db_k = db + w,
+        where dR is the preintegrated rotation (the old body frame's error seen in the new body
+        frame), D = d dR / d bias and n the preintegration noise (covariance preintMeasCov).
+        """
+        pim = self._preintegrated
+        size = self._last.covariance.shape[0]      # the calibration, if estimated, is constant
+        transition = np.eye(size)
+        transition[:3, :3] = pim.deltaRij().matrix().T
+        transition[:3, 3:6] = self._d_rotation_d_bias
+        noise = np.zeros((size, size))
+        noise[:3, :3] = pim.preintMeasCov()
+        noise[3:6, 3:6] = np.eye(3) * self.config.gyro_bias_random_walk_radps2_per_rthz**2 * pim.deltaTij()
+        cov = transition @ self._last.covariance @ transition.T + noise
+        return 0.5 * (cov + cov.T)
+
     def _restart(self, seq, sim_time_s, measurement_factors):
         """New smoother at `seq` with the last good estimate, carried by the gyro, as its prior."""
-        last, pim = self._last, self._preintegrated
         rotation, bias = self._predict_last()
-        # Attitude uncertainty grows by the preintegration noise and by the bias uncertainty
-        # integrated over the interval (first order).
-        dt_s = pim.deltaTij()
-        rotation_cov = last.rotation_cov + pim.preintMeasCov() + last.bias_cov * dt_s**2
-        bias_cov = last.bias_cov + np.eye(3) * self.config.gyro_bias_random_walk_radps2_per_rthz**2 * dt_s
-        prior_factors = [
-            gtsam.PriorFactorRot3(attitude_key(seq), rotation, gtsam.noiseModel.Gaussian.Covariance(rotation_cov)),
-            factors.prior_factor(bias_key(seq), bias, bias_cov),
-        ]
+        calibration = self._last.calibration
+        covariance = self._predict_joint_covariance()
+        variables = [(attitude_key(seq), rotation), (bias_key(seq), bias)]
+        if calibration is not None:
+            variables.append((MAGNETOMETER_CALIBRATION_KEY, calibration))
+        prior = factors.joint_prior_factor(variables, covariance)
         try:
-            return self._start(seq, sim_time_s, (prior_factors, rotation, bias), measurement_factors, reinitialised=True)
+            return self._start(seq, sim_time_s, ([prior], rotation, bias, calibration), measurement_factors,
+                               reinitialised=True)
         except Exception as exc:
             self.failed_updates += 1
             log.warning("attitude smoother restart at keyframe %d failed (%d so far): %s; "
                         "publishing the gyro prediction", seq, self.failed_updates, exc)
             self._smoother = None
-            self._last = _GoodEstimate(seq, sim_time_s, rotation, rotation_cov, bias, bias_cov)
+            self._last = _GoodEstimate(seq, sim_time_s, rotation, bias, covariance, calibration)
             self._reset_preintegration()
             return self._result(self._last, reinitialised=True)
 
@@ -219,14 +343,24 @@ class AttitudeSmoother:
         stamps = gtsam.FixedLagSmootherKeyTimestampMap()
         stamps.insert((attitude_key(seq), float(sim_time_s)))
         stamps.insert((bias_key(seq), float(sim_time_s)))
+        if self.estimates_magnetometer_calibration:
+            stamps.insert((MAGNETOMETER_CALIBRATION_KEY, float(sim_time_s)))   # keep it in the window
         smoother.update(graph, guess, stamps)
-        rotation = smoother.calculateEstimateRot3(attitude_key(seq))
-        bias = np.asarray(smoother.calculateEstimateVector(bias_key(seq)), dtype=float)
-        rotation_cov = np.asarray(smoother.marginalCovariance(attitude_key(seq)), dtype=float)
-        bias_cov = np.asarray(smoother.marginalCovariance(bias_key(seq)), dtype=float)
-        if not all(np.all(np.isfinite(a)) for a in (rotation.matrix(), bias, rotation_cov, bias_cov)):
+        r_key, b_key = attitude_key(seq), bias_key(seq)
+        rotation = smoother.calculateEstimateRot3(r_key)
+        bias = np.asarray(smoother.calculateEstimateVector(b_key), dtype=float)
+        # Joint, not two marginals: a restart needs the attitude / bias (/ calibration) correlation.
+        keys = [r_key, b_key]
+        calibration = None
+        if self.estimates_magnetometer_calibration:
+            keys.append(MAGNETOMETER_CALIBRATION_KEY)
+            calibration = np.asarray(smoother.calculateEstimateVector(MAGNETOMETER_CALIBRATION_KEY), dtype=float)
+        # fullMatrix() is in the query keys' order (checked against its blocks, tests).
+        covariance = np.asarray(smoother.getISAM2().jointMarginalCovariance(keys).fullMatrix())
+        if not all(np.all(np.isfinite(a)) for a in (rotation.matrix(), bias, covariance)):
             raise RuntimeError(f"non-finite attitude estimate at keyframe {seq}")
-        self._last = _GoodEstimate(seq, float(sim_time_s), rotation, rotation_cov, bias, bias_cov)
+        self._last = _GoodEstimate(seq, float(sim_time_s), rotation, bias, 0.5 * (covariance + covariance.T),
+                                   calibration)
         self._reset_preintegration()
         return self._result(self._last, reinitialised)
 
@@ -234,6 +368,7 @@ class AttitudeSmoother:
         # Preintegrate about the newest bias estimate: the factor's first-order bias correction
         # is then applied to small deviations only.
         self._preintegrated = gtsam.PreintegratedAhrsMeasurements(self._gyro_params, self._last.bias)
+        self._d_rotation_d_bias = np.zeros((3, 3))
 
     def _result(self, good: _GoodEstimate, reinitialised: bool) -> AttitudeEstimateResult:
         q = good.rotation.toQuaternion()
@@ -244,6 +379,10 @@ class AttitudeSmoother:
             gyro_bias_radps=good.bias.copy(),
             gyro_bias_covariance=0.5 * (good.bias_cov + good.bias_cov.T),
             failed_updates=self.failed_updates, reinitialised=reinitialised,
+            joint_covariance=good.covariance[:6, :6].copy(),
+            magnetometer_bias_t=None if good.calibration is None else good.calibration[:3] * factors.MAGNETOMETER_BIAS_UNIT_T,
+            magnetometer_scale=None if good.calibration is None else 1.0 + float(good.calibration[3]),
+            nis=self._nis[0], nis_dof=self._nis[1], measurement_rejected=self._rejected,
         )
 
 
@@ -262,3 +401,16 @@ def _rotation(name: str, q_wxyz) -> gtsam.Rot3:
     if abs(norm - 1.0) > 1e-3:
         raise ValueError(f"{name} must be a unit quaternion, got norm {norm:.6f}")
     return gtsam.Rot3.Quaternion(*(q / norm))
+
+
+def star_tracker_covariance(cross_std_rad: float, boresight_std_rad: float, boresight_body) -> np.ndarray:
+    """Covariance of a star tracker's body-frame attitude error: sigma^2 across the boresight
+    axis a, sigma_b^2 about it: sigma^2 (I - a a') + sigma_b^2 a a'."""
+    axis = np.asarray(boresight_body, dtype=float)
+    norm = np.linalg.norm(axis)
+    if not (np.all(np.isfinite(axis)) and norm > 0):
+        raise ValueError(f"star_tracker_boresight_body must be a non-zero vector, got {boresight_body!r}")
+    axis = axis / norm
+    along = np.outer(axis, axis)
+    return cross_std_rad**2 * (np.eye(3) - along) + boresight_std_rad**2 * along
+

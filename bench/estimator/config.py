@@ -13,31 +13,46 @@ import msgspec
 Positive = Annotated[float, msgspec.Meta(gt=0)]
 NonNegative = Annotated[float, msgspec.Meta(ge=0)]
 PositiveInt = Annotated[int, msgspec.Meta(ge=1)]
+Probability = Annotated[float, msgspec.Meta(gt=0, lt=1)]
+Vec3 = Annotated[list[float], msgspec.Meta(min_length=3, max_length=3)]
 
 
 class TranslationSmootherConfig(msgspec.Struct, forbid_unknown_fields=True):
     # Fixed-lag window in plant steps: the smoother keeps the states of the last lag_steps steps.
     lag_steps: PositiveInt = 20
-    # Spectral density of a white acceleration the smoother assumes acts on the chaser (Van Loan
-    # discretisation over each step). The plant's linear CWH has none; a small value keeps the
-    # estimator honest about unmodelled dynamics. 1e-9 m^2/s^3 is ~0.8 mm/s of velocity random
-    # walk per 600 s step.
-    process_noise_psd_m2ps3: Positive = 1.0e-9
+    # Spectral density of a white acceleration the smoother believes acts on the chaser (Van Loan
+    # discretisation over each step). None: the flight side's belief ([onboard]), whose default
+    # is none, as the linear CWH plant has none (an assumed 1e-9 m^2/s^3, ~0.8 mm/s of velocity
+    # random walk per 600 s step, made the in-loop NEES 3.2 instead of 6).
+    process_noise_psd_m2ps3: NonNegative | None = None
     # Prior on the initial relative velocity (the first position fix gives the position).
     initial_velocity_std_mps: Positive = 10.0
-    # Relative-position noise assumed when a measurement does not carry its own noise level.
-    position_noise_std_m: Positive = 10.0
+    # Relative-position noise the estimator believes; None: [onboard]'s belief, else the plant's
+    # sensor noise (a well-tuned flight side). The noise level a message carries is never used.
+    position_noise_std_m: Positive | None = None
     # Use one relative-position fix every this many plant steps (a slower sensor).
     measurement_every_steps: PositiveInt = 1
     # "relpos": Cartesian relative position; "range_bearing": range, azimuth and elevation derived
     # from it (a radar or camera-like sensor), with the noise levels below.
     sensor: Literal["relpos", "range_bearing"] = "relpos"
-    range_noise_std_m: Positive = 10.0
-    bearing_noise_std_rad: Positive = 1.0e-4
+    # "prediction": each range/bearing fix is one linear factor, linearised (iterated-EKF) about
+    # the state's prediction and never relinearised (fast: no Python callback per update);
+    # "every_update": gtsam's nonlinear factor, relinearised while the state moves.
+    range_bearing_linearisation: Literal["prediction", "every_update"] = "prediction"
+    # Believed range/bearing noise; None: [onboard]'s belief, else the plant's sensor's.
+    range_noise_std_m: Positive | None = None
+    bearing_noise_std_rad: Positive | None = None
     # Uncertain target orbit (seed 001, third case): estimate the mean motion jointly with the
     # state, starting from the believed value ([onboard]) with this relative 1-sigma.
     estimate_mean_motion: bool = False
     mean_motion_prior_rel_std: Positive = 0.03
+    # Innovation gate: a measurement whose NIS against the prediction exceeds the chi-square
+    # quantile of this probability (3 degrees of freedom) is not used. None: no gate.
+    gate_probability: Probability | None = None
+    # Robust measurement noise (gtsam's m-estimators): "huber" or "cauchy" down-weight residuals
+    # beyond robust_threshold_sigma (norm of the whitened residual); "none" is least squares.
+    robust_loss: Literal["none", "huber", "cauchy"] = "none"
+    robust_threshold_sigma: Positive = 3.0
 
 
 class AttitudeSmootherConfig(msgspec.Struct, forbid_unknown_fields=True):
@@ -49,7 +64,21 @@ class AttitudeSmootherConfig(msgspec.Struct, forbid_unknown_fields=True):
     gyro_bias_random_walk_radps2_per_rthz: Positive = 1.0e-6
     initial_gyro_bias_std_radps: Positive = 1.0e-3
     magnetometer_noise_std_t: Positive = 1.0e-7
+    # Magnetometer calibration believed: measured = scale * B_body + bias + noise. With
+    # estimate_magnetometer_calibration the bias and scale are estimated (one constant variable)
+    # from these as the prior mean with the prior sigmas below.
+    magnetometer_bias_t: Vec3 = msgspec.field(default_factory=lambda: [0.0, 0.0, 0.0])
+    magnetometer_scale: Positive = 1.0
+    estimate_magnetometer_calibration: bool = False
+    magnetometer_bias_prior_std_t: Positive = 5.0e-6
+    magnetometer_scale_prior_std: Positive = 0.02
+    # Star tracker: error across the boresight (per axis) and about it, boresight in body axes.
     star_tracker_noise_std_rad: Positive = 1.0e-4
+    star_tracker_boresight_noise_std_rad: Positive = 8.0e-4
+    star_tracker_boresight_body: Vec3 = msgspec.field(default_factory=lambda: [0.0, 0.0, 1.0])
+    # Innovation gate on each keyframe's measurements together (chi-square quantile of this
+    # probability, 3 dof per sensor); None: no gate.
+    gate_probability: Probability | None = None
 
 
 class EstimatorConfig(msgspec.Struct, forbid_unknown_fields=True):

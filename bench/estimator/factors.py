@@ -14,6 +14,8 @@ import gtsam
 import numpy as np
 
 from bench.estimator.motion_model import CwhMotionModel, DiscreteModel
+from bench.gnc.quaternion import skew
+from bench.gnc.range_bearing import range_bearing, range_bearing_jacobian, wrap_angle_rad  # noqa: F401 (re-exported)
 
 
 def whitening_matrix(covariance: np.ndarray) -> np.ndarray:
@@ -46,6 +48,32 @@ def linear_factor(terms: Sequence[tuple[int, np.ndarray]], rhs: np.ndarray, cova
         zero_point.insert(key, np.zeros(matrix.shape[1]))
     jacobian = gtsam.JacobianFactor(*args, whiten @ np.asarray(rhs, dtype=float), unit)
     return gtsam.LinearContainerFactor(jacobian, zero_point)
+
+
+def joint_prior_factor(keys_and_means: Sequence[tuple[int, object]], covariance: np.ndarray) -> gtsam.LinearContainerFactor:
+    """A Gaussian prior on several variables together (vectors or Rot3), cross-covariances kept.
+
+    The error of each variable is its local coordinates at the mean (for a Rot3 R0: Log(R0' R),
+    the body-frame error), so this is the first-order prior gtsam's own marginal factors are.
+    """
+    whiten = whitening_matrix(covariance)
+    point = gtsam.Values()
+    args: list = []
+    column = 0
+    for key, mean in keys_and_means:
+        if isinstance(mean, gtsam.Rot3):
+            point.insert(key, mean)
+            dim = 3
+        else:
+            mean = np.asarray(mean, dtype=float)
+            point.insert(key, mean)
+            dim = mean.size
+        args += [key, whiten[:, column:column + dim]]
+        column += dim
+    if column != whiten.shape[0]:
+        raise ValueError(f"covariance is {whiten.shape[0]} square but the variables have {column} dimensions")
+    jacobian = gtsam.JacobianFactor(*args, np.zeros(column), gtsam.noiseModel.Unit.Create(column))
+    return gtsam.LinearContainerFactor(jacobian, point)
 
 
 def prior_factor(key: int, mean: np.ndarray, covariance: np.ndarray) -> gtsam.LinearContainerFactor:
@@ -95,39 +123,66 @@ def cwh_motion_factor_unknown_mean_motion(
     return gtsam.CustomFactor(unit, [previous_key, key, mean_motion_key], error)
 
 
-def range_bearing(position_m: np.ndarray) -> np.ndarray:
-    """[range m, azimuth rad (atan2(y, x)), elevation rad (asin(z / range))] of a relative position."""
-    x, y, z = position_m
-    rng = float(np.linalg.norm(position_m))
-    return np.array([rng, np.arctan2(y, x), np.arcsin(z / rng)])
+def position_factor(key: int, measured_m: np.ndarray, noise: gtsam.noiseModel.Base) -> gtsam.CustomFactor:
+    """The relative position (the state's first three) with any gtsam noise model, robust ones too.
+
+    The plain Gaussian case is cheaper as `linear_factor`; gtsam's m-estimators reweight only
+    noise-model factors, hence this one (one Python callback per linearisation).
+    """
+    measured_m = np.asarray(measured_m, dtype=float).copy()
+    jacobian = np.hstack([np.eye(3), np.zeros((3, 3))])
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians) -> np.ndarray:
+        if jacobians is not None:
+            jacobians[0] = jacobian
+        return values.atVector(key)[:3] - measured_m
+
+    return gtsam.CustomFactor(noise, [key], error)
 
 
-def range_bearing_jacobian(position_m: np.ndarray) -> np.ndarray:
-    """d[range, azimuth, elevation]/d position, 3x3."""
-    x, y, z = position_m
-    rho2 = x * x + y * y
-    rho = np.sqrt(rho2)
-    r2 = rho2 + z * z
-    r = np.sqrt(r2)
-    return np.array([
-        [x / r, y / r, z / r],
-        [-y / rho2, x / rho2, 0.0],
-        [-x * z / (r2 * rho), -y * z / (r2 * rho), rho / r2],
-    ])
+def range_bearing_factor(key: int, measured: np.ndarray, noise: gtsam.noiseModel.Base) -> gtsam.CustomFactor:
+    """Range, azimuth, elevation of the chaser's relative position (the state's first three).
 
-
-def range_bearing_factor(key: int, measured: np.ndarray, range_std_m: float,
-                         bearing_std_rad: float) -> gtsam.CustomFactor:
-    """Range, azimuth, elevation of the chaser's relative position (the state's first three)."""
+    noise: sigmas [range m, bearing rad, bearing rad], possibly inside a gtsam robust model.
+    """
     measured = np.asarray(measured, dtype=float).copy()
-    sigmas = np.array([range_std_m, bearing_std_rad, bearing_std_rad])
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians) -> np.ndarray:
         position = values.atVector(key)[:3]
         residual = range_bearing(position) - measured
-        residual[1] = (residual[1] + np.pi) % (2.0 * np.pi) - np.pi    # azimuth wraps
+        residual[1] = wrap_angle_rad(residual[1])    # azimuth wraps
         if jacobians is not None:
             jacobians[0] = np.hstack([range_bearing_jacobian(position), np.zeros((3, 3))])
         return residual
 
-    return gtsam.CustomFactor(gtsam.noiseModel.Diagonal.Sigmas(sigmas), [key], error)
+    return gtsam.CustomFactor(noise, [key], error)
+
+
+# The calibration variable holds the magnetometer bias in microtesla, not tesla: whitened by a
+# 1e-7 T noise, a bias column in tesla would be 1e7 against ~300 for the attitude columns, a
+# needlessly ill-conditioned system; in microtesla it is 10.
+MAGNETOMETER_BIAS_UNIT_T = 1.0e-6
+
+
+def magnetometer_calibrated_factor(rotation_key: int, calibration_key: int, measured_t: np.ndarray,
+                                   field_inertial_t: np.ndarray, noise: gtsam.noiseModel.Base) -> gtsam.CustomFactor:
+    """measured = (1 + c[3]) R' B_inertial + c[:3] * 1 uT + noise, with R and c = [bias uT; scale - 1] variables.
+
+    gtsam's MagFactor1 is this model with the bias and scale known; MagFactor2/3 estimate them for
+    a known rotation (and are not in gtsam's Python wrapper). Here both are unknown. Jacobian in
+    R's right perturbation R Exp(theta): (R Exp(theta))' B = R' B + [R' B]x theta.
+    """
+    measured_t = np.asarray(measured_t, dtype=float).copy()
+    field_inertial_t = np.asarray(field_inertial_t, dtype=float).copy()
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians) -> np.ndarray:
+        calibration = values.atVector(calibration_key)
+        body = values.atRot3(rotation_key).unrotate(field_inertial_t)
+        scale = 1.0 + calibration[3]
+        if jacobians is not None:
+            jacobians[0] = scale * skew(body)
+            jacobians[1] = np.hstack([np.eye(3) * MAGNETOMETER_BIAS_UNIT_T, body.reshape(3, 1)])
+        return scale * body + calibration[:3] * MAGNETOMETER_BIAS_UNIT_T - measured_t
+
+    return gtsam.CustomFactor(noise, [rotation_key, calibration_key], error)
+

@@ -2,6 +2,11 @@
 
 truth mode: ground truth passed through. smoother mode: the relative-position fix of step k plus
 the thrust the controller commanded at step k-1 (what the flight side knows it asked for).
+
+Reads: sense/relpos (RelativePosition) or sense/range_bearing (RangeBearing), whichever sensor
+the smoother uses, and command/thrust (ThrustCommand); truth (TruthState) in truth mode. Writes: estimate/translation (TranslationEstimate, with the measurement's NIS and
+whether the innovation gate rejected it). A fix that arrives after a later one (late) is applied
+at its sensing step inside the smoother's window and published with the next step's estimate.
 """
 from __future__ import annotations
 
@@ -12,7 +17,7 @@ import time
 import numpy as np
 
 from bench.bus import keys
-from bench.bus.schemas import RelativePosition, ThrustCommand, TranslationEstimate, TruthState
+from bench.bus.schemas import RangeBearing, RelativePosition, ThrustCommand, TranslationEstimate, TruthState
 from bench.estimator.frontend import StateEstimator
 from bench.runtime.node import NodeContext
 
@@ -54,6 +59,9 @@ def run(ctx: NodeContext) -> int:
     if estimator.needs_truth:
         samples = ctx.subscribe_queue(keys.TRUTH, TruthState)
         history = None
+    elif estimator.sensor == "range_bearing":
+        samples = ctx.subscribe_queue(keys.SENSE_RANGE_BEARING, RangeBearing)
+        history = CommandHistory(ctx.subscribe_queue(keys.COMMAND_THRUST, ThrustCommand))
     else:
         samples = ctx.subscribe_queue(keys.SENSE_RELPOS, RelativePosition)
         history = CommandHistory(ctx.subscribe_queue(keys.COMMAND_THRUST, ThrustCommand))
@@ -65,15 +73,21 @@ def run(ctx: NodeContext) -> int:
         if history is None:
             estimate = estimator.step(k, hdr.sim_time_s, truth_m_mps=sample.state_m_mps)
         else:
+            measured = (dict(range_bearing=[sample.range_m, sample.azimuth_rad, sample.elevation_rad])
+                        if isinstance(sample, RangeBearing) else dict(position_m=sample.position_m))
+            if estimator.is_late(k):
+                # Applied at its sensing step; the controller gets it in the next step's estimate.
+                estimator.step(k, hdr.sim_time_s, **measured)
+                continue
             thrust_n = history.thrust_for(k - 1, command_wait_s) if k > 0 else np.zeros(3)
-            estimate = estimator.step(k, hdr.sim_time_s, position_m=sample.position_m,
-                                      position_noise_std_m=sample.noise_std_m, thrust_commanded_n=thrust_n)
+            estimate = estimator.step(k, hdr.sim_time_s, thrust_commanded_n=thrust_n, **measured)
         if estimate is None:
             continue
         hdr = hdr.stamped("estimated", time.monotonic_ns())
         covariance = None if estimate.covariance is None else estimate.covariance.ravel().tolist()
         ctx.publish(keys.ESTIMATE_TRANSLATION, TranslationEstimate(
-            hdr, estimate.state_m_mps.tolist(), covariance, estimate.mean_motion_radps))
+            hdr, estimate.state_m_mps.tolist(), covariance, estimate.mean_motion_radps,
+            estimate.nis, estimate.nis_dof, estimate.measurement_rejected))
     if estimator.failed_updates:
         ctx.log.warning("smoother updates failed and were re-initialised: %d", estimator.failed_updates)
     return 0

@@ -20,10 +20,13 @@ from bench.gnc.lqr import dlqr
 from bench.gnc.qp import DenseBoxQP, QPSolution
 from bench.gnc.sets import Polytope
 from bench.gnc.weights import check_weights
+from bench.gnc.kkt import ActiveSet, PRIMAL_TOL
 
 # The solver meets constraints to its tolerance (1e-7), so a closed loop riding a state constraint
 # lands a hair outside it; the i = 0 check allows that much (scaled units: 1e-6 Mm = 1 m).
 INITIAL_STATE_TOL = 1e-6
+# Key of `info` with the planned inputs (N x nu, N): the deadline's "shifted plan" fallback.
+PLAN_INFO_KEY = "u_plan"
 
 
 @dataclass(frozen=True)
@@ -60,6 +63,7 @@ class CondensedQP:
     u_box: np.ndarray
     inputs: slice             # where u_0 .. u_{N-1} sit in y
     initial_state: slice | None   # where the nominal z_0 sits in y (tube MPC only)
+    slacks: slice | None = None   # eps and t of soft constraints (zero when nothing is violated)
 
 
 def two_sided(C: np.ndarray, c0: np.ndarray, D: np.ndarray):
@@ -223,7 +227,8 @@ def condensed_qp(model, Q: np.ndarray, R: np.ndarray, horizon: int, *,
         C, l0, Dl, u0, Du = None, np.zeros(0), np.zeros((0, nx)), np.zeros(0), np.zeros((0, nx))
     return CondensedQP(H=0.5 * (Hess + Hess.T), G=G, g0=g0, W=W, A=A_eq, E=E_eq, C=C,
                        l0=l0, Dl=Dl, u0=u0, Du=Du, l_box=l_box, u_box=u_box, inputs=sl_u,
-                       initial_state=sl_z0 if tube is not None else None)
+                       initial_state=sl_z0 if tube is not None else None,
+                       slacks=slice(sl_eps.start, n) if soft is not None else None)
 
 
 def check_horizon(horizon) -> int:
@@ -278,6 +283,8 @@ class CondensedMPC:
         self._splits = (n_g, n_g + n_eq, n_g + n_eq + d.l0.size)
         self._check_initial_state = d.initial_state is None and formulation.get("soft") is None
         self.last_solution: QPSolution | None = None
+        self.last_y: np.ndarray | None = None
+        self._build_explicit_law()
 
     def safe_action(self, x: np.ndarray) -> np.ndarray:
         return np.clip(self.K_lqr @ x, self._u_lo, self._u_hi)
@@ -296,21 +303,71 @@ class CondensedMPC:
         if self._check_initial_state and np.any(self.model.H_x @ x > self.model.h_x + INITIAL_STATE_TOL):
             return self._failed(self.safe_action(x), "INITIAL_STATE_VIOLATES_CONSTRAINTS", 0, start)
         d = self.qp_data
-        vectors = self._vector_map @ x + self._vector_offset
-        i_b, i_l, i_u = self._splits
-        sol = self.solver.solve(vectors[:i_b], vectors[i_b:i_l], vectors[i_l:i_u], vectors[i_u:])
-        self.last_solution = sol
-        if not sol.solved:
-            return self._failed(self.safe_action(x), sol.status, sol.iterations, start)
-        u = self._input_from(sol.y, x)
+        y = self._explicit_y @ x + self._explicit_y0
+        if np.all(self._explicit_check @ x <= self._explicit_bound):
+            # The nominal active set's solution (unconstrained, slacks at zero) is feasible with
+            # multipliers of the right signs: it is the optimum, no iterative solve needed.
+            objective = float(0.5 * y @ d.H @ y + (d.G @ x + d.g0) @ y)
+            iterations, status, path = 0, "SOLVED", "explicit"
+        else:
+            vectors = self._vector_map @ x + self._vector_offset
+            i_b, i_l, i_u = self._splits
+            sol = self.solver.solve(vectors[:i_b], vectors[i_b:i_l], vectors[i_l:i_u], vectors[i_u:])
+            self.last_solution = sol
+            if not sol.solved:
+                return self._failed(self.safe_action(x), sol.status, sol.iterations, start)
+            y, objective, iterations, status, path = sol.y, sol.objective, sol.iterations, sol.status, sol.path
+        self.last_y = y
+        u = self._input_from(y, x)
         elapsed = time.perf_counter() - start
         return u, {
             "ctrl_feas": True,
-            "objective": sol.objective + float(x @ d.W @ x),
+            "objective": objective + float(x @ d.W @ x),
             "solve_time": elapsed,
-            "iterations": sol.iterations,
-            "status": sol.status,
+            "iterations": iterations,
+            "status": status,
+            "path": path,
+            PLAN_INFO_KEY: self._plan_from(y, x),
         }
+
+    def _plan_from(self, y: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """The planned inputs u_0 .. u_{N-1} (N x nu), N: the deadline's shifted-plan fallback."""
+        return y[self.qp_data.inputs].reshape(self.horizon, self.model.nu)
+
+    def _nominal_active_set(self) -> ActiveSet:
+        d = self.qp_data
+        active = ActiveSet.empty(0 if d.C is None else d.C.shape[0], d.H.shape[0])
+        if d.slacks is not None:
+            active.box_lower[d.slacks] = True          # eps = 0, t = 0: no constraint softened
+        return active
+
+    def _build_explicit_law(self) -> None:
+        """y(x) = Ky x + y0 on the nominal active set, and its KKT certificate as rows
+        check x <= bound: both affine in x, so evaluated exactly at x = 0 and x = e_i."""
+        d, nx = self.qp_data, self.model.nx
+        active = self._nominal_active_set()
+        i_b, i_l, i_u = self._splits
+
+        def terms(x):
+            v = self._vector_map @ x + self._vector_offset
+            g, b, l, u = v[:i_b], v[i_b:i_l], v[i_l:i_u], v[i_u:]
+            p = self.solver.kkt.solve_on_active_set(g, b, l, u, active)
+            if p is None:
+                raise ValueError("the MPC's nominal active set has a singular KKT matrix")
+            cy = (d.C @ p.y) if d.C is not None else np.zeros(0)
+            # every row must be <= 0 for the certificate
+            rows = np.concatenate([cy - u, l - cy, p.y - d.u_box, d.l_box - p.y,
+                                   p.z_box[active.box_lower]])
+            return p.y, rows
+
+        y0, r0 = terms(np.zeros(nx))
+        cols = [terms(e) for e in np.eye(nx)]
+        self._explicit_y0 = y0
+        self._explicit_y = np.column_stack([c[0] - y0 for c in cols])
+        finite = np.isfinite(r0)                # rows against an infinite bound never bind
+        check = np.column_stack([c[1][finite] - r0[finite] for c in cols])
+        self._explicit_check = check
+        self._explicit_bound = -r0[finite] + PRIMAL_TOL * (1.0 + np.abs(r0[finite]))
 
     def _failed(self, u, status, iterations, start) -> tuple[np.ndarray, dict]:
         return u, {

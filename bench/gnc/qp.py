@@ -21,6 +21,8 @@ from dataclasses import dataclass
 import numpy as np
 import proxsuite
 
+from bench.gnc.kkt import ActiveSet, ActiveSetQP
+
 SOLVED = proxsuite.proxqp.QPSolverOutput.PROXQP_SOLVED
 CONFIRM_COLD = (proxsuite.proxqp.QPSolverOutput.PROXQP_PRIMAL_INFEASIBLE,
                 proxsuite.proxqp.QPSolverOutput.PROXQP_DUAL_INFEASIBLE)
@@ -38,6 +40,11 @@ DEFAULT_MAX_ITER_IN = 100
 # proxsuite's default 1e-4 for the infeasibility certificates declared feasible warm-started MPC
 # problems infeasible after one iteration (constraints here are ~0.1 in scaled units).
 INFEASIBILITY_EPS = 1e-9
+# Active-set corrections tried from a guess (last cycle's, or proxsuite's) before giving up on it:
+# between consecutive closed-loop cycles the active set changes by one or two bounds.
+ACTIVE_SET_CHANGES = 4
+# ... and when proxsuite has failed from warm and cold starts.
+ACTIVE_SET_WALK = 200
 
 
 @dataclass
@@ -47,6 +54,13 @@ class QPSolution:
     status: str
     iterations: int
     objective: float          # 1/2 y'Hy + g'y, without the caller's constant
+    # The KKT conditions were checked on y (bench.gnc.kkt): y is the optimum to rounding.
+    certified: bool = False
+    # How y was found: "active_set" (last cycle's active set, certified, no iterative solve),
+    # "proxsuite" (warm start, then exact on its active set), "proxsuite_cold" (the warm-started
+    # result failed the certificate; cold solve), "proxsuite_uncertified" (proxsuite says solved,
+    # no certificate could be had), "failed".
+    path: str = "proxsuite"
 
 
 class DenseBoxQP:
@@ -66,6 +80,9 @@ class DenseBoxQP:
         self._precondition = precondition
         self._duality_gap_eps = duality_gap_eps
         self._infeasibility_eps = infeasibility_eps
+        self.kkt = ActiveSetQP(H, A, C, self._l_box, self._u_box)
+        self._last_active: ActiveSet | None = None
+        self.paths: dict[str, int] = {}
         self._fresh(np.zeros(self.n), np.zeros(self.n_eq), np.full(self.n_in, -np.inf), np.full(self.n_in, np.inf))
 
     def _fresh(self, g: np.ndarray, b: np.ndarray, l: np.ndarray, u: np.ndarray) -> None:
@@ -96,8 +113,58 @@ class DenseBoxQP:
     def _in_or_none(self, v):
         return v if self.n_in else None
 
-    def solve(self, g: np.ndarray, b: np.ndarray, l: np.ndarray, u: np.ndarray) -> QPSolution:
-        if self._needs_fresh:
+    def solve(self, g: np.ndarray, b: np.ndarray, l: np.ndarray, u: np.ndarray,
+              active_guess: ActiveSet | None = None) -> QPSolution:
+        """The optimum for vectors (g, b, l, u). First the exact solution on `active_guess` (default
+        the last certified active set); proxsuite only when that fails its KKT certificate, and
+        proxsuite's answer is made exact on its own active set and certified in turn."""
+        guess = active_guess if active_guess is not None else self._last_active
+        if guess is not None:
+            point = self.kkt.solve_and_certify(g, b, l, u, guess, max_changes=ACTIVE_SET_CHANGES)
+            if point is not None:
+                return self._certified(point, g, "active_set", 0)
+        # proxsuite's iterate seeds the guess even when it stopped on its iteration limit: the
+        # certificate, not proxsuite's status, decides.
+        sol = self._proxsuite(g, b, l, u, cold=False)
+        point = self._polish(g, b, l, u)
+        if point is not None:
+            return self._certified(point, g, "proxsuite", sol.iterations)
+        # A warm start that fails the certificate: the multipliers carried over from the last
+        # cycle were wrong (see bench.gnc.kkt). Solve from a fresh init and certify again.
+        cold = self._proxsuite(g, b, l, u, cold=True)
+        point = self._polish(g, b, l, u)
+        if point is not None:
+            return self._certified(point, g, "proxsuite_cold", sol.iterations + cold.iterations)
+        # proxsuite failed from both starts (on the tube MPC: false infeasibility certificates,
+        # 6 cycles in 360). Walk the active set from the last certified one, as an active-set
+        # solver would; the certificate still decides.
+        if guess is not None:
+            point = self.kkt.solve_and_certify(g, b, l, u, guess, max_changes=ACTIVE_SET_WALK)
+            if point is not None:
+                return self._certified(point, g, "active_set_walk", sol.iterations + cold.iterations)
+        self._last_active = None
+        return self._count(cold)
+
+    def _polish(self, g, b, l, u):
+        res = self._qp.results
+        if not np.all(np.isfinite(res.x)):
+            return None
+        z = np.asarray(res.z)
+        guess = self.kkt.guess_active_set(res.x, z[:self.n_in], z[self.n_in:], l, u)
+        return self.kkt.solve_and_certify(g, b, l, u, guess, max_changes=ACTIVE_SET_CHANGES)
+
+    def _certified(self, point, g, path: str, iterations: int) -> QPSolution:
+        self._last_active = point.active
+        y = point.y
+        return self._count(QPSolution(y=y, solved=True, status="SOLVED", iterations=iterations,
+                                      objective=float(0.5 * y @ self.kkt.H @ y + g @ y), certified=True, path=path))
+
+    def _count(self, sol: QPSolution) -> QPSolution:
+        self.paths[sol.path] = self.paths.get(sol.path, 0) + 1
+        return sol
+
+    def _proxsuite(self, g, b, l, u, cold: bool) -> QPSolution:
+        if self._needs_fresh or cold:
             self._fresh(g, b, l, u)            # init + cold solve of this very problem
         else:
             self._qp.update(g=g, b=self._b_or_none(b), l=self._in_or_none(l), u=self._in_or_none(u))
@@ -114,4 +181,5 @@ class DenseBoxQP:
         return QPSolution(
             y=res.x.copy(), solved=solved, status=status.name,
             iterations=int(res.info.iter), objective=float(res.info.objValue),
+            path="proxsuite_uncertified" if solved else "failed",
         )

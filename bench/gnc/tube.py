@@ -79,6 +79,7 @@ class MPC_TUBE(CondensedMPC):
             raise ValueError(f"K_tube must be {model.nu}x{model.nx}, got {self.K_tube.shape}")
         Q, R = check_weights(Q, R, model.nx, model.nu)
         _, P = dlqr(model.A, model.B, Q, R)
+        self.terminal_set, self.tube = terminal_set, tube
         # The tube rows are ~1e-4 in scaled units and K_tube ~ 1e3: unpreconditioned, or with the
         # duality-gap test, proxsuite hit its iteration limit or declared infeasibility on a third
         # of the cycles; with Ruiz scaling, residuals at 1e-7 and a strict infeasibility certificate
@@ -88,13 +89,20 @@ class MPC_TUBE(CondensedMPC):
                                         "infeasibility_eps": 1e-11})
         self._u_safe = u_box_original if u_box_original is not None else box_bounds(model.H_u, model.h_u)
 
+    def safe_action(self, x: np.ndarray) -> np.ndarray:
+        return np.clip(self.K_tube @ x, *self._u_safe)
+
+    def _plan_from(self, y: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """The nominal inputs v_0 .. v_{N-1}: the tube feedback needs states not yet measured, so
+        a replayed plan is the nominal one (with u_0 = v_0 + K_tube (x - z_0) in place of v_0)."""
+        plan = super()._plan_from(y, x).copy()
+        plan[0] = self._input_from(y, x)
+        return plan
+
     def _input_from(self, y: np.ndarray, x: np.ndarray) -> np.ndarray:
         z0 = y[self.qp_data.initial_state]
         v0 = y[self.qp_data.inputs][:self.model.nu]
         return v0 + self.K_tube @ (x - z0)
-
-    def safe_action(self, x: np.ndarray) -> np.ndarray:
-        return np.clip(self.K_tube @ x, *self._u_safe)
 
 
 def design_tube_mpc(q_z_diag, r_z: float, horizon: int, poles, model_z) -> MPC_TUBE:

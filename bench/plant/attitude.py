@@ -6,8 +6,9 @@
 - Geomagnetic field: a tilted dipole co-rotating with the Earth, sampled along a circular orbit.
   Seed 004 uses IGRF along an SGP4 orbit; a dipole has the property the magnetorquer problem
   needs (the field direction sweeps as the spacecraft goes round) at a fraction of the code.
-- Sensors: gyro (white noise plus a random-walk bias), magnetometer (body-frame field plus white
-  noise), star tracker (true attitude times a small random rotation).
+- Sensors: gyro (white noise plus a random-walk bias), magnetometer (body-frame field times a
+  scale factor, plus a constant bias and white noise), star tracker (true attitude times a small
+  random rotation, larger about the boresight than across it).
 
 Inertial frame: ECI-like, z along the Earth's spin axis. All units SI (T for the field).
 """
@@ -134,22 +135,22 @@ class AttitudeSensorSpec:
     initial_gyro_bias_std_radps: float = 1.0e-3
     magnetometer_period_s: float = 1.0
     magnetometer_noise_std_t: float = 1.0e-7
-    star_tracker_period_s: float = 10.0
-    star_tracker_noise_std_rad: float = 1.0e-4
-    # A star tracker resolves rotation about its boresight (body z here) worse than across it, by
-    # the ratio of its field of view to star separations: typically 5-10 times (cross-boresight
-    # noise is star_tracker_noise_std_rad).
-    star_tracker_boresight_noise_factor: float = 1.0
-    star_tracker_outages_s: tuple[tuple[float, float], ...] = ()   # (start, end): no fix (Sun or Earth in view)
+    # Hard-iron bias (body frame) and scale factor: measured = scale * B_body + bias + noise.
     magnetometer_bias_t: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    magnetometer_scale: float = 1.0
+    star_tracker_period_s: float = 10.0
+    # A star tracker sees the roll about its boresight (body axis below) through the small
+    # angular displacement of stars across the field of view: its error about the boresight is
+    # several times its error across it (typically 5 to 10 times); 8 here.
+    star_tracker_noise_std_rad: float = 1.0e-4          # across the boresight, per axis
+    star_tracker_boresight_noise_std_rad: float = 8.0e-4
+    star_tracker_boresight_body: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    star_tracker_outages_s: tuple[tuple[float, float], ...] = ()   # (start, end): no fix (Sun or Earth in view)
 
     def __post_init__(self):
         for name in ("gyro_rate_hz", "magnetometer_period_s", "star_tracker_period_s"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"AttitudeSensorSpec.{name} must be positive, got {getattr(self, name)}")
-        if not self.star_tracker_boresight_noise_factor >= 1.0:
-            raise ValueError("AttitudeSensorSpec.star_tracker_boresight_noise_factor must be >= 1, "
-                             f"got {self.star_tracker_boresight_noise_factor}")
         for name in ("magnetometer_period_s", "star_tracker_period_s"):
             ratio = getattr(self, name) * self.gyro_rate_hz
             if abs(ratio - round(ratio)) > 1e-9:
@@ -239,13 +240,18 @@ class AttitudeSimulation:
         if self._on_tick(spec.magnetometer_period_s):
             field_inertial = self.geomagnetic.field_t(self.orbit.position_m(self.time_s), self.time_s)
             sample.field_inertial_t = field_inertial
-            sample.magnetometer_t = qt.rotation_matrix(self.q_wxyz).T @ field_inertial + self.rng.normal(
-                0.0, spec.magnetometer_noise_std_t, 3) + np.asarray(spec.magnetometer_bias_t)
+            field_body = qt.rotation_matrix(self.q_wxyz).T @ field_inertial
+            sample.magnetometer_t = (spec.magnetometer_scale * field_body + np.asarray(spec.magnetometer_bias_t)
+                                     + self.rng.normal(0.0, spec.magnetometer_noise_std_t, 3))
         if self._on_tick(spec.star_tracker_period_s):
-            noise_std_rad = spec.star_tracker_noise_std_rad * np.array([1.0, 1.0, spec.star_tracker_boresight_noise_factor])
-            error = qt.exp(self.rng.normal(0.0, 1.0, 3) * noise_std_rad)
+            # e = sigma z + (sigma_b - sigma)(a . z) a: covariance sigma^2 across a, sigma_b^2 along.
+            axis = np.asarray(spec.star_tracker_boresight_body, dtype=float)
+            axis = axis / np.linalg.norm(axis)
+            z = self.rng.normal(0.0, 1.0, 3)
+            rotvec = spec.star_tracker_noise_std_rad * z + (
+                spec.star_tracker_boresight_noise_std_rad - spec.star_tracker_noise_std_rad) * (axis @ z) * axis
             if not any(start <= self.time_s < end for start, end in spec.star_tracker_outages_s):
-                measured = qt.multiply(self.q_wxyz, error)
+                measured = qt.multiply(self.q_wxyz, qt.exp(rotvec))
                 sample.star_tracker_wxyz = measured if measured[0] >= 0 else -measured
         return sample
 

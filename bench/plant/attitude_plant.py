@@ -37,7 +37,7 @@ def sensor_spec(config: AttitudePlantConfig) -> AttitudeSensorSpec:
         magnetometer_noise_std_t=s.magnetometer_noise_std_t,
         star_tracker_period_s=s.star_tracker_period_s,
         star_tracker_noise_std_rad=s.star_tracker_noise_std_rad,
-        star_tracker_boresight_noise_factor=s.star_tracker_boresight_noise_factor,
+        star_tracker_boresight_noise_std_rad=s.star_tracker_noise_std_rad * s.star_tracker_boresight_noise_factor,
         star_tracker_outages_s=tuple((float(a), float(b)) for a, b in s.star_tracker_outages_s),
         magnetometer_bias_t=tuple(s.magnetometer_bias_t),
     )

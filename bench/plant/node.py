@@ -15,7 +15,7 @@ import msgspec
 import numpy as np
 
 from bench.bus import keys
-from bench.bus.schemas import STAGES, MtqApplied, RelativePosition, StepDone, ThrustCommand, TruthState, header
+from bench.bus.schemas import STAGES, MtqApplied, RangeBearing, RelativePosition, StepDone, ThrustCommand, TruthState, header
 from bench.plant.model import TranslationPlant
 from bench.runtime.deadline import PlantCommandDeadline
 from bench.runtime.node import NodeContext
@@ -41,9 +41,12 @@ def _publish_sample(ctx: NodeContext, plant: TranslationPlant, last_thrust_n: np
     k = plant.step_index
     hdr = header(ctx.run_id, k, plant.sim_time_s, sensed=time.monotonic_ns())
     position_m = plant.measure_position_m()
-    ctx.publish(keys.TRUTH, TruthState(hdr, plant.state_m_mps.tolist(), last_thrust_n.tolist()))
+    # Truth in the flight side's coordinates: the truth-mode estimator passes it on as the estimate.
+    ctx.publish(keys.TRUTH, TruthState(hdr, plant.navigation_state_m_mps.tolist(), last_thrust_n.tolist()))
     noise = ctx.scenario.plant.relpos_sensor.noise_std_m
     ctx.publish(keys.SENSE_RELPOS, RelativePosition(hdr, position_m.tolist(), noise))
+    rng_m, azimuth_rad, elevation_rad = plant.measure_range_bearing()
+    ctx.publish(keys.SENSE_RANGE_BEARING, RangeBearing(hdr, float(rng_m), float(azimuth_rad), float(elevation_rad)))
 
 
 def _wait_command_lockstep(ctx: NodeContext, commands: queue.Queue, k: int, timeout_s: float) -> ThrustCommand:
@@ -110,7 +113,10 @@ def run(ctx: NodeContext) -> int:
         # No attitude dynamics yet: the plant records the dipole the board applies (m x B later).
         ctx.subscribe(keys.ACTUATOR_MTQ, MtqApplied, dipoles.add)
     sense_topic = keys.TRUTH if scenario.estimator.mode == "truth" else keys.SENSE_RELPOS
+    if scenario.estimator.mode != "truth" and scenario.estimator.translation.sensor == "range_bearing":
+        sense_topic = keys.SENSE_RANGE_BEARING
     ctx.declare_publisher(keys.SENSE_RELPOS)
+    ctx.declare_publisher(keys.SENSE_RANGE_BEARING)
     ctx.declare_publisher(keys.EVENT_DEADLINE)
     ctx.declare_ready([sense_topic])
     ctx.wait_for_tokens(keys.READY, ctx.peers, timeout_s=30.0)

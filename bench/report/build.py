@@ -8,6 +8,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
+
 from bench.report import canbus, plots
 from bench.report.attitude import attitude_section
 from bench.report.deadlines import DeadlineResult, deadlines
@@ -125,11 +127,17 @@ def estimation_section(run: RunData, plot_dir: Path) -> tuple[Section | None, di
     if result is None:
         return None, None
     m = result.to_metrics()
-    rows = [[axis, fmt(m["rms_error"][axis])] for axis in AXES]
+    rows = [[axis, fmt(m["rms_error_converged"][axis]), fmt(m["median_abs_error"][axis])] for axis in AXES]
     path = plots.estimator_error(result.sim_time_s, result.error, result.bound_3sigma, plot_dir / "estimator_error.png")
-    section = Section("Estimator", [f"Fraction of errors inside ±3σ: {fmt(m['fraction_within_3sigma'])}."],
-                      [Table(["component", "RMS error (m, m/s)"], rows)],
-                      [Figure(Path(PLOTS_DIR) / path.name, "Estimator error with bounds")])
+    section = Section("Estimator", [
+        f"Fraction of errors inside ±3σ: {fmt(m['fraction_within_3sigma'])}. RMS over the samples after the "
+        f"first {m['converged_after_samples']} (the first carry the initial velocity prior); mean NIS "
+        f"{fmt(m['mean_nis'])} ({m['nis_dof']} expected); measurements rejected by the gate: {m['rejected_measurements']}."],
+        [Table(["component", "RMS error after convergence (m, m/s)", "median |error| (m, m/s)"], rows)],
+        [Figure(Path(PLOTS_DIR) / path.name, "Estimator error with bounds")])
+    if result.nis is not None and np.isfinite(result.nis).any():
+        nis_path = plots.nis(result.sim_time_s, result.nis, result.nis_dof, result.rejected, plot_dir / "nis.png")
+        section.figures.append(Figure(Path(PLOTS_DIR) / nis_path.name, "Normalised innovation squared per step"))
     return section, m
 
 

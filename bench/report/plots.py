@@ -161,6 +161,28 @@ def estimator_error(sim_time_s: np.ndarray, error: np.ndarray, bound_3sigma: np.
     return _save(fig, path)
 
 
+def nis(sim_time_s: np.ndarray, nis_values: np.ndarray, dof: int, rejected: np.ndarray, path: Path) -> Path:
+    """Each measurement's NIS against the prediction, with the two-sided 95 % chi-square band."""
+    from scipy.stats import chi2
+
+    fig, ax = plt.subplots(figsize=(11, 4))
+    t_h = np.asarray(sim_time_s) / 3600.0
+    used = ~np.asarray(rejected, dtype=bool)
+    ax.semilogy(t_h[used], nis_values[used], ".", markersize=4, label="NIS")
+    if (~used).any():
+        ax.semilogy(t_h[~used], nis_values[~used], "x", color="tab:red", label="rejected by the gate")
+    if dof:
+        low, high = chi2.ppf([0.025, 0.975], dof)
+        ax.axhspan(low, high, color="tab:gray", alpha=0.25, label=f"95 % of χ²({dof})")
+        ax.axhline(dof, color="tab:gray", linewidth=1)
+    ax.set_xlabel("time [h]")
+    ax.set_ylabel("NIS")
+    ax.grid(True, alpha=0.3, which="both")
+    ax.legend(fontsize="small")
+    ax.set_title("Normalised innovation squared (consistent filter: inside the band 95 % of the time)")
+    return _save(fig, path)
+
+
 def bus_load(window_start_s: np.ndarray, load: np.ndarray, fault_windows: list[tuple[str, float, float]],
              injections: list[tuple[float, str, str]], path: Path) -> Path:
     """CAN bus load per window, the scenario's fault windows shaded, the injector's actions marked."""

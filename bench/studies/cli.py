@@ -17,8 +17,10 @@ def add_commands(subparsers) -> None:
     p.add_argument("--initial-condition", default="A", help="A, B or C (default A)")
     p.add_argument("--q-start", type=float, nargs=6, default=list(SEED_Q_STAR), metavar="Q",
                    help="centre of the first grid (default the seed's q*)")
-    p.add_argument("--rounds", type=int, default=4, help="grid refinements (default 4)")
-    p.add_argument("--span", type=float, default=1.0, help="first grid's half-width in decades (default 1)")
+    # 4 rounds of +-1 decade stopped at J_u 8.72 (d_f 92 m); 6 rounds of +-2 decades reach the
+    # seed's J_u <= 8: 6.95 N^2 with d_f 96.2 m, v_f 0.55 m/s (issue 17).
+    p.add_argument("--rounds", type=int, default=6, help="grid refinements (default 6)")
+    p.add_argument("--span", type=float, default=2.0, help="first grid's half-width in decades (default 2)")
     p.set_defaults(func=_tune_lqr)
 
     p = subparsers.add_parser("compare-controllers",
@@ -33,6 +35,12 @@ def add_commands(subparsers) -> None:
     p.add_argument("--dynamics", nargs="+", default=["cwh", "nonlinear"], choices=["cwh", "nonlinear"])
     p.add_argument("--initial-conditions", nargs="+", default=["A", "B", "C"])
     p.set_defaults(func=_compare)
+
+    p = subparsers.add_parser("mpc-studies", help="seed 003 tasks 21 (horizon), 24 (S and v), 32 (tube vs MPC_TS)")
+    p.add_argument("studies", nargs="*", metavar="STUDY", help="horizon, soft, tube (default: all three)")
+    p.add_argument("--sequences", type=int, default=20, help="sampled disturbance sequences for the tube study")
+    p.add_argument("--out", type=Path, default=None, help="also write the tables as markdown into this file")
+    p.set_defaults(func=_mpc_studies)
 
 
 def _bad_input(message: str) -> int:
@@ -87,3 +95,50 @@ def _compare(args) -> int:
         return run_comparison(args)
     except (KeyError, ValueError) as exc:
         return _bad_input(str(exc).strip("'\""))
+
+
+def _mpc_studies(args) -> int:
+    from rich.console import Console
+    from rich.progress import Progress
+    from rich.table import Table
+
+    from bench.studies import mpc_studies
+
+    if args.sequences < 1:
+        return _bad_input(f"--sequences must be >= 1, got {args.sequences}")
+    args.studies = args.studies or ["horizon", "soft", "tube"]
+    unknown = [s for s in args.studies if s not in ("horizon", "soft", "tube")]
+    if unknown:
+        return _bad_input(f"unknown study {unknown[0]!r}: choose from horizon, soft, tube")
+    titles = {
+        "horizon": ("Task 21: MPC (17), MPC_TE (18), MPC_TS (19) from A, Q*, R*, N = 40 .. 20", mpc_studies.horizon_study, 33),
+        "soft": ("Task 24: MPC_TS_SC (20) from C, N = 30, S = s I and v", mpc_studies.soft_constraint_study, 9),
+        "tube": (f"Task 32: tube MPC against MPC_TS on the z-subsystem from x_z0^A, N = 50, {args.sequences} sampled "
+                 "sequences and the constant worst case", None, args.sequences + 1),
+    }
+    console = Console(width=220)
+    markdown = []
+    for name in args.studies:
+        title, fn, total = titles[name]
+        with Progress(transient=True) as progress:
+            task = progress.add_task(name, total=total)
+            advance = lambda n: progress.advance(task, n)
+            if name == "tube":
+                rows = mpc_studies.tube_study(n_sequences=args.sequences, progress=advance)
+            else:
+                rows = fn(progress=advance)
+        table = Table(title=title)
+        cols = list(rows[0])
+        for c in cols:
+            table.add_column(c, justify="right")
+        fmt = lambda v: (("yes" if v else "no") if isinstance(v, (bool, np.bool_)) else
+                         f"{v:.4g}" if isinstance(v, float) else str(v))
+        for r in rows:
+            table.add_row(*[fmt(r[c]) for c in cols])
+        console.print(table)
+        markdown += [f"### {title}", "", "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+        markdown += ["| " + " | ".join(fmt(r[c]) for c in cols) + " |" for r in rows] + [""]
+    if args.out is not None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text("\n".join(markdown) + "\n")
+    return 0

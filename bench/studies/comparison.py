@@ -12,7 +12,8 @@ from pathlib import Path
 import numpy as np
 
 from bench.controller.config import ControllerConfig
-from bench.controller.factory import build_controller
+from bench.controller.factory import build_controller, weights_from_config
+from bench.studies.metrics import POSITION_TOL_M, THRUST_TOL_N, fuel_delta_v_mps, traj_constraints, traj_cost
 from bench.gnc.cwh import RendezvousParams
 from bench.plant.dynamics import propagate
 from bench.studies.metrics import POSITION_TOL_M, THRUST_TOL_N, fuel_delta_v_mps, traj_constraints
@@ -83,18 +84,21 @@ def run_comparison(args) -> int:
 
     table = Table(title=f"Seed 003 controllers, Q = diag({', '.join(f'{v:g}' for v in args.q)}), R = I, "
                         f"N = {args.horizon}, {params.n_steps} steps of {params.time_step_s:g} s")
-    for col in ["IC", "dynamics", "controller", "feasible", "infeasible QPs", "J_u N^2", "fuel dv m/s", "d_f m",
+    for col in ["IC", "dynamics", "controller", "feasible", "infeasible QPs", "J_u N^2", "J x'Qx+u'Ru", "fuel dv m/s", "d_f m",
                 "v_f m/s", "state viol.", "input viol.", "solve med us", "solve p99 us"]:
         table.add_column(col, justify="right")
     rows = []
     for r in results:
-        m = traj_constraints(np.asarray(params.scaling)[:, None] * r.X_si, r.U_n, params)
+        x_scaled = np.asarray(params.scaling)[:, None] * r.X_si
+        m = traj_constraints(x_scaled, r.U_n, params)
+        # Closed-loop quadratic cost (seed task 15) in the controller's own weights, scaled state.
+        cost = traj_cost(x_scaled, r.U_n, *weights_from_config(controllers[r.controller]))
         pos = r.X_si[:3]
         state_viol = int(np.sum((np.maximum(np.abs(pos[0]), np.abs(pos[2])) > params.max_abs_position_xz_m + POSITION_TOL_M)
                                 | (np.abs(pos[1]) > params.max_abs_position_y_m + POSITION_TOL_M)))
         input_viol = int(np.sum(np.max(np.abs(r.U_n), axis=0) > params.max_abs_thrust_n + THRUST_TOL_N))
         row = [r.initial_condition, r.dynamics, r.controller, "yes" if m.feasible else "no", str(r.infeasible_cycles),
-               f"{m.input_cost_n2:.2f}", f"{fuel_delta_v_mps(r.U_n, params.time_step_s, params.mass_kg):.1f}",
+               f"{m.input_cost_n2:.2f}", f"{cost:.4g}", f"{fuel_delta_v_mps(r.U_n, params.time_step_s, params.mass_kg):.1f}",
                f"{m.final_distance_m:.1f}", f"{m.final_speed_mps:.3f}", str(state_viol), str(input_viol),
                f"{np.median(r.solve_times_s) * 1e6:.0f}", f"{np.percentile(r.solve_times_s, 99) * 1e6:.0f}"]
         rows.append(row)

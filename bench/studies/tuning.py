@@ -49,6 +49,12 @@ def lqr_trajectory(x0_scaled, q_diag, params: RendezvousParams):
     return X, U
 
 
+def _failed_metrics() -> TrajectoryMetrics:
+    """The row of a q whose DARE has no stabilising solution: infeasible, every figure inf."""
+    inf = float("inf")
+    return TrajectoryMetrics(inf, inf, inf, inf, inf, inf, False)
+
+
 def lqr_tuning(x0_scaled, qs, params: RendezvousParams,
                progress: Callable[[int], None] | None = None) -> tuple[list[TuningRow], int | None]:
     """The seed's lqr_tuning: one row per q (rows of `qs`, M x 6) and the index of the feasible q
@@ -57,8 +63,12 @@ def lqr_tuning(x0_scaled, qs, params: RendezvousParams,
     x0_scaled = np.asarray(x0_scaled, dtype=float)
     rows = []
     for q in qs:
-        X, U = lqr_trajectory(x0_scaled, q, params)
-        rows.append(TuningRow(x0_scaled.copy(), q.copy(), traj_constraints(X, U, params)))
+        try:
+            X, U = lqr_trajectory(x0_scaled, q, params)
+            metrics = traj_constraints(X, U, params)
+        except (np.linalg.LinAlgError, ValueError):    # the DARE failed at this q: not a candidate
+            metrics = _failed_metrics()
+        rows.append(TuningRow(x0_scaled.copy(), q.copy(), metrics))
         if progress:
             progress(1)
     return rows, best_feasible(rows)
@@ -98,7 +108,14 @@ def _half_metrics(x0_scaled, qs, params, states, inputs, progress) -> _HalfMetri
     cols = {k: [] for k in _HalfMetrics.__dataclass_fields__}
     pos_axes = [s for s in states if s in (0, 2)]
     for q in qs:
-        X, U = lqr_trajectory(x0_scaled, q, params)
+        try:
+            X, U = lqr_trajectory(x0_scaled, q, params)
+        except (np.linalg.LinAlgError, ValueError):    # the DARE failed at this q: never feasible
+            for k in cols:
+                cols[k].append(np.inf)
+            if progress:
+                progress(1)
+            continue
         X = X / scaling[:, None]
         cols["pos_xz_max"].append(np.max(np.abs(X[pos_axes])))
         cols["y_max"].append(np.max(np.abs(X[1])) if 1 in states else 0.0)

@@ -1,0 +1,183 @@
+"""Campaign report: success rate with Wilson confidence intervals per cell, medians and spreads of
+each metric, the seed 001 table (controller rows, dynamics x knowledge columns), box plots.
+
+Reads the Parquet results file `bench campaign` writes; `bench campaign-report RESULTS` re-renders.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from bench.studies.campaign import CELL_COLUMNS
+
+# 95 % two-sided normal quantile.
+Z_95 = 1.959963984540054
+
+# Metrics summarised per cell: (column, label, unit scale, format).
+SUMMARY_METRICS = [
+    ("final_position_error_m", "final distance [m]", 1.0, "{:.1f}"),
+    ("final_velocity_error_mps", "final speed [m/s]", 1.0, "{:.3f}"),
+    ("time_to_rendezvous_s", "time to rendezvous [h]", 1 / 3600, "{:.1f}"),
+    ("delta_v_mps", "delta-v [m/s]", 1.0, "{:.1f}"),
+    ("fuel_l2_n_sqrt_s", "fuel L2 [N s^0.5]", 1.0, "{:.1f}"),
+    ("input_cost_n2", "J_u [N^2]", 1.0, "{:.2f}"),
+    ("settled_max_position_m", "last-10% max distance [m]", 1.0, "{:.1f}"),
+    ("solve_time_p50_ms", "solve p50 [ms]", 1.0, "{:.3f}"),
+    ("solve_time_p99_ms", "solve p99 [ms]", 1.0, "{:.3f}"),
+    ("solver_iterations_median", "iterations (median)", 1.0, "{:.0f}"),
+]
+BOX_METRICS = ["final_position_error_m", "delta_v_mps", "time_to_rendezvous_s", "solve_time_p99_ms"]
+
+
+def wilson_interval(successes: int, n: int, z: float = Z_95) -> tuple[float, float]:
+    """Wilson score interval of a binomial proportion (Wilson 1927): good near 0 and 1, unlike
+    the normal approximation, which matters when a cell succeeds 30 times out of 30."""
+    if n <= 0:
+        return float("nan"), float("nan")
+    p = successes / n
+    denominator = 1 + z**2 / n
+    centre = (p + z**2 / (2 * n)) / denominator
+    half = z * math.sqrt(p * (1 - p) / n + z**2 / (4 * n**2)) / denominator
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
+@dataclass
+class CellSummary:
+    cell: tuple[str, ...]
+    runs: int
+    failed_runs: int              # status error/timeout
+    successes: int
+    diverged: int
+    ci_low: float
+    ci_high: float
+    stats: dict[str, tuple[float, float, float]]      # metric -> (median, p25, p75) of ok runs
+    values: dict[str, np.ndarray]
+
+    @property
+    def success_rate(self) -> float:
+        return self.successes / self.runs if self.runs else float("nan")
+
+
+def read_results(path: Path) -> list[dict]:
+    import pyarrow.parquet as pq
+
+    return pq.read_table(path).to_pylist()
+
+
+def summarise(rows: list[dict]) -> list[CellSummary]:
+    cells: dict[tuple, list[dict]] = {}
+    for row in sorted(rows, key=lambda r: r["case_index"]):
+        cells.setdefault(tuple(row[c] for c in CELL_COLUMNS), []).append(row)
+    out = []
+    for cell, group in cells.items():
+        ok = [r for r in group if r["status"] == "ok"]
+        # A failed run (exception, timeout) is not a success: it counts in n.
+        successes = sum(bool(r["success"]) for r in ok)
+        low, high = wilson_interval(successes, len(group))
+        values, stats = {}, {}
+        for metric, *_ in SUMMARY_METRICS:
+            v = np.array([r[metric] for r in ok if r[metric] is not None], dtype=float)
+            v = v[np.isfinite(v)]
+            values[metric] = v
+            stats[metric] = tuple(float(np.percentile(v, q)) for q in (50, 25, 75)) if v.size else (float("nan"),) * 3
+        out.append(CellSummary(cell, len(group), len(group) - len(ok), successes,
+                               sum(bool(r["diverged"]) for r in ok), low, high, stats, values))
+    return out
+
+
+def _pct(x: float) -> str:
+    return "-" if math.isnan(x) else f"{100 * x:.0f}"
+
+
+def seed001_table(summaries: list[CellSummary]) -> str:
+    """Controller rows, dynamics x knowledge columns: success % [95 % CI], median final distance,
+    median delta-v (first initial-condition set and fault kind of the campaign)."""
+    first_ic = summaries[0].cell[3]
+    first_fault = summaries[0].cell[4]
+    by = {(s.cell[0], s.cell[1], s.cell[2]): s for s in summaries if s.cell[3] == first_ic and s.cell[4] == first_fault}
+    controllers = list(dict.fromkeys(k[0] for k in by))
+    columns = list(dict.fromkeys((k[1], k[2]) for k in by))
+    lines = ["| controller | " + " | ".join(f"{d} / {k}" for d, k in columns) + " |",
+             "|---|" + "---|" * len(columns)]
+    for ctrl in controllers:
+        cells = []
+        for d, k in columns:
+            s = by.get((ctrl, d, k))
+            if s is None:
+                cells.append("")
+                continue
+            cells.append(f"{_pct(s.success_rate)} % [{_pct(s.ci_low)}, {_pct(s.ci_high)}] of {s.runs}; "
+                         f"{s.stats['final_position_error_m'][0]:.0f} m; {s.stats['delta_v_mps'][0]:.1f} m/s")
+        lines.append(f"| {ctrl} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def cell_table(summaries: list[CellSummary]) -> str:
+    header = ["cell", "runs", "failed", "success % [95 % CI]", "diverged"]
+    header += [f"{label} median (p25-p75)" for _, label, _, _ in SUMMARY_METRICS]
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    for s in summaries:
+        row = ["/".join(s.cell), str(s.runs), str(s.failed_runs),
+               f"{_pct(s.success_rate)} [{_pct(s.ci_low)}, {_pct(s.ci_high)}]", str(s.diverged)]
+        for metric, _, scale, fmt in SUMMARY_METRICS:
+            med, lo, hi = (v * scale for v in s.stats[metric])
+            row.append("-" if math.isnan(med) else f"{fmt.format(med)} ({fmt.format(lo)}-{fmt.format(hi)})")
+        lines.append("| " + " | ".join(row) + " |")
+    return "\n".join(lines)
+
+
+def box_plots(summaries: list[CellSummary], out_dir: Path) -> list[Path]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    paths = []
+    labels = ["\n".join(s.cell[:3]) for s in summaries]
+    for metric in BOX_METRICS:
+        label, scale = next((lab, sc) for m, lab, sc, _ in SUMMARY_METRICS if m == metric)
+        data = [s.values[metric] * scale for s in summaries]
+        fig, ax = plt.subplots(figsize=(max(8, 0.7 * len(summaries)), 5))
+        ax.boxplot([d if d.size else [np.nan] for d in data], showfliers=True)
+        ax.set_xticks(range(1, len(labels) + 1), labels, fontsize=6, rotation=90)
+        ax.set_ylabel(label)
+        if metric == "final_position_error_m":
+            from bench.gnc.cwh import RendezvousParams
+
+            ax.axhline(RendezvousParams.from_reference().max_final_position_m, color="k", ls="--", lw=0.8)
+        if metric in ("final_position_error_m", "solve_time_p99_ms") and any(d.size and d.max() > 0 for d in data):
+            ax.set_yscale("log")
+        ax.set_title(f"{label} per cell (runs that finished)")
+        fig.tight_layout()
+        path = out_dir / f"box_{metric}.png"
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+        paths.append(path)
+    return paths
+
+
+def write_report(results: Path, out_dir: Path | None = None) -> Path:
+    """report.md (+ box plots) beside the results file or in out_dir; returns the report path."""
+    results = Path(results)
+    rows = read_results(results)
+    if not rows:
+        raise ValueError(f"{results}: no rows")
+    out_dir = Path(out_dir) if out_dir else results.with_name(results.stem + "_report")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    summaries = summarise(rows)
+    plots = box_plots(summaries, out_dir)
+    failures = [r for r in rows if r["status"] != "ok"]
+    text = [f"# Campaign report: {results.name}", "",
+            f"{len(rows)} runs in {len(summaries)} cells; {len(failures)} failed (exception or timeout).", "",
+            "## Seed 001 table", "",
+            "Success % [Wilson 95 % CI] of n runs; median final distance; median delta-v.", "",
+            seed001_table(summaries), "", "## Every cell", "", cell_table(summaries), "", "## Distributions", ""]
+    text += [f"![{p.stem}]({p.name})" for p in plots]
+    if failures:
+        text += ["", "## Failed runs", ""] + [f"- `{r['case_id']}` {r['status']}: {r['error']}" for r in failures[:50]]
+    path = out_dir / "report.md"
+    path.write_text("\n".join(text) + "\n")
+    return path

@@ -1,0 +1,1 @@
+"""Built-in campaign specs (`bench campaign NAME`)."""
