@@ -39,6 +39,7 @@ from bench.bus.schemas import ProcessStats, StepDone, decode, MalformedMessage
 from bench.bus.certs import CertificateError, identity_files, write_deployment_certs
 from bench.bus.deployment import LAUNCHER, Deployment, DeploymentError, load_deployment
 from bench.bus.session import SessionConfigError, SessionOptions, free_loopback_port, loopback_endpoint, open_session
+from bench.controller.config import PLANNED_LAWS
 from bench.plant.acceptance import ACCEPTANCE_FILE
 from bench.plant.divergence import EXIT_DIVERGED, read_divergence
 from bench.report.jsonout import write_json
@@ -95,7 +96,10 @@ def nodes_for(scenario: Scenario) -> list[str]:
     names = ["recorder"] if "recorder" in NODES else []
     if scenario.can is not None:
         names += ["canbus", "mtq"]
-    return names + ["plant", "estimator", "controller"]
+    names += ["plant", "estimator", "controller"]
+    if scenario.kind == "attitude" and scenario.attitude_control.law in PLANNED_LAWS:
+        names.append("planner")    # MILQR plans for the controller's tracker (issue 12)
+    return names
 
 
 # ------------------------------------------------------------------------------------------------

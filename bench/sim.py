@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from bench.controller.attitude_cycle import AttitudeCycle
+from bench.controller.config import PLANNED_LAWS
 from bench.controller.cycle import ControlCycle
 from bench.estimator.attitude_frontend import AttitudeEstimator
 from bench.estimator.frontend import StateEstimator
@@ -59,6 +60,16 @@ def estimate_for(estimator: AttitudeEstimator, plant: AttitudePlant, k: int):
                           sample.star_tracker_wxyz)
 
 
+def _through_the_message(plan):
+    """The plan as the controller process gets it (encoded, decoded, rebuilt): bit for bit the same."""
+    from bench.bus.schemas import decode, encode, header
+    from bench.planner.plan import AttitudePlanMessage, from_message, to_message
+
+    info = {"stop_reason": "", "iterations": 0, "cost": 0.0, "wall_time_s": 0.0}
+    message = to_message(plan, header("in-process", 0, plan.start_time_s), [1.0, 0.0, 0.0, 0.0], info)
+    return from_message(decode(encode(message), AttitudePlanMessage))
+
+
 def simulate_attitude_in_process(scenario: Scenario) -> dict[str, np.ndarray]:
     """Run an attitude scenario without processes; the arrays the plant process writes."""
     n_steps = scenario.n_steps
@@ -66,9 +77,18 @@ def simulate_attitude_in_process(scenario: Scenario) -> dict[str, np.ndarray]:
     estimator = AttitudeEstimator(scenario)
     cycle = AttitudeCycle(scenario)
     acceptance = DipoleAcceptance(scenario.can)
+    planner = None
+    if scenario.attitude_control.law in PLANNED_LAWS:   # issue 12: the planner process, in line
+        from bench.planner.planner import AttitudePlanner
+
+        planner = AttitudePlanner(scenario)
     commanded, estimated_q, valid = [], [], []
     for k in range(n_steps):
         estimate = estimate_for(estimator, plant, k)
+        if planner is not None:
+            planned = planner.on_estimate(k, plant.time_s, estimate.valid, estimate.q_wxyz, estimate.omega_radps)
+            if planned is not None:
+                cycle.law.set_plan(_through_the_message(planned[0]))
         outcome = cycle.run(plant.time_s, estimate.valid, estimate.q_wxyz, estimate.omega_radps, estimate.field_body_t)
         dipole, _ = acceptance.accept(board_dipole_without_bus(outcome.dipole_am2, scenario.can), None)
         commanded.append(outcome.dipole_am2)

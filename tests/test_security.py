@@ -275,7 +275,7 @@ def test_estimator_certificate_cannot_command_the_plant(runs_dir, tmp_path):
     # The rogue needs the estimator's certificate before the run starts: make the run's CA here
     # (the same function `bench run --secure` uses) and hand it to the run with --cert-dir.
     run_id = "secure-rogue"
-    cert_dir = make_local_certs(runs_dir / run_id / "certs")
+    cert_dir = make_local_certs(runs_dir / ".certs" / run_id)   # not in runs/<run_id>: the run claims it new
     trajectory, sent = _run_with_rogue(runs_dir, run_id, identity_files(cert_dir, "estimator"),
                                        ["--secure", "--cert-dir", str(cert_dir)])
     assert sent > 0   # the rogue saw the run (it may read truth) and tried

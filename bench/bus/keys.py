@@ -17,6 +17,7 @@ SENSE_ATTITUDE = "sense/attitude"
 TRUTH_ATTITUDE = "truth/attitude"
 ESTIMATE_ATTITUDE = "estimate/attitude"
 COMMAND_DIPOLE = "command/dipole"
+PLAN_ATTITUDE = "plan/attitude"       # MILQR plans, planner -> controller (issue 12)
 EVENT_DEADLINE = "event/deadline"
 STATUS_STEP = "status/step"
 STATUS_STATS = "status/stats"

@@ -2,6 +2,8 @@
 link, once per plant step, under the deadline monitor.
 
 reads:  estimate/attitude (AttitudeEstimate)
+        plan/attitude     (AttitudePlanMessage from `bench node planner`; law "tvlqr_plan" only,
+                           bench.controller.plan_tracking: lock-step waits for a plan that is due)
 writes: command/dipole (DipoleCommand: the law's dipole and the alive counter of the first CAN
         frame that carried it), event/deadline; CAN command frames through the driver
 The driver's command loop (its own thread) sends the newest dipole every command period, so the
@@ -19,6 +21,7 @@ import numpy as np
 from bench.bus import keys
 from bench.bus.schemas import AttitudeEstimate, DipoleCommand
 from bench.controller.attitude_cycle import AttitudeCycle
+from bench.controller.config import PLANNED_LAWS
 from bench.controller.mtq_link import MagnetorquerLink
 from bench.runtime.node import NodeContext
 
@@ -63,11 +66,18 @@ def run(ctx: NodeContext) -> int:
     sender = DipoleSender(link) if link is not None else None
     send_timeout_s = 5 * scenario.can.driver.command_period_s if scenario.can is not None else 0.0
     estimates = ctx.subscribe_queue(keys.ESTIMATE_ATTITUDE, AttitudeEstimate)
+    follower = None
+    if scenario.attitude_control.law in PLANNED_LAWS:
+        from bench.controller.plan_tracking import PlanFollower
+
+        follower = PlanFollower(ctx, cycle.law)
     ctx.declare_publisher(keys.EVENT_DEADLINE)
     if link is not None:
         link.start()
     ctx.declare_ready([keys.COMMAND_DIPOLE])
     for estimate in ctx.until_stopped(estimates):
+        if follower is not None:   # before the deadline clock starts: a lock-step wait is not the law's time
+            follower.before_cycle(estimate.header.seq, estimate.header.sim_time_s, estimate.valid, estimate.q_wxyz)
         received_ns = time.monotonic_ns()
         hdr = estimate.header.stamped("controller_received", received_ns)
         outcome = cycle.run(hdr.sim_time_s, estimate.valid, estimate.q_wxyz, estimate.omega_radps,
@@ -86,5 +96,6 @@ def run(ctx: NodeContext) -> int:
             ctx.publish(keys.EVENT_DEADLINE, monitored.deadline_event(hdr))
     if link is not None:
         link.stop()
-    (ctx.run_dir / "deadline_controller.json").write_text(json.dumps(cycle.summary(), indent=2))
+    summary = cycle.summary() | (follower.summary() if follower is not None else {})
+    (ctx.run_dir / "deadline_controller.json").write_text(json.dumps(summary, indent=2))
     return 0

@@ -101,7 +101,11 @@ ATTITUDE_LAWS: dict[str, str] = {
     "bdot": "bench.controller.attitude_laws:bdot",
     "sliding_mode": "bench.controller.attitude_laws:sliding_mode",
     "pd": "bench.controller.attitude_laws:pd",
+    # issue 12: TVLQR tracking of the planner process's MILQR plans ([attitude_control.planner])
+    "tvlqr_plan": "bench.controller.plan_tracking:tvlqr_plan",
 }
+# Laws whose plans come from `bench node planner` (the launcher starts it for them).
+PLANNED_LAWS = {"tvlqr_plan"}
 # Laws that need no attitude estimate (they fly before the smoother's first fix).
 ATTITUDE_FREE_LAWS = {"bdot"}
 
@@ -111,6 +115,37 @@ class AttitudeTargetConfig(msgspec.Struct, forbid_unknown_fields=True):
     # velocity (the orbit of [attitude.orbit], which the flight side knows).
     kind: Literal["inertial", "nadir"] = "inertial"
     q_wxyz: Vec4 = msgspec.field(default_factory=lambda: [1.0, 0.0, 0.0, 0.0])
+
+
+class AttitudePlannerConfig(msgspec.Struct, forbid_unknown_fields=True):
+    """[attitude_control.planner] (issue 12): MILQR planning in `bench node planner`, TVLQR tracking
+    in the controller (law "tvlqr_plan"). The target is [attitude_control.target] (inertial only:
+    MILQR's goal is one attitude at rest)."""
+    plan_step_s: PositiveGain = 20.0                 # MILQR step; the dipole is held over it
+    # cond(W) tolerance of the Gramian horizon (bench.gnc.attitude_planning: 3 is its reasoned
+    # default, ~27 min on the bench's orbits); a larger one gives a shorter horizon.
+    gramian_condition_tolerance: Annotated[float, msgspec.Meta(gt=1)] = 3.0
+    max_horizon_s: PositiveGain = 5400.0             # the horizon if the tolerance is never met
+    max_iterations: Annotated[int, msgspec.Meta(ge=1)] = 200
+    # Real-time only: MILQR's wall-time cap (returns its best iterate). Lock-step ignores it so that
+    # a run does not depend on how busy the machine was (the iteration cap still holds).
+    max_planning_wall_s: PositiveGain = 60.0
+    replan_period_s: PositiveGain = 600.0            # replan this long after the current plan's start
+    replan_error_deg: PositiveGain = 10.0            # ... or when the estimate is this far off the plan
+    min_replan_interval_s: Seconds = 30.0            # no error-triggered replan sooner than this
+    # A replan keeps the current plan's arrival time while this much of it is left (else a fresh
+    # Gramian horizon): replanning must not keep postponing the arrival.
+    min_replan_horizon_s: PositiveGain = 300.0
+    # Until the first plan arrives (real-time: planning takes seconds) the controller commands
+    # zero, or this law of the registry, and counts the cycles.
+    fallback_law: Literal["zero", "pd", "sliding_mode"] = "zero"
+    # Control cycles of planned feed-forward each command carries for the "shifted_plan" fallback.
+    feedforward_cycles: Annotated[int, msgspec.Meta(ge=1)] = 100
+    # Lock-step: how long the controller waits for the plan it knows is due before going on without.
+    plan_wait_timeout_s: PositiveGain = 300.0
+    # Tracker weights (Bryson's rule): tolerated attitude and rate deviation, and terminal factor.
+    tracking_attitude_deviation_deg: PositiveGain = 1.0
+    tracking_rate_deviation_radps: PositiveGain = 5e-4
 
 
 class AttitudeControlConfig(msgspec.Struct, forbid_unknown_fields=True):
@@ -128,3 +163,4 @@ class AttitudeControlConfig(msgspec.Struct, forbid_unknown_fields=True):
     convergence_gain_radps: PositiveGain = 0.02
     kp_nm: PositiveGain = 1.0e-5
     kd_nms: PositiveGain = 5.0e-4
+    planner: AttitudePlannerConfig = msgspec.field(default_factory=AttitudePlannerConfig)

@@ -14,6 +14,11 @@ interpolated linearly; the feed-forward and the gain are those of the step (zero
 planned). Past the plan's end the law holds the final planned state with zero feed-forward and the
 last step's gain: a stop-gap until the next plan arrives (that gain was designed for the field at
 the plan's end; as the field turns it is not a designed regulator any more).
+
+Given the control period, `eval` also returns the plan's feed-forward for this and the next
+`feedforward_cycles - 1` control cycles as `info["u_plan"]` (zero past the plan's end, as the law
+itself): the deadline monitor's "shifted_plan" fallback (`bench.controller.deadline`) replays it
+when a later cycle misses its deadline.
 """
 from __future__ import annotations
 
@@ -76,11 +81,30 @@ class TvlqrAttitudeTracker:
     returns the body dipole (A m^2, saturated per axis) and info. The measured field is not used by
     the law (the plan's gains carry the field model); it is only checked like the other inputs."""
 
-    def __init__(self, plan: AttitudePlan, dipole_limit_am2: float):
+    def __init__(self, plan: AttitudePlan, dipole_limit_am2: float, control_period_s: float | None = None,
+                 feedforward_cycles: int = 100):
         if not (np.isfinite(dipole_limit_am2) and dipole_limit_am2 > 0):
             raise ValueError(f"dipole_limit_am2 must be positive, got {dipole_limit_am2}")
+        if control_period_s is not None and not (np.isfinite(control_period_s) and control_period_s > 0):
+            raise ValueError(f"control_period_s must be positive, got {control_period_s}")
+        if feedforward_cycles < 1:
+            raise ValueError(f"feedforward_cycles must be at least 1, got {feedforward_cycles}")
         self.plan = plan
         self.dipole_limit_am2 = float(dipole_limit_am2)
+        self.control_period_s = control_period_s
+        self.feedforward_cycles = int(feedforward_cycles)
+
+    def feedforward_ahead(self, time_s: float) -> np.ndarray:
+        """(feedforward_cycles, 3): the planned dipole at time_s + i * control_period_s (zero-order
+        hold per plan step, as planned; the first step's before the plan's start and zero after its
+        end, as `reference` does)."""
+        plan = self.plan
+        times = time_s + self.control_period_s * np.arange(self.feedforward_cycles)
+        index = np.maximum(np.floor((times - plan.start_time_s) / plan.dt_s).astype(int), 0)
+        inside = index < plan.steps
+        ahead = np.zeros((self.feedforward_cycles, 3))
+        ahead[inside] = plan.dipoles_am2[index[inside]]
+        return ahead
 
     def reference(self, time_s: float):
         """(q_ref, omega_ref, u_bar, K, step index, phase) at time_s."""
@@ -110,7 +134,7 @@ class TvlqrAttitudeTracker:
         q_ref, omega_ref, u_bar, K, k, phase = self.reference(float(x.time_s))
         dx = qt.error_state(qt.normalize(q), omega, q_ref, omega_ref)
         dipole, saturated = saturate_dipole(tracking_control(u_bar, K, dx), self.dipole_limit_am2)
-        return dipole, {
+        info = {
             "bad_input": None,
             "saturated": saturated,
             "plan_id": self.plan.plan_id,
@@ -120,3 +144,6 @@ class TvlqrAttitudeTracker:
             "rate_error_radps": float(np.linalg.norm(omega - omega_ref)),
             "feedforward_am2": u_bar,
         }
+        if self.control_period_s is not None:
+            info["u_plan"] = self.feedforward_ahead(float(x.time_s))
+        return dipole, info

@@ -81,14 +81,21 @@ class PlannerConfig:
 
 
 def plan_from_estimate(time_s: float, q_wxyz, omega_radps, target_wxyz, orbit, geomagnetic,
-                       config: PlannerConfig, plan_id: int = 0) -> tuple[AttitudePlan, dict]:
-    """MILQR from the estimate at time_s to rest at the target over the Gramian horizon from time_s."""
+                       config: PlannerConfig, plan_id: int = 0,
+                       horizon_steps: int | None = None) -> tuple[AttitudePlan, dict]:
+    """MILQR from the estimate at time_s to rest at the target over the Gramian horizon from time_s,
+    or over `horizon_steps` steps when given (a replan that keeps the previous plan's arrival)."""
     x0 = np.concatenate([qt.normalize(q_wxyz), np.asarray(omega_radps, dtype=float)])
     if not np.all(np.isfinite(x0)) or not np.isfinite(time_s):
         raise ValueError(f"plan_from_estimate: non-finite estimate (time {time_s}, state {x0})")
     max_steps = int(np.ceil(config.max_horizon_s / config.dt_s))
     field = field_along_orbit_t(orbit, geomagnetic, time_s, config.dt_s, max_steps)
     horizon = gramian_horizon(field, config.dt_s, config.gramian_condition_tolerance)
+    if horizon_steps is not None:
+        if not 1 <= horizon_steps <= max_steps:
+            raise ValueError(f"horizon_steps must be 1..{max_steps}, got {horizon_steps}")
+        # a tolerance no Gramian meets: the given steps, with cond(W) over them for the record
+        horizon = gramian_horizon(field[:horizon_steps], config.dt_s, 1.0 + 1e-12)
     model = MagnetorquerAttitudeModel(config.inertia_kgm2, field[:horizon.steps], config.dt_s)
     cost = GeodesicAttitudeCost(target_wxyz, np.zeros(3), config.attitude_weight, config.rate_weight * np.eye(3),
                                 config.dipole_weight * np.eye(3), config.final_attitude_weight,
@@ -99,6 +106,7 @@ def plan_from_estimate(time_s: float, q_wxyz, omega_radps, target_wxyz, orbit, g
                           + [config.tracking_rate_deviation_radps] * 3, [limit] * 3)
     gains = tvlqr_gains_along(model, result.states, result.dipoles_am2, Q, R, 10 * Q)
     plan = AttitudePlan(time_s, config.dt_s, result.states, result.dipoles_am2, gains, plan_id)
-    info = dict(result.info, cost=result.cost, horizon_s=horizon.horizon_s, horizon_reached=horizon.reached,
+    info = dict(result.info, cost=result.cost, horizon_s=horizon.horizon_s,
+                horizon_reached=horizon.reached if horizon_steps is None else None, horizon_given=horizon_steps is not None,
                 gramian_condition_number=horizon.condition_number)
     return plan, info

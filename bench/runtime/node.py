@@ -39,6 +39,7 @@ NODES: dict[str, str] = {
     "recorder": "bench.recorder",
     "mtq": "bench.bus.can.nodes",       # magnetorquer board
     "canbus": "bench.bus.can.nodes",    # CAN bus model and fault injector
+    "planner": "bench.planner.node",    # MILQR attitude plans (issue 12)
 }
 
 
