@@ -64,6 +64,8 @@ ROLES: dict[str, Role] = {
         subscribes=("estimate/*", "plan/*"),
         can_channels=(_CAN.flight_channel,),   # the magnetorquer driver lives in the controller
     ),
+    # MILQR plans from the attitude estimate; it commands nothing itself.
+    "planner": Role(publishes=(keys.PLAN_ATTITUDE,), subscribes=(keys.ESTIMATE_ATTITUDE,)),
     "mtq": Role(publishes=(keys.ACTUATOR_MTQ,), can_channels=(_CAN.board_channel,)),
     "canbus": Role(can_channels=(_CAN.flight_channel, _CAN.board_channel)),
     "recorder": Role(subscribes=("**",), queries_clocks=True),
