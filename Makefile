@@ -13,10 +13,17 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install -q -e '.[test]'
 	touch $(STAMP)
 
-# `make run SCENARIO=attitude_quick` shows the attitude card in seconds (default: the bench's own).
+# `make run` shows the whole card: the rendezvous as processes with the gtsam smoother and MPC on
+# proxsuite (rendezvous_card), then the attitude loop with the magnetorquer board on the CAN bus
+# (attitude_quick). `make run SCENARIO=NAME` runs one scenario (`bench scenarios` lists them).
 SCENARIO ?=
 run: $(STAMP)
+ifeq ($(SCENARIO),)
+	$(VENV)/bin/bench run rendezvous_card
+	$(VENV)/bin/bench run attitude_quick
+else
 	$(VENV)/bin/bench run $(SCENARIO)
+endif
 
 test: $(STAMP)
 	bash tools/install-system-deps.sh

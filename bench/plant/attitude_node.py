@@ -33,6 +33,7 @@ from bench.bus.schemas import (
 from bench.runtime.node import NodeContext
 from bench.plant.attitude_plant import AttitudePlant
 from bench.plant.mtq_acceptance import DipoleAcceptance, board_dipole_without_bus
+from bench.plant.acceptance import ActuatorEnvelope, CommandGate
 from bench.plant.node import LoopBroken, RealTimeClock, StampLog, _wait_command_lockstep
 
 COUNTER_MODULO = 16
@@ -109,6 +110,10 @@ def run(ctx: NodeContext) -> int:
     n_steps = scenario.n_steps
     plant = AttitudePlant(scenario.attitude, n_steps, scenario.run.seed)
     acceptance = DipoleAcceptance(scenario.can)
+    # Lock-step pairs step k with the controller's command for step k: finite, for this step and
+    # inside the board's envelope, or it is refused and counted like a thrust command.
+    command_gate = CommandGate(ActuatorEnvelope("dipole", "A m^2", acceptance.envelope_am2),
+                               on_reject=scenario.plant.command_acceptance.on_reject)
     commands = ctx.subscribe_queue(keys.COMMAND_DIPOLE, DipoleCommand)
     reports = BoardReports()
     if scenario.can is not None:
@@ -132,8 +137,11 @@ def run(ctx: NodeContext) -> int:
             if ctx.stop.is_set():
                 ctx.log.warning("stopped at step %d of %d", k, n_steps)
                 return 1
-            if ctx.lost_peers:
-                raise LoopBroken(f"peer '{ctx.lost_peers[0]}' lost at step {k}")
+            # A peer is lost when its token stays away for the hang timeout, not at its first
+            # missed lease (a busy host delays a healthy process that long).
+            lost = ctx.lost_peer(scenario.run.liveliness.hang_timeout_s)
+            if lost:
+                raise LoopBroken(f"peer '{lost}' lost at step {k}")
             if realtime:
                 clock.sleep_until(clock.tick_s(k))
             _publish_step(ctx, plant, k)
@@ -145,7 +153,10 @@ def run(ctx: NodeContext) -> int:
                 last_command = command or last_command
                 dipole, report = _realtime_dipole(scenario, acceptance, reports, last_command, log, k)
             else:
-                command = _wait_command_lockstep(ctx, commands, k, scenario.run.command_timeout_s)
+                command = _wait_command_lockstep(ctx, commands, k, scenario.run.command_timeout_s, command_gate,
+                                                 value=lambda c: c.dipole_am2)
+                if command is None:   # only refused commands came: the controller's step is lost
+                    raise LoopBroken(f"step {k}: every dipole command was refused ({dict(command_gate.rejected)})")
                 last_command = command
                 dipole, report = _lockstep_dipole(scenario, acceptance, reports, command, step_started_ns, log, k)
             if report is not None:

@@ -63,8 +63,9 @@ def _publish_sample(ctx: NodeContext, plant: TranslationPlant, last_thrust_n: np
 
 
 def _wait_command_lockstep(ctx: NodeContext, commands: queue.Queue, k: int, timeout_s: float,
-                           gate: CommandGate) -> ThrustCommand | None:
-    """The first acceptable command for step k; None if only refused ones came by the timeout."""
+                           gate: CommandGate, value=lambda command: command.thrust_n):
+    """The first acceptable command for step k; None if only refused ones came by the timeout.
+    value: the commanded quantity the gate checks (thrust here; the attitude plant's dipole)."""
     deadline = time.monotonic() + timeout_s
     refused = 0
     while not ctx.stop.is_set():
@@ -82,7 +83,7 @@ def _wait_command_lockstep(ctx: NodeContext, commands: queue.Queue, k: int, time
             command = commands.get(timeout=min(remaining, 0.2))
         except queue.Empty:
             continue
-        verdict = gate.check(command.thrust_n, seq=command.header.seq, step=k)
+        verdict = gate.check(value(command), seq=command.header.seq, step=k)
         if verdict.accepted:
             return command
         refused += 1
@@ -126,7 +127,7 @@ class RealTimeClock:
                 if refused:
                     gate.refuse_step()
                 return None
-            verdict = gate.check(command.thrust_n, seq=command.header.seq, step=k)
+            verdict = gate.check(value(command), seq=command.header.seq, step=k)
             if verdict.accepted:
                 self.deadline.command_arrived(k)
                 return command
