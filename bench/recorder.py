@@ -39,7 +39,7 @@ from bench.bus import clock_sync, keys
 from bench.bus.can import zenoh_wire
 from bench.bus.can.zenoh_interface import CAN_TOPIC
 from bench.bus.schemas import SCHEMA_VERSION, Message, ProcessStats, json_schema
-from bench.planner import plan as _plan_message   # noqa: F401  registers AttitudePlanMessage (issue 12)
+from bench.bus import plan_message as _plan_message   # noqa: F401  registers AttitudePlanMessage
 
 RECORDING_FILE = "recording.mcap"
 COUNTS_FILE = "recorder_counts.json"

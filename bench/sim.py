@@ -63,7 +63,7 @@ def estimate_for(estimator: AttitudeEstimator, plant: AttitudePlant, k: int):
 def _through_the_message(plan):
     """The plan as the controller process gets it (encoded, decoded, rebuilt): bit for bit the same."""
     from bench.bus.schemas import decode, encode, header
-    from bench.planner.plan import AttitudePlanMessage, from_message, to_message
+    from bench.bus.plan_message import AttitudePlanMessage, from_message, to_message
 
     info = {"stop_reason": "", "iterations": 0, "cost": 0.0, "wall_time_s": 0.0}
     message = to_message(plan, header("in-process", 0, plan.start_time_s), [1.0, 0.0, 0.0, 0.0], info)

@@ -29,8 +29,9 @@ LAYERS: list[dict[str, list[str]]] = [
     {"plant": ["bench.plant", "bench.plant.*"],           # the processes that only know the bus
      "estimator": ["bench.estimator", "bench.estimator.*"],
      "recorder": ["bench.recorder"]},
-    {"controller": ["bench.controller", "bench.controller.*"],
-     "planner": ["bench.planner", "bench.planner.*"]},
+    {"controller": ["bench.controller", "bench.controller.*"]},
+    # The planner plans for the flight side: it reads the controller's beliefs and replan rule.
+    {"planner": ["bench.planner", "bench.planner.*"]},
     {"studies": ["bench.studies", "bench.studies.*"]},    # seed 003 studies, campaigns
     {"report": ["bench.report", "bench.report.*"]},
     {"sim": ["bench.sim"],                                # the whole loop in one process

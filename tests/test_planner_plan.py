@@ -4,7 +4,8 @@ import pytest
 
 from bench.bus.schemas import MalformedMessage, decode, encode, header
 from bench.gnc import quaternion as qt
-from bench.planner.plan import AttitudePlanMessage, PlannerConfig, from_message, plan_from_estimate, to_message
+from bench.bus.plan_message import AttitudePlanMessage, from_message, to_message
+from bench.planner.plan import PlannerConfig, plan_from_estimate
 from bench.plant.attitude import CircularOrbit, TiltedDipole
 
 

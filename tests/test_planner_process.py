@@ -15,8 +15,8 @@ from bench.controller.plan_tracking import PlanInbox, PlanTrackingLaw
 from bench.gnc.attitude_law import AttitudeControlInput
 from bench.gnc.attitude_tracking import AttitudePlan, TvlqrAttitudeTracker
 from bench.launcher import nodes_for
-from bench.planner.plan import AttitudePlanMessage, to_message
-from bench.planner.planner import replan_reason
+from bench.bus.plan_message import AttitudePlanMessage, to_message
+from bench.controller.plan_tracking import replan_reason
 from bench.report.attitude_metrics import pointing_error_deg
 from bench.report.rundata import load_run
 from bench.scenario import load_scenario

@@ -10,7 +10,7 @@ the first plan it commands zero, or the configured fallback law, says so in info
 
 `PlanInbox` receives plan messages on the Zenoh thread. A message that does not decode is counted
 by the node context; one that decodes but whose arrays do not fit together or are not finite
-(`bench.planner.plan.from_message` raises) is counted here and ignored: neither stops the
+(`bench.bus.plan_message.from_message` raises) is counted here and ignored: neither stops the
 controller. Lock-step: the controller runs the planner's own rule (`replan_reason`) on the same
 estimate and the same current plan, and when a plan is due it waits for the plan made from this
 step's estimate (the message's header.seq), so the run does not depend on planning time.
@@ -24,12 +24,42 @@ import time
 import numpy as np
 
 from bench.bus import keys
+from bench.bus.plan_message import AttitudePlanMessage, from_message
 from bench.controller.attitude_laws import dipole_limit_am2
+from bench.controller.config import AttitudePlannerConfig
+from bench.gnc import quaternion as qt
 from bench.gnc.attitude_law import AttitudeControlInput, AttitudeLaw
 from bench.gnc.attitude_tracking import AttitudePlan, TvlqrAttitudeTracker
-from bench.planner.plan import AttitudePlanMessage, from_message
-from bench.planner.planner import replan_reason
 from bench.scenario import Scenario
+
+
+
+# The replan rule: the planner applies it to decide when to plan, and the controller in lock-step
+# to know when a plan is due (it waits for the plan made from that step's estimate).
+UNIT_NORM_TOLERANCE = 1e-6      # as the controller's cycle: a non-unit estimate is not flown on
+
+
+def plan_tracking_error_rad(plan: AttitudePlan, time_s: float, q_wxyz) -> float:
+    """Angle between the estimate and the plan's reference attitude at time_s."""
+    q_ref = TvlqrAttitudeTracker(plan, 1.0).reference(time_s)[0]
+    return qt.angle_between_rad(q_ref, np.asarray(q_wxyz, float))
+
+
+def replan_reason(time_s: float, valid: bool, q_wxyz, plan: AttitudePlan | None,
+                  settings: AttitudePlannerConfig) -> str | None:
+    """"first_plan", "schedule", "tracking_error" or None (no plan due)."""
+    q = np.asarray(q_wxyz, float)
+    if not valid or not np.all(np.isfinite(q)) or abs(np.linalg.norm(q) - 1.0) > UNIT_NORM_TOLERANCE:
+        return None
+    if plan is None:
+        return "first_plan"
+    since_s = time_s - plan.start_time_s
+    if since_s >= settings.replan_period_s:
+        return "schedule"
+    if since_s >= settings.min_replan_interval_s and \
+            plan_tracking_error_rad(plan, time_s, q) > np.deg2rad(settings.replan_error_deg):
+        return "tracking_error"
+    return None
 
 
 class PlanTrackingLaw:

@@ -93,6 +93,13 @@ def _tracking_errors(x: AttitudeControlInput, target: TargetState):
     return q_e, c_body_from_target, omega_r, omega_e
 
 
+def _dipole_from_torque_law(law, x: AttitudeControlInput) -> tuple[np.ndarray, dict]:
+    """A torque law's eval: its torque through the magnetorquer map, with both infos."""
+    torque, info = law.torque_nm(x)
+    dipole, map_info = dipole_for_torque(torque, x.field_body_t, law.dipole_limit_am2)
+    return dipole, {**info, **map_info, "torque_nm": torque}
+
+
 def _sign(q0: float) -> float:
     # sgn(0) taken as +1: at exactly 180 degrees either way is the short way.
     return 1.0 if q0 >= 0.0 else -1.0
@@ -129,9 +136,7 @@ class SlidingModeTracking:
         return torque, {"sliding_variable": s, "error_angle_rad": qt.angle_between_rad(target.q_wxyz, x.q_wxyz)}
 
     def eval(self, x: AttitudeControlInput) -> tuple[np.ndarray, dict]:
-        torque, info = self.torque_nm(x)
-        dipole, map_info = dipole_for_torque(torque, x.field_body_t, self.dipole_limit_am2)
-        return dipole, {**info, **map_info, "torque_nm": torque}
+        return _dipole_from_torque_law(self, x)
 
 
 @dataclass
@@ -149,9 +154,7 @@ class PdTracking:
         return torque, {"error_angle_rad": qt.angle_between_rad(target.q_wxyz, x.q_wxyz)}
 
     def eval(self, x: AttitudeControlInput) -> tuple[np.ndarray, dict]:
-        torque, info = self.torque_nm(x)
-        dipole, map_info = dipole_for_torque(torque, x.field_body_t, self.dipole_limit_am2)
-        return dipole, {**info, **map_info, "torque_nm": torque}
+        return _dipole_from_torque_law(self, x)
 
 
 @dataclass

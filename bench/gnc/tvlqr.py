@@ -18,17 +18,15 @@ attitude kinematics write q_dot = 1/2 q (x) [v, 0]; it is 1/2 q (x) [0, omega].
 from __future__ import annotations
 
 import numpy as np
-from scipy.linalg import cho_factor, cho_solve, expm
+from scipy.linalg import cho_factor, cho_solve
+
+from bench.gnc.cwh import discretise_zoh
 
 
 def zero_order_hold(a_continuous: np.ndarray, b_continuous: np.ndarray, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
-    """(A_d, B_d) = (e^{A dt}, integral_0^dt e^{A s} ds B) from one matrix exponential; A may be singular."""
-    n, m = b_continuous.shape
-    augmented = np.zeros((n + m, n + m))
-    augmented[:n, :n] = a_continuous
-    augmented[:n, n:] = b_continuous
-    phi = expm(augmented * dt_s)
-    return phi[:n, :n], phi[:n, n:]
+    """(A_d, B_d) = (e^{A dt}, integral_0^dt e^{A s} ds B) from one matrix exponential; A may be singular.
+    The same discretisation as seed 003's CWH model, so one implementation serves both."""
+    return discretise_zoh(a_continuous, b_continuous, dt_s)
 
 
 def bryson_weights(max_state_deviation, max_control) -> tuple[np.ndarray, np.ndarray]:

@@ -22,7 +22,7 @@ import time
 
 from bench.bus import keys
 from bench.bus.schemas import AttitudeEstimate
-from bench.planner.plan import to_message
+from bench.bus.plan_message import to_message
 from bench.planner.planner import AttitudePlanner
 from bench.runtime.node import NodeContext
 

@@ -1,66 +1,19 @@
-"""The attitude plan message and the pure planning step behind `bench node planner` (seed 004).
-
-`plan_from_estimate` takes the current attitude estimate and the target and returns an
-`AttitudePlan` (MILQR states and dipoles, TVLQR gains along them, the time base) with an info dict;
-no Zenoh, no clock, no process: the planner node (to be wired by the lead) calls it outside the
-control deadline and publishes `to_message(plan, ...)`; the controller decodes with
-`bench.bus.schemas.decode(payload, AttitudePlanMessage)` and rebuilds the plan with `from_message`,
-which rejects inconsistent lengths and non-finite values with a ValueError naming the field.
+"""The pure planning step behind `bench node planner` (seed 004): `plan_from_estimate` takes the
+current attitude estimate and the target and returns an `AttitudePlan` (MILQR states and dipoles,
+TVLQR gains along them, the time base) with an info dict; no Zenoh, no clock, no process. The
+message that carries a plan is `bench.bus.plan_message`.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Annotated
 
-import msgspec
 import numpy as np
 
-from bench.bus.schemas import Header, Message
 from bench.gnc import quaternion as qt
 from bench.gnc.attitude_planning import MagnetorquerAttitudeModel, field_along_orbit_t, gramian_horizon
 from bench.gnc.attitude_tracking import AttitudePlan, tvlqr_gains_along
 from bench.gnc.milqr import GeodesicAttitudeCost, MilqrOptions, milqr
 from bench.gnc.tvlqr import bryson_weights
-
-Vec3 = Annotated[list[float], msgspec.Meta(min_length=3, max_length=3)]
-State7 = Annotated[list[float], msgspec.Meta(min_length=7, max_length=7)]
-Gain18 = Annotated[list[float], msgspec.Meta(min_length=18, max_length=18)]   # 3x6 row-major
-
-
-class AttitudePlanMessage(Message, tag="attitude_plan"):
-    """A MILQR plan: N+1 states, N dipoles (body, A m^2) and N TVLQR gains (u = u_bar - K dx,
-    dx = [Rodrigues phi; d_omega]), sample k at start_time_s + k dt_s."""
-    plan_id: Annotated[int, msgspec.Meta(ge=0)]
-    start_time_s: float
-    dt_s: Annotated[float, msgspec.Meta(gt=0)]
-    states: list[State7]
-    dipoles_am2: list[Vec3]
-    gains: list[Gain18]
-    target_wxyz: Annotated[list[float], msgspec.Meta(min_length=4, max_length=4)]
-    stop_reason: str
-    iterations: Annotated[int, msgspec.Meta(ge=0)]
-    cost: float
-    planning_time_s: float
-
-
-def to_message(plan: AttitudePlan, header: Header, target_wxyz, info: dict) -> AttitudePlanMessage:
-    return AttitudePlanMessage(
-        header=header, plan_id=plan.plan_id, start_time_s=plan.start_time_s, dt_s=plan.dt_s,
-        states=plan.states.tolist(), dipoles_am2=plan.dipoles_am2.tolist(),
-        gains=plan.gains.reshape(plan.steps, 18).tolist(), target_wxyz=list(map(float, target_wxyz)),
-        stop_reason=info["stop_reason"], iterations=info["iterations"], cost=float(info["cost"]),
-        planning_time_s=float(info["wall_time_s"]))
-
-
-def from_message(message: AttitudePlanMessage) -> AttitudePlan:
-    """The plan carried by a decoded message; ValueError if its arrays do not fit together."""
-    n = len(message.dipoles_am2)
-    if len(message.states) != n + 1 or len(message.gains) != n:
-        raise ValueError(f"AttitudePlanMessage: {len(message.states)} states, {n} dipoles and "
-                         f"{len(message.gains)} gains (need N+1, N, N)")
-    return AttitudePlan(message.start_time_s, message.dt_s, np.array(message.states), np.array(message.dipoles_am2),
-                        np.array(message.gains).reshape(n, 3, 6), message.plan_id)
-
 
 @dataclass(frozen=True)
 class PlannerConfig:

@@ -19,37 +19,13 @@ import numpy as np
 
 from bench.controller.attitude_laws import believed_inertia, dipole_limit_am2
 from bench.controller.config import AttitudePlannerConfig
+# The replan rule is the flight side's: the controller applies the same one in lock-step.
+from bench.controller.plan_tracking import plan_tracking_error_rad, replan_reason  # noqa: F401
 from bench.gnc import quaternion as qt
 from bench.gnc.attitude_tracking import AttitudePlan, TvlqrAttitudeTracker
 from bench.gnc.milqr import MilqrOptions
 from bench.planner.plan import PlannerConfig, plan_from_estimate
 from bench.scenario import Scenario
-
-UNIT_NORM_TOLERANCE = 1e-6      # as the controller's cycle: a non-unit estimate is not flown on
-
-
-def plan_tracking_error_rad(plan: AttitudePlan, time_s: float, q_wxyz) -> float:
-    """Angle between the estimate and the plan's reference attitude at time_s."""
-    q_ref = TvlqrAttitudeTracker(plan, 1.0).reference(time_s)[0]
-    return qt.angle_between_rad(q_ref, np.asarray(q_wxyz, float))
-
-
-def replan_reason(time_s: float, valid: bool, q_wxyz, plan: AttitudePlan | None,
-                  settings: AttitudePlannerConfig) -> str | None:
-    """"first_plan", "schedule", "tracking_error" or None (no plan due)."""
-    q = np.asarray(q_wxyz, float)
-    if not valid or not np.all(np.isfinite(q)) or abs(np.linalg.norm(q) - 1.0) > UNIT_NORM_TOLERANCE:
-        return None
-    if plan is None:
-        return "first_plan"
-    since_s = time_s - plan.start_time_s
-    if since_s >= settings.replan_period_s:
-        return "schedule"
-    if since_s >= settings.min_replan_interval_s and \
-            plan_tracking_error_rad(plan, time_s, q) > np.deg2rad(settings.replan_error_deg):
-        return "tracking_error"
-    return None
-
 
 def inertial_target_wxyz(scenario: Scenario) -> np.ndarray:
     target = scenario.attitude_control.target
