@@ -156,7 +156,8 @@ def test_rogue_commands_never_change_the_lock_step_trajectory(runs_dir):
         assert rejected.get(reason, 0) > 0, rejected
     # 1e400 never becomes inf: msgspec refuses numbers out of range, so the plant's decoder counts
     # it as malformed before the gate (whose NON_FINITE check is for every other way in).
-    assert metrics["process_stats"]["plant"]["malformed"][keys.COMMAND_THRUST] >= STEPS
+    # The rogue's answer to the last sample may arrive after the plant has stopped counting.
+    assert metrics["process_stats"]["plant"]["malformed"][keys.COMMAND_THRUST] >= STEPS - 1
 
 
 def test_rogue_commands_are_refused_in_real_time(runs_dir):

@@ -127,7 +127,7 @@ class RealTimeClock:
                 if refused:
                     gate.refuse_step()
                 return None
-            verdict = gate.check(value(command), seq=command.header.seq, step=k)
+            verdict = gate.check(command.thrust_n, seq=command.header.seq, step=k)
             if verdict.accepted:
                 self.deadline.command_arrived(k)
                 return command
