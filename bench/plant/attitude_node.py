@@ -146,7 +146,7 @@ def run(ctx: NodeContext) -> int:
                 clock.sleep_until(clock.tick_s(k))
             _publish_step(ctx, plant, k)
             if realtime:
-                command = clock.collect_command(commands, k)
+                command = clock.collect_command(ctx, commands, k, command_gate, value=lambda c: c.dipole_am2)
                 outcome = clock.deadline.check(k, time.monotonic() - clock.tick_s(k))
                 if outcome.has_event:
                     ctx.publish(keys.EVENT_DEADLINE, outcome.deadline_event(header(ctx.run_id, k, plant.time_s), "plant"))

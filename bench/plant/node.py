@@ -115,7 +115,8 @@ class RealTimeClock:
         if delay > 0:
             time.sleep(delay)
 
-    def collect_command(self, ctx: NodeContext, commands: queue.Queue, k: int, gate: CommandGate) -> ThrustCommand | None:
+    def collect_command(self, ctx: NodeContext, commands: queue.Queue, k: int, gate: CommandGate,
+                        value=lambda command: command.thrust_n):
         """The acceptable command for step k if it arrives before step k+1's tick; late ones are counted."""
         deadline = self.tick_s(k + 1)
         refused = False
@@ -127,7 +128,7 @@ class RealTimeClock:
                 if refused:
                     gate.refuse_step()
                 return None
-            verdict = gate.check(command.thrust_n, seq=command.header.seq, step=k)
+            verdict = gate.check(value(command), seq=command.header.seq, step=k)
             if verdict.accepted:
                 self.deadline.command_arrived(k)
                 return command

@@ -192,7 +192,7 @@ def expand(spec: CampaignSpec) -> list[Case]:
                 if draws:
                     samples[axis] = (draws, name)
             case_id = "/".join([*cell.values(), f"seed{seed}"])
-            scenario = _merge(scenario, {"name": f"{spec.name}/{case_id}", "run": {"seed": seed}})
+            scenario = _merge(scenario, {"name": scenario_name(spec.name, case_id), "run": {"seed": seed}})
             try:
                 # Draws go last: the initial condition set's base state may come from any patch.
                 for axis, (draws, name) in samples.items():
@@ -467,3 +467,15 @@ def run_campaign(spec: CampaignSpec, out: Path, *, engine: str = "local", worker
     wall_s = time.monotonic() - start
     finalise(out, {c.case_id: c.index for c in cases})
     return CampaignOutcome(len(cases), len(cases) - len(todo), len(todo), failed, wall_s)
+
+
+def scenario_name(campaign: str, case_id: str) -> str:
+    """A scenario name for one case that passes the bench's name rule ([A-Za-z0-9_.-], at most 40
+    characters): the case id with '/' as '.', shortened with a hash of the whole id where too long."""
+    import hashlib
+    import re
+
+    name = re.sub(r"[^A-Za-z0-9_.-]", ".", f"{campaign}.{case_id}")
+    if len(name) > 40:
+        name = f"{name[:31]}-{hashlib.sha1(name.encode()).hexdigest()[:8]}"
+    return name if name[0].isalnum() else f"c{name[1:]}"
