@@ -468,6 +468,7 @@ class StatsCollector:
         self.stats: dict = {}
         self.accepting = False
         self.premature = 0
+        self._premature: dict = {}
         self._subscriber = session.declare_subscriber(keys.key(run_id, f"{keys.STATUS_STATS}/*"), self._on_stats)
 
     def _on_stats(self, sample) -> None:
@@ -478,7 +479,10 @@ class StatsCollector:
         if message.header.run_id != self.run_id or message.process not in self.names:
             return
         if not self.accepting:
+            # Kept aside, the latest per process: a node's own stats are the last it sends, and on
+            # a busy host they can overtake the plant's last-step message that opens the window.
             self.premature += 1
+            self._premature[message.process] = {"published": message.published, "malformed": message.malformed}
             return
         if message.process in self.stats:
             entry = self.stats[message.process]
@@ -488,6 +492,12 @@ class StatsCollector:
 
     def accept(self) -> None:
         self.accepting = True
+
+    def fill_from_premature(self) -> None:
+        """At the end of the run: a process whose stats came only before the window takes its latest
+        early one, marked as such (in a --secure run the access control says who may send them)."""
+        for process, entry in self._premature.items():
+            self.stats.setdefault(process, {**entry, "premature": True})
 
     def undeclare(self) -> None:
         self._subscriber.undeclare()
@@ -696,6 +706,7 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
                     _stop_children(children)
                 group.kill()     # anything a node started
                 collector.undeclare()
+                collector.fill_from_premature()
             _finish(run_dir, scenario, children, stats, time.monotonic() - started, ending, write_report and not guard.hurry,
                     remote)
         except RunInterrupted as exc:
