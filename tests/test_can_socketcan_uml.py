@@ -16,7 +16,7 @@ import uml
 from bench.bus.can.transport import kernel_has_can
 
 GUEST_DIR = "tests/uml_guest"
-BOOT_TIMEOUT_S = 100
+BOOT_TIMEOUT_S = 300   # a hang bound; `bench vcan` start-up alone takes tens of seconds on UML
 GUEST_SOCKETCAN = [
     "test_kernel_vcan_is_the_default_transport",
     "test_frames_cross_processes_on_vcan0",

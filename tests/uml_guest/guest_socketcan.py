@@ -91,8 +91,10 @@ def test_open_can_bus_socketcan_and_own_messages():
 
 def test_bench_vcan_up_and_down():
     def bench(*args):
+        # A hang bound: `bench` imports every command's module at start-up, which on UML's one
+        # emulated CPU took over 30 s once the campaign and deployment commands were added.
         return subprocess.run([sys.executable, "-m", "bench.cli", "vcan", *args], capture_output=True, text=True,
-                              timeout=30)
+                              timeout=120)
 
     created = bench("up", "vcan7")
     assert created.returncode == 0 and "vcan7: created" in created.stdout, created.stderr
