@@ -56,7 +56,9 @@ def estimate_for(estimator: AttitudeEstimator, plant: AttitudePlant, k: int):
     if estimator.needs_truth:
         truth = plant.sim.truth()
         return estimator.truth_step(truth.q_wxyz, truth.omega_body_radps, truth.gyro_bias_radps, plant.sim.field_body_t())
-    return estimator.step(k, plant.time_s, sample.gyro_radps, sample.field_inertial_t, sample.magnetometer_t,
+    # The samples the estimator process gets for tick k (sense/gyro, sense/mag, sense/star).
+    mag = sample.magnetometer_t
+    return estimator.step(k, plant.time_s, sample.gyro_radps, mag, None if mag is None else sample.field_inertial_t,
                           sample.star_tracker_wxyz)
 
 

@@ -13,7 +13,10 @@ COMMAND_THRUST = "command/thrust"
 COMMAND_APPLIED = "command/applied"   # the command the plant applied, with its full stamp chain
 ACTUATOR_MTQ = "actuator/mtq"
 # The attitude loop (issue 11).
-SENSE_ATTITUDE = "sense/attitude"
+SENSE_GYRO = "sense/gyro"            # every plant step (the gyro rate)
+SENSE_MAG = "sense/mag"              # on the magnetometer's ticks
+SENSE_STAR = "sense/star"            # on the star tracker's ticks (no fix in an outage)
+SENSE_ATTITUDE_TOPICS = (SENSE_GYRO, SENSE_MAG, SENSE_STAR)
 TRUTH_ATTITUDE = "truth/attitude"
 ESTIMATE_ATTITUDE = "estimate/attitude"
 COMMAND_DIPOLE = "command/dipole"

@@ -168,15 +168,28 @@ Quat = Annotated[list[float], msgspec.Meta(min_length=4, max_length=4)]
 Cov3 = Annotated[list[float], msgspec.Meta(min_length=9, max_length=9)]
 
 
-class AttitudeSensors(Message, tag="attitude_sensors"):
-    """Plant -> estimator, every gyro tick k: the gyro's mean rate over the last step; the
-    magnetometer and the star tracker only on their own ticks (None otherwise, or in an outage).
-    `field_model_inertial_t` is the on-board field model's prediction at t_k (the flight side
-    carries the same model), which the estimator compares the magnetometer with."""
-    gyro_radps: Vec3
+class GyroSample(Message, tag="gyro"):
+    """Plant -> estimator on `sense/gyro`, every plant step k (the gyro rate is the step rate): the
+    mean body rate over [t_k-1, t_k] plus the gyro's bias and white noise. On each tick the plant
+    publishes the magnetometer and star-tracker samples of that tick first, the gyro last: the
+    gyro closes the tick for the estimator."""
+    rate_radps: Vec3
+
+
+class MagnetometerSample(Message, tag="magnetometer"):
+    """Plant -> estimator on `sense/mag`, on the magnetometer's ticks: the body-frame field with the
+    magnetometer's scale, bias and noise. `field_model_inertial_t` is the on-board field model's
+    prediction at the same time (the bench computes it for the flight side, which carries the
+    same model); the estimator holds it until the next sample."""
+    field_body_t: Vec3
     field_model_inertial_t: Vec3
-    magnetometer_t: Vec3 | None = None
-    star_tracker_wxyz: Quat | None = None
+
+
+class StarTrackerSample(Message, tag="star_tracker"):
+    """Plant -> estimator on `sense/star`, on every star-tracker tick: the measured attitude (body
+    to inertial, scalar first), noisier about the boresight than across it; `q_wxyz` is None
+    when the tracker has no fix (an outage: Sun or Earth in its field of view)."""
+    q_wxyz: Quat | None = None
 
 
 class AttitudeTruth(Message, tag="attitude_truth"):

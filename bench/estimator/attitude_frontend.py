@@ -7,7 +7,8 @@ first star-tracker fix the estimate is flagged invalid (only B-dot can fly on it
 truth: the plant's truth passed through (seed 001's "full state knowledge" case).
 
 The field the law uses is the magnetometer's when it sampled this tick, else the on-board field
-model rotated into the estimated body axes (truth mode: the true body field).
+model's prediction at the last magnetometer sample rotated into the estimated body axes (truth
+mode: the true body field).
 """
 from __future__ import annotations
 
@@ -39,6 +40,9 @@ class AttitudeEstimator:
         self._bias = np.zeros(3)
         self._covariance: np.ndarray | None = None
         self._valid = False
+        self._last_gyro = np.zeros(3)
+        self._field_model_inertial_t = np.zeros(3)    # none until the first magnetometer sample
+        self.gyro_samples_held = 0                    # gyro samples lost, the previous one held
 
     @property
     def needs_truth(self) -> bool:
@@ -52,25 +56,37 @@ class AttitudeEstimator:
         return AttitudeEstimateOut(True, np.asarray(q_wxyz, float), np.asarray(omega_radps, float),
                                    np.asarray(gyro_bias_radps, float), np.asarray(field_body_t, float))
 
-    def step(self, seq: int, sim_time_s: float, gyro_radps, field_model_inertial_t, magnetometer_t=None,
+    def step(self, seq: int, sim_time_s: float, gyro_radps=None, magnetometer_t=None, field_model_inertial_t=None,
              star_tracker_wxyz=None) -> AttitudeEstimateOut:
-        gyro = np.asarray(gyro_radps, dtype=float)
+        """The estimate at tick `seq` from that tick's sensors: the gyro (None: its sample was lost,
+        the last one is held over the step), and on their ticks the magnetometer with the on-board
+        field model's inertial field, and a star-tracker fix (None: no fix, off its tick or in an
+        outage; the gyro carries the attitude through)."""
+        if gyro_radps is None:
+            self.gyro_samples_held += 1
+            gyro = self._last_gyro
+        else:
+            gyro = self._last_gyro = np.asarray(gyro_radps, dtype=float)
         if seq > 0:
             # The gyro sample of tick k is the mean rate over [t_k-1, t_k]: carry the estimate over it.
             self.smoother.add_gyro(gyro, self.dt_s)
             if self._valid:
                 self._q = qt.normalize(qt.multiply(self._q, qt.exp((gyro - self._bias) * self.dt_s)))
-        if magnetometer_t is not None or star_tracker_wxyz is not None:
-            mag = None if magnetometer_t is None else np.asarray(magnetometer_t, float)
-            result = self.smoother.update(seq, sim_time_s, mag, None if mag is None else np.asarray(field_model_inertial_t, float),
+        mag = None if magnetometer_t is None else np.asarray(magnetometer_t, float)
+        if mag is not None:
+            self._field_model_inertial_t = np.asarray(field_model_inertial_t, float)
+        if mag is not None or star_tracker_wxyz is not None:
+            result = self.smoother.update(seq, sim_time_s, mag, None if mag is None else self._field_model_inertial_t,
                                           None if star_tracker_wxyz is None else np.asarray(star_tracker_wxyz, float))
             if result is not None:
                 self._q, self._bias = result.q_wxyz, result.gyro_bias_radps
                 self._covariance = result.attitude_covariance_rad2
                 self._valid = True
-        if magnetometer_t is not None:
-            field_body = np.asarray(magnetometer_t, float)
+        if mag is not None:
+            field_body = mag
         else:
-            field_body = qt.rotation_matrix(self._q).T @ np.asarray(field_model_inertial_t, float)
+            # Between magnetometer samples: the model's field at the last sample (the inertial
+            # field turns at about twice the orbit rate, ~0.13 deg/s in LEO) in today's body axes.
+            field_body = qt.rotation_matrix(self._q).T @ self._field_model_inertial_t
         return AttitudeEstimateOut(self._valid, self._q.copy(), gyro - self._bias, self._bias.copy(), field_body,
                                    None if self._covariance is None else self._covariance.copy())

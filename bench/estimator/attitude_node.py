@@ -1,41 +1,75 @@
 """The estimator process of the attitude loop.
 
-reads:  sense/attitude (AttitudeSensors; smoother mode) or truth/attitude (AttitudeTruth; truth mode)
+reads:  smoother mode: sense/gyro (GyroSample, every plant step), sense/mag (MagnetometerSample, on
+        the magnetometer's ticks), sense/star (StarTrackerSample, on the star tracker's ticks; no fix
+        in an outage), gathered into ticks by bench.estimator.attitude_sensors.SensorInbox;
+        truth mode: truth/attitude (AttitudeTruth)
 writes: estimate/attitude (AttitudeEstimate, one per plant step)
+
+A sensor message that does not decode, or decodes to unusable values, is counted per topic and
+dropped; a star-tracker outage or a lost star-tracker sample leaves the smoother propagating on the
+gyro.
 """
 from __future__ import annotations
 
 import time
 
 from bench.bus import keys
-from bench.bus.schemas import AttitudeEstimate, AttitudeSensors, AttitudeTruth
+from bench.bus.schemas import (
+    AttitudeEstimate, AttitudeTruth, GyroSample, MagnetometerSample, StarTrackerSample, header,
+)
 from bench.estimator.attitude_frontend import AttitudeEstimator
+from bench.estimator.attitude_sensors import SensorInbox, SensorSchedule
 from bench.runtime.node import NodeContext
+
+# Lock-step: how long a sample the schedule promises is awaited once its tick's gyro is in. The
+# plant publishes it before the gyro on the same link, so it is normally there already.
+SCHEDULED_SAMPLE_WAIT_S = 1.0
 
 
 def run(ctx: NodeContext) -> int:
     estimator = AttitudeEstimator(ctx.scenario)
     if estimator.needs_truth:
-        samples = ctx.subscribe_queue(keys.TRUTH_ATTITUDE, AttitudeTruth)
-    else:
-        samples = ctx.subscribe_queue(keys.SENSE_ATTITUDE, AttitudeSensors)
+        return _run_truth(ctx, estimator)
+    scenario = ctx.scenario
+    inbox = SensorInbox(SensorSchedule.from_sensors(scenario.attitude.sensors), scenario.n_steps, scenario.step_s,
+                        SCHEDULED_SAMPLE_WAIT_S if scenario.run.mode == "lock-step" else 0.0, ctx.malformed, ctx.log)
+    for topic, kind in ((keys.SENSE_GYRO, GyroSample), (keys.SENSE_MAG, MagnetometerSample),
+                        (keys.SENSE_STAR, StarTrackerSample)):
+        ctx.subscribe(topic, kind, inbox.add)
+    ctx.declare_ready([keys.ESTIMATE_ATTITUDE])
+    while (tick := inbox.next_tick(ctx.stop)) is not None:
+        received_ns = time.monotonic_ns()
+        hdr = tick.header or header(ctx.run_id, tick.seq, tick.sim_time_s)
+        hdr = hdr.stamped("estimator_received", received_ns)
+        try:
+            estimate = estimator.step(tick.seq, tick.sim_time_s, tick.gyro_radps, tick.magnetometer_t,
+                                      tick.field_model_inertial_t, tick.star_tracker_wxyz)
+        except ValueError as exc:    # what the smoother still refuses: count, go on
+            ctx.malformed[keys.SENSE_GYRO] += 1
+            ctx.log.warning("attitude tick %d refused: %s", tick.seq, exc)
+            continue
+        _publish(ctx, hdr, estimate)
+    if estimator.failed_updates:
+        ctx.log.warning("attitude smoother updates failed and were re-initialised: %d", estimator.failed_updates)
+    if inbox.late or inbox.missing or estimator.gyro_samples_held:
+        ctx.log.warning("sensor samples late %s, missing %s; gyro samples held %d", dict(inbox.late),
+                        dict(inbox.missing), estimator.gyro_samples_held)
+    return 0
+
+
+def _run_truth(ctx: NodeContext, estimator: AttitudeEstimator) -> int:
+    samples = ctx.subscribe_queue(keys.TRUTH_ATTITUDE, AttitudeTruth)
     ctx.declare_ready([keys.ESTIMATE_ATTITUDE])
     for sample in ctx.until_stopped(samples):
         hdr = sample.header.stamped("estimator_received", time.monotonic_ns())
-        if estimator.needs_truth:
-            estimate = estimator.truth_step(sample.q_wxyz, sample.omega_radps, sample.gyro_bias_radps, sample.field_body_t)
-        else:
-            try:
-                estimate = estimator.step(hdr.seq, hdr.sim_time_s, sample.gyro_radps, sample.field_model_inertial_t,
-                                          sample.magnetometer_t, sample.star_tracker_wxyz)
-            except ValueError as exc:    # a sample the smoother refuses (non-finite, not unit): count, go on
-                ctx.malformed[keys.SENSE_ATTITUDE] += 1
-                ctx.log.warning("attitude sample %d refused: %s", hdr.seq, exc)
-                continue
-        covariance = None if estimate.attitude_covariance_rad2 is None else estimate.attitude_covariance_rad2.ravel().tolist()
-        ctx.publish(keys.ESTIMATE_ATTITUDE, AttitudeEstimate(
-            hdr.stamped("estimated", time.monotonic_ns()), estimate.valid, estimate.q_wxyz.tolist(),
-            estimate.omega_radps.tolist(), estimate.gyro_bias_radps.tolist(), estimate.field_body_t.tolist(), covariance))
-    if estimator.failed_updates:
-        ctx.log.warning("attitude smoother updates failed and were re-initialised: %d", estimator.failed_updates)
+        _publish(ctx, hdr, estimator.truth_step(sample.q_wxyz, sample.omega_radps, sample.gyro_bias_radps,
+                                                sample.field_body_t))
     return 0
+
+
+def _publish(ctx: NodeContext, hdr, estimate) -> None:
+    covariance = None if estimate.attitude_covariance_rad2 is None else estimate.attitude_covariance_rad2.ravel().tolist()
+    ctx.publish(keys.ESTIMATE_ATTITUDE, AttitudeEstimate(
+        hdr.stamped("estimated", time.monotonic_ns()), estimate.valid, estimate.q_wxyz.tolist(),
+        estimate.omega_radps.tolist(), estimate.gyro_bias_radps.tolist(), estimate.field_body_t.tolist(), covariance))

@@ -166,7 +166,8 @@ class AttitudeSample:
     gyro_radps: np.ndarray
     magnetometer_t: np.ndarray | None = None
     field_inertial_t: np.ndarray | None = None    # the field model's prediction (known on board)
-    star_tracker_wxyz: np.ndarray | None = None
+    star_tracker_wxyz: np.ndarray | None = None   # None off its ticks and in an outage
+    star_tracker_tick: bool = False               # the star tracker reports (a fix or "no fix")
 
 
 @dataclass
@@ -244,6 +245,7 @@ class AttitudeSimulation:
             sample.magnetometer_t = (spec.magnetometer_scale * field_body + np.asarray(spec.magnetometer_bias_t)
                                      + self.rng.normal(0.0, spec.magnetometer_noise_std_t, 3))
         if self._on_tick(spec.star_tracker_period_s):
+            sample.star_tracker_tick = True
             # e = sigma z + (sigma_b - sigma)(a . z) a: covariance sigma^2 across a, sigma_b^2 along.
             axis = np.asarray(spec.star_tracker_boresight_body, dtype=float)
             axis = axis / np.linalg.norm(axis)

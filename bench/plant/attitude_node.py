@@ -3,7 +3,10 @@ magnetorquer torque from the dipole the board reports as applied.
 
 reads:  command/dipole   (DipoleCommand: step k's dipole and the CAN alive counter that carried it)
         actuator/mtq     (MtqApplied: what the board's coil drivers are set to)
-writes: sense/attitude   (AttitudeSensors, every step), truth/attitude (AttitudeTruth),
+writes: sense/mag        (MagnetometerSample, every magnetometer_period_s),
+        sense/star       (StarTrackerSample, every star_tracker_period_s; no fix in an outage),
+        sense/gyro       (GyroSample, every step, the gyro rate being the step rate; published after
+                         the tick's other sensors: it closes the tick), truth/attitude (AttitudeTruth),
         command/applied  (DipoleCommand as applied, with the full stamp chain), status/step,
         event/deadline   (real-time: step k's command not in before step k+1)
 
@@ -28,9 +31,11 @@ import numpy as np
 
 from bench.bus import keys
 from bench.bus.schemas import (
-    AttitudeSensors, AttitudeTruth, DipoleCommand, MtqApplied, StepDone, header,
+    AttitudeTruth, DipoleCommand, GyroSample, MagnetometerSample, Message, MtqApplied, StarTrackerSample, StepDone,
+    header,
 )
 from bench.runtime.node import NodeContext
+from bench.plant.attitude import AttitudeSample
 from bench.plant.attitude_plant import AttitudePlant
 from bench.plant.mtq_acceptance import DipoleAcceptance, board_dipole_without_bus
 from bench.plant.acceptance import ActuatorEnvelope, CommandGate
@@ -81,16 +86,30 @@ class BoardReports:
 
 
 def _publish_step(ctx: NodeContext, plant: AttitudePlant, k: int) -> None:
+    """Truth, then the sensors of tick k, each on its own topic; the gyro last, as it closes the
+    tick for the estimator (one session, one link: Zenoh delivers them in this order)."""
     sample = plant.sense()
     hdr = header(ctx.run_id, k, plant.time_s, sensed=time.monotonic_ns())
     truth = plant.sim.truth()
     ctx.publish(keys.TRUTH_ATTITUDE, AttitudeTruth(
         hdr, truth.q_wxyz.tolist(), truth.omega_body_radps.tolist(), truth.gyro_bias_radps.tolist(),
         plant.sim.field_body_t().tolist(), plant.orbit.position_m(plant.time_s).tolist()))
-    ctx.publish(keys.SENSE_ATTITUDE, AttitudeSensors(
-        hdr, sample.gyro_radps.tolist(), sample.field_inertial_t.tolist(),
-        None if sample.magnetometer_t is None else sample.magnetometer_t.tolist(),
-        None if sample.star_tracker_wxyz is None else np.asarray(sample.star_tracker_wxyz, float).tolist()))
+    for topic, message in sensor_messages(hdr, sample):
+        ctx.publish(topic, message)
+
+
+def sensor_messages(hdr, sample: AttitudeSample) -> list[tuple[str, Message]]:
+    """The messages of one sensor tick in publishing order: magnetometer and star tracker on their
+    ticks (the star tracker's "no fix" in an outage too), the gyro last."""
+    messages: list[tuple[str, Message]] = []
+    if sample.magnetometer_t is not None:
+        messages.append((keys.SENSE_MAG, MagnetometerSample(
+            hdr, np.asarray(sample.magnetometer_t, float).tolist(), np.asarray(sample.field_inertial_t, float).tolist())))
+    if sample.star_tracker_tick:
+        fix = None if sample.star_tracker_wxyz is None else np.asarray(sample.star_tracker_wxyz, float).tolist()
+        messages.append((keys.SENSE_STAR, StarTrackerSample(hdr, fix)))
+    messages.append((keys.SENSE_GYRO, GyroSample(hdr, np.asarray(sample.gyro_radps, float).tolist())))
+    return messages
 
 
 class AppliedLog:
@@ -119,9 +138,9 @@ def run(ctx: NodeContext) -> int:
     if scenario.can is not None:
         ctx.subscribe(keys.ACTUATOR_MTQ, MtqApplied, reports.add)
     estimator_truth = scenario.estimator.mode == "truth"
-    for topic in (keys.SENSE_ATTITUDE, keys.TRUTH_ATTITUDE, keys.EVENT_DEADLINE, keys.COMMAND_APPLIED):
+    for topic in (*keys.SENSE_ATTITUDE_TOPICS, keys.TRUTH_ATTITUDE, keys.EVENT_DEADLINE, keys.COMMAND_APPLIED):
         ctx.declare_publisher(topic)
-    ctx.declare_ready([keys.TRUTH_ATTITUDE if estimator_truth else keys.SENSE_ATTITUDE])
+    ctx.declare_ready([keys.TRUTH_ATTITUDE] if estimator_truth else list(keys.SENSE_ATTITUDE_TOPICS))
     ctx.wait_for_tokens(keys.READY, ctx.peers, timeout_s=30.0)
     ctx.watch_peers(ctx.peers)
     ctx.log.info("peers ready (%s); attitude loop, %d steps of %.3f s in %s mode", ", ".join(ctx.peers), n_steps,

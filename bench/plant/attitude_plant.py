@@ -98,12 +98,9 @@ class AttitudePlant:
         return self.sim.dt_s
 
     def sense(self) -> AttitudeSample:
-        """The sensors at t_k (the field model's inertial prediction is included on every tick:
-        the flight side carries the same model)."""
-        sample = self._sample
-        if sample.field_inertial_t is None:
-            sample.field_inertial_t = self.field_inertial_t()
-        return sample
+        """The sensors at t_k: the gyro every tick; the magnetometer (with the on-board field
+        model's inertial prediction beside it) and the star tracker only on their own ticks."""
+        return self._sample
 
     def field_inertial_t(self) -> np.ndarray:
         return self.field.field_t(self.orbit.position_m(self.time_s), self.time_s)

@@ -24,8 +24,8 @@ from mcap.reader import NonSeekingReader
 from bench.bus import keys
 from bench.bus.can.zenoh_interface import CAN_TOPIC
 from bench.bus.schemas import (
-    DeadlineEvent, Message, MtqApplied, ProcessStats, RelativePosition, StepDone, ThrustCommand, TranslationEstimate,
-    TruthState,
+    DeadlineEvent, GyroSample, MagnetometerSample, Message, MtqApplied, ProcessStats, RelativePosition,
+    StarTrackerSample, StepDone, ThrustCommand, TranslationEstimate, TruthState,
 )
 from bench.recorder import COUNTS_FILE, MALFORMED_PREFIX, OFFSETS_FILE, RECORDING_FILE, classify_any
 from bench.scenario import Scenario, ScenarioError, load_scenario
@@ -42,6 +42,9 @@ EXPECTED_TYPES: dict[str, type[Message]] = {
     keys.ACTUATOR_MTQ: MtqApplied,
     keys.EVENT_DEADLINE: DeadlineEvent,
     keys.STATUS_STEP: StepDone,
+    keys.SENSE_GYRO: GyroSample,
+    keys.SENSE_MAG: MagnetometerSample,
+    keys.SENSE_STAR: StarTrackerSample,
 }
 
 
