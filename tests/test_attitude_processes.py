@@ -9,6 +9,8 @@ reproduce the in-process loop exactly.
 """
 import json
 import os
+import tomllib
+from importlib import resources
 
 import numpy as np
 import pytest
@@ -86,6 +88,45 @@ def test_pointing_holds_with_the_smoother_in_the_loop(pointing_run):
     # The law flew on the smoother's estimate: a star-tracker fix at t = 0 makes it valid at once.
     recorded = pointing_run.on("estimate/attitude")
     assert len(recorded) == 600 and all(m.body["valid"] for m in recorded)
+
+
+# --- the sensors on their own topics, the smoother in lock-step ---------------------------------
+SMOOTHER_STEPS = 1600        # 160 s: through attitude_pointing's star-tracker outage (120-150 s)
+
+
+@pytest.fixture(scope="module")
+def smoother_run(runs):
+    """attitude_pointing with the board model in process instead of the CAN bus: on a loaded host
+    the controller's CAN send can time out in lock-step (alive counter -1, the plant holds the last
+    report), which the in-process loop does not model; the sensor path is what is compared here."""
+    data = tomllib.loads(resources.files("bench.scenarios").joinpath("attitude_pointing.toml").read_text())
+    data.pop("can")
+    data["name"] = "attitude_pointing_no_can"
+    path = runs / "attitude_pointing_no_can.json"
+    path.write_text(json.dumps(data))
+    return bench_run(runs, str(path), "smoother", "--steps", str(SMOOTHER_STEPS))
+
+
+def test_smoother_lock_step_processes_equal_the_in_process_loop(smoother_run):
+    # The estimator process gathers sense/gyro, sense/mag and sense/star into the ticks the in-process
+    # loop hands its estimator: the same samples fused, through the outage too.
+    reference = simulate_attitude_in_process(smoother_run.scenario)
+    for name in ("att_q_wxyz", "att_omega_radps", "att_dipole_applied_am2", "att_dipole_commanded_am2"):
+        np.testing.assert_allclose(smoother_run.trajectory[name], reference[name], rtol=0, atol=1e-9, err_msg=name)
+    estimates = np.array([m.body["q_wxyz"] for m in smoother_run.on("estimate/attitude")])
+    np.testing.assert_allclose(estimates, reference["att_estimate_q_wxyz"], rtol=0, atol=1e-9)
+
+
+def test_each_sensor_is_recorded_on_its_own_topic_at_its_rate(smoother_run):
+    s = smoother_run.scenario.attitude.sensors
+    gyro, mag, star = (smoother_run.on(topic) for topic in ("sense/gyro", "sense/mag", "sense/star"))
+    assert [m.seq for m in gyro] == list(range(SMOOTHER_STEPS))
+    every_mag, every_star = round(s.magnetometer_period_s * s.gyro_rate_hz), round(s.star_tracker_period_s * s.gyro_rate_hz)
+    assert [m.seq for m in mag] == list(range(0, SMOOTHER_STEPS, every_mag))
+    assert [m.seq for m in star] == list(range(0, SMOOTHER_STEPS, every_star))
+    no_fix = [m.body["header"]["sim_time_s"] for m in star if m.body["q_wxyz"] is None]
+    (start, end), = s.star_tracker_outages_s
+    assert no_fix and all(start <= t < end for t in no_fix) and len(no_fix) == round((end - start) / s.star_tracker_period_s)
 
 
 # --- sliding mode from 200 degrees: the short way -----------------------------------------------

@@ -263,8 +263,8 @@ def test_the_smoother_propagates_on_the_gyro_through_an_outage_and_reconverges()
         plant.apply(np.zeros(3))
     t = np.arange(n) * plant.dt_s
     before, during, after = error_deg[(t > 10) & (t < 30)], error_deg[(t >= 30) & (t < 90)], error_deg[t > 100]
-    # Measured (seed 7): ~0.02 deg before; the gyro (bias estimated) and the magnetometer carry it to
-    # ~0.1 deg through 60 s without a fix; back to the fix level 10 s after.
-    assert before.max() < 0.1
-    assert during.max() < 1.0
-    assert after.max() < 0.1
+    # Measured (seed 7): at most 0.064 deg before; the gyro (bias estimated) and the magnetometer
+    # carry it through 60 s without a fix at 0.092 deg; 10 s after the outage, 0.045 deg.
+    assert before.max() < 0.15
+    assert during.max() < 0.5
+    assert after.max() < 0.15

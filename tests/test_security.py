@@ -207,6 +207,19 @@ def test_acl_table_denies_what_no_role_lists():
     assert "recorder-sends" in sends and sends["recorder-sends"] == ["bench/*/status/stats/recorder"]
 
 
+def test_only_the_plant_may_publish_the_attitude_sensors_and_the_estimator_reads_them():
+    import zenoh
+
+    from bench.bus import keys
+
+    def matches(patterns, topic):
+        return any(zenoh.KeyExpr(keys.key("*", p)).intersects(zenoh.KeyExpr(keys.key("run", topic))) for p in patterns)
+
+    for topic in keys.SENSE_ATTITUDE_TOPICS:
+        assert [name for name in acl.identities() if matches(acl.publications(name), topic)] == ["plant"], topic
+        assert matches(acl.subscriptions("estimator"), topic) and not matches(acl.subscriptions("controller"), topic)
+
+
 # ------------------------------------------------------------------------------------------------
 # A rogue with the estimator's certificate tries to command the plant during a run.
 # ------------------------------------------------------------------------------------------------
@@ -303,7 +316,7 @@ def test_every_node_has_an_access_control_role():
 
 
 def test_attitude_loop_with_the_can_board_runs_secure_and_equals_the_plain_run(runs_dir):
-    """The attitude loop's topics (sense/attitude, truth/attitude, estimate/attitude,
+    """The attitude loop's topics (sense/gyro, sense/mag, sense/star, truth/attitude, estimate/attitude,
     command/dipole, actuator/mtq) and the CAN channels over Zenoh pass the access-control table:
     a secure lock-step run is the plain run, sample for sample."""
     trajectories = {}

@@ -148,3 +148,54 @@ def test_forged_process_stats_do_not_replace_the_real_ones():
         wait_until(lambda: collector.stats["plant"].get("conflicting") == 1)
         collector.undeclare()
     assert collector.stats == {"plant": {"published": {keys.TRUTH: 288}, "malformed": {}, "conflicting": 1}}
+
+
+# --- the attitude estimator process ---------------------------------------------------------------
+def test_the_attitude_estimator_counts_and_drops_bad_sensor_messages_and_goes_on(tmp_path):
+    """Garbage, wrong types, out-of-range numbers (JSON cannot carry NaN: 1e999 decodes as out of
+    range), a non-unit star-tracker quaternion and a tick beyond the run, on each sensor topic: the
+    estimator process counts them per topic and keeps estimating from the good samples."""
+    import dataclasses
+    import threading
+
+    import msgspec as ms
+
+    from bench.bus.schemas import AttitudeEstimate, GyroSample, MagnetometerSample, StarTrackerSample, decode
+    from bench.estimator import attitude_node
+    from bench.scenario import load_scenario
+
+    run_id = "att-untrusted"
+    scenario = load_scenario("attitude_pointing")
+    scenario = ms.structs.replace(scenario, can=None, run=ms.structs.replace(scenario.run, mode="real-time", time_factor=1.0))
+    gyro_body = b'{"type":"gyro","header":{"schema_version":1,"run_id":"%s","seq":%d,"sim_time_s":%s},"rate_radps":[%s,0,0]}'
+    bad = [
+        (keys.SENSE_GYRO, b"\xff not json"),
+        (keys.SENSE_GYRO, gyro_body % (run_id.encode(), 0, b"0.0", b"1e999")),
+        (keys.SENSE_MAG, encode(TruthState(header(run_id, 0, 0.0), [0.0] * 6, [0.0] * 3))),    # wrong type
+        (keys.SENSE_STAR, encode(StarTrackerSample(header(run_id, 0, 0.0), [0.5, 0.0, 0.0, 0.0]))),
+        (keys.SENSE_GYRO, encode(GyroSample(header(run_id, 10**6, 0.0), [0.0, 0.0, 0.0]))),
+    ]
+    with session_pair() as (estimator_session, plant_session):
+        ctx = dataclasses.replace(node_context("estimator", run_id, estimator_session, tmp_path), scenario=scenario)
+        estimates = []
+        plant_session.declare_subscriber(keys.key(run_id, keys.ESTIMATE_ATTITUDE),
+                                         lambda s: estimates.append(decode(s.payload.to_bytes(), AttitudeEstimate)))
+        node = threading.Thread(target=attitude_node.run, args=(ctx,), daemon=True)
+        node.start()
+        wait_until(lambda: ctx._keepalive and len(ctx._keepalive) >= 4)        # three subscribers and ready
+        for topic, payload in bad:
+            plant_session.put(keys.key(run_id, topic), payload)
+        wait_until(lambda: sum(ctx.malformed.values()) == len(bad))
+        q = [1.0, 0.0, 0.0, 0.0]
+        for k in range(3):
+            t = 0.1 * k
+            if k == 0:
+                plant_session.put(keys.key(run_id, keys.SENSE_MAG), encode(MagnetometerSample(header(run_id, k, t), [2e-5, 0, 0], [2e-5, 0, 0])))
+                plant_session.put(keys.key(run_id, keys.SENSE_STAR), encode(StarTrackerSample(header(run_id, k, t), q)))
+            plant_session.put(keys.key(run_id, keys.SENSE_GYRO), encode(GyroSample(header(run_id, k, t), [0.0, 0.0, 0.0])))
+        wait_until(lambda: len(estimates) == 3)
+        ctx.stop.set()
+        node.join(timeout=30)
+        assert not node.is_alive()
+    assert dict(ctx.malformed) == {keys.SENSE_GYRO: 3, keys.SENSE_MAG: 1, keys.SENSE_STAR: 1}
+    assert [e.header.seq for e in estimates] == [0, 1, 2] and all(e.valid for e in estimates)
