@@ -179,6 +179,15 @@ def _check_attitude(s: Scenario) -> None:
             inertia_matrix(control.inertia_kgm2, "attitude_control.inertia_kgm2")
     except AttitudeConfigError as exc:
         raise ScenarioError(str(exc)) from None
+    if s.attitude.sensors.magnetometer_sampling == "coil_blanking":
+        board = None if s.can is None else s.can.board
+        if board is None or not (board.mag_window_period_s > 0 and board.mag_window_s > 0):
+            raise ScenarioError("attitude.sensors.magnetometer_sampling: \"coil_blanking\" samples in the board's coil-"
+                                "blanking windows; set can.board.mag_window_period_s and mag_window_s (real time over CAN)")
+        tick_wall_s = s.step_s / s.run.time_factor
+        if board.mag_window_s < tick_wall_s:
+            raise ScenarioError(f"can.board.mag_window_s: {board.mag_window_s} s is shorter than one gyro tick "
+                                f"({tick_wall_s:.3g} s of wall time): a coil-blanking window could fall between two ticks")
     if s.run.mode == "lock-step" and s.can is not None and s.can.board.mag_window_period_s > 0:
         raise ScenarioError("can.board.mag_window_period_s: the board's magnetometer windows run on the wall "
                             "clock, which a lock-step attitude run does not follow; use run.mode = \"real-time\"")

@@ -268,3 +268,37 @@ def test_the_smoother_propagates_on_the_gyro_through_an_outage_and_reconverges()
     assert before.max() < 0.15
     assert during.max() < 0.5
     assert after.max() < 0.15
+
+
+# --- the magnetometer in the board's coil-blanking windows ----------------------------------------
+def rt_blanking(**board):
+    data = tomllib.loads(resources.files("bench.scenarios").joinpath("attitude_detumble_rt.toml").read_text())
+    data["attitude"]["sensors"]["magnetometer_sampling"] = "coil_blanking"
+    data["can"]["board"] = board
+    return parse_scenario(data, "test")
+
+
+def test_coil_blanking_sampling_needs_the_boards_windows_each_at_least_a_tick_long():
+    with pytest.raises(ScenarioError, match=r"test: attitude\.sensors\.magnetometer_sampling"):
+        rt_blanking()
+    with pytest.raises(ScenarioError, match=r"test: can\.board\.mag_window_s"):
+        rt_blanking(mag_window_period_s=1.0, mag_window_s=0.05)         # a 0.1 s tick can step over it
+    scenario = rt_blanking(mag_window_period_s=1.0, mag_window_s=0.15)
+    assert SensorSchedule.from_sensors(scenario.attitude.sensors).has_magnetometer(0) is False   # not on a schedule
+
+
+def test_the_magnetometer_samples_once_per_coil_blanking_window():
+    from bench.plant.attitude_node import CoilBlankingGate
+
+    blanked = [False, True, True, False, False, False, True, False, True, True, True, False]
+    ticks = iter(blanked)
+    gate = CoilBlankingGate(lambda: next(ticks))
+    scenario = scenario_with()
+    plant = AttitudePlant(scenario.attitude, len(blanked), seed=2, magnetometer_due=gate)   # tick 0 asks too
+    sampled = []
+    for k in range(len(blanked)):
+        sampled.append(plant.sense().magnetometer_t is not None)
+        if k < len(blanked) - 1:
+            plant.apply(np.zeros(3))
+    assert sampled == [False, True, False, False, False, False, True, False, True, False, False, False]
+    assert gate.windows_sampled == 3

@@ -34,17 +34,18 @@ UNIT_QUATERNION_TOLERANCE = 1e-3      # the smoother's (bench.estimator.attitude
 class SensorSchedule:
     """Which plant ticks carry a magnetometer or star-tracker sample (the gyro is on every tick)."""
 
-    magnetometer_every: int
+    magnetometer_every: int       # 0: not on a schedule (sampled in the board's coil-blanking windows)
     star_tracker_every: int
 
     @classmethod
     def from_sensors(cls, sensors) -> "SensorSchedule":
         """From [attitude.sensors] (AttitudeSensorsConfig): periods as whole numbers of gyro ticks."""
-        return cls(int(round(sensors.magnetometer_period_s * sensors.gyro_rate_hz)),
+        scheduled = sensors.magnetometer_sampling == "schedule"
+        return cls(int(round(sensors.magnetometer_period_s * sensors.gyro_rate_hz)) if scheduled else 0,
                    int(round(sensors.star_tracker_period_s * sensors.gyro_rate_hz)))
 
     def has_magnetometer(self, k: int) -> bool:
-        return k % self.magnetometer_every == 0
+        return self.magnetometer_every > 0 and k % self.magnetometer_every == 0
 
     def has_star_tracker(self, k: int) -> bool:
         return k % self.star_tracker_every == 0

@@ -15,6 +15,7 @@ Inertial frame: ECI-like, z along the Earth's spin axis. All units SI (T for the
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Callable
 from functools import cached_property
 
 import numpy as np
@@ -189,6 +190,9 @@ class AttitudeSimulation:
     orbit: CircularOrbit = field(default_factory=CircularOrbit)
     geomagnetic: TiltedDipole = field(default_factory=TiltedDipole)
     seed: int = 0
+    # When set, says at each tick whether the magnetometer samples (the plant's coil-blanking
+    # gate); otherwise it samples every magnetometer_period_s.
+    magnetometer_due: Callable[[], bool] | None = None
 
     def __post_init__(self):
         self.rng = np.random.default_rng(self.seed)
@@ -238,7 +242,8 @@ class AttitudeSimulation:
         self.gyro_bias_radps = self.gyro_bias_radps + self.rng.normal(
             0.0, spec.gyro_bias_random_walk_radps2_per_rthz * np.sqrt(dt), 3)
         sample = AttitudeSample(self.time_s, gyro)
-        if self._on_tick(spec.magnetometer_period_s):
+        due = self._on_tick(spec.magnetometer_period_s) if self.magnetometer_due is None else self.magnetometer_due()
+        if due:
             field_inertial = self.geomagnetic.field_t(self.orbit.position_m(self.time_s), self.time_s)
             sample.field_inertial_t = field_inertial
             field_body = qt.rotation_matrix(self.q_wxyz).T @ field_inertial

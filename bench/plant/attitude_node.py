@@ -3,7 +3,8 @@ magnetorquer torque from the dipole the board reports as applied.
 
 reads:  command/dipole   (DipoleCommand: step k's dipole and the CAN alive counter that carried it)
         actuator/mtq     (MtqApplied: what the board's coil drivers are set to)
-writes: sense/mag        (MagnetometerSample, every magnetometer_period_s),
+writes: sense/mag        (MagnetometerSample, every magnetometer_period_s, or once per coil-blanking
+                         window of the board with magnetometer_sampling = "coil_blanking"),
         sense/star       (StarTrackerSample, every star_tracker_period_s; no fix in an outage),
         sense/gyro       (GyroSample, every step, the gyro rate being the step rate; published after
                          the tick's other sensors: it closes the tick), truth/attitude (AttitudeTruth),
@@ -85,6 +86,27 @@ class BoardReports:
                 self._cond.wait(remaining)
 
 
+class CoilBlankingGate:
+    """magnetometer_sampling = "coil_blanking": the magnetometer samples once per coil-blanking
+    window, at the first tick at which the board's latest report (actuator/mtq, sent whenever its
+    coils change) says its coils are held off for the magnetometer."""
+
+    def __init__(self, coils_blanked):
+        self._coils_blanked = coils_blanked
+        self._sampled_in_this_window = False
+        self.windows_sampled = 0
+
+    def __call__(self) -> bool:
+        if not self._coils_blanked():
+            self._sampled_in_this_window = False
+            return False
+        if self._sampled_in_this_window:
+            return False
+        self._sampled_in_this_window = True
+        self.windows_sampled += 1
+        return True
+
+
 def _publish_step(ctx: NodeContext, plant: AttitudePlant, k: int) -> None:
     """Truth, then the sensors of tick k, each on its own topic; the gyro last, as it closes the
     tick for the estimator (one session, one link: Zenoh delivers them in this order)."""
@@ -127,14 +149,17 @@ class AppliedLog:
 def run(ctx: NodeContext) -> int:
     scenario = ctx.scenario
     n_steps = scenario.n_steps
-    plant = AttitudePlant(scenario.attitude, n_steps, scenario.run.seed)
+    reports = BoardReports()
+    gate = None
+    if scenario.attitude.sensors.magnetometer_sampling == "coil_blanking":
+        gate = CoilBlankingGate(lambda: reports.latest is not None and reports.latest[1].actuation_paused)
+    plant = AttitudePlant(scenario.attitude, n_steps, scenario.run.seed, magnetometer_due=gate)
     acceptance = DipoleAcceptance(scenario.can)
     # Lock-step pairs step k with the controller's command for step k: finite, for this step and
     # inside the board's envelope, or it is refused and counted like a thrust command.
     command_gate = CommandGate(ActuatorEnvelope("dipole", "A m^2", acceptance.envelope_am2),
                                on_reject=scenario.plant.command_acceptance.on_reject)
     commands = ctx.subscribe_queue(keys.COMMAND_DIPOLE, DipoleCommand)
-    reports = BoardReports()
     if scenario.can is not None:
         ctx.subscribe(keys.ACTUATOR_MTQ, MtqApplied, reports.add)
     estimator_truth = scenario.estimator.mode == "truth"

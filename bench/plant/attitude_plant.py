@@ -73,14 +73,17 @@ class StepLog:
 
 
 class AttitudePlant:
-    def __init__(self, config: AttitudePlantConfig, n_steps: int, seed: int):
+    def __init__(self, config: AttitudePlantConfig, n_steps: int, seed: int, magnetometer_due=None):
+        """`magnetometer_due`: called at each tick, says whether the magnetometer samples (the
+        coil-blanking gate of the plant process); None: every magnetometer_period_s."""
         self.config = config
         self.n_steps = n_steps
         self.orbit = build_orbit(config)
         spec = sensor_spec(config)
         self.field = build_field(config, self.orbit, n_steps / spec.gyro_rate_hz)
         self.sim = AttitudeSimulation(config.inertia_matrix(), np.asarray(config.initial_q_wxyz, float),
-                                      np.deg2rad(config.initial_rate_dps), spec, self.orbit, self.field, seed=seed)
+                                      np.deg2rad(config.initial_rate_dps), spec, self.orbit, self.field, seed=seed,
+                                      magnetometer_due=magnetometer_due)
         self.residual_dipole_am2 = np.asarray(config.disturbances.residual_dipole_am2, float)
         self.log = StepLog(*([] for _ in range(8)))
         self._sample = self.sim.measure(self.sim.omega_body_radps)

@@ -123,6 +123,10 @@ class AttitudeSensorsConfig(msgspec.Struct, forbid_unknown_fields=True):
     gyro_bias_random_walk_radps2_per_rthz: NonNegative = 1.0e-6
     initial_gyro_bias_std_radps: NonNegative = 1.0e-3
     magnetometer_period_s: Positive = 1.0
+    # "schedule": every magnetometer_period_s. "coil_blanking": once per coil-blanking window of the
+    # magnetorquer board ([can.board] mag_window_*), on the first gyro tick at which the board
+    # reports its coils off (real-time runs: the windows are wall-clock).
+    magnetometer_sampling: Literal["schedule", "coil_blanking"] = "schedule"
     magnetometer_noise_std_t: NonNegative = 1.0e-7
     magnetometer_bias_t: Vec3 = msgspec.field(default_factory=lambda: [0.0, 0.0, 0.0])
     star_tracker_period_s: Positive = 1.0
