@@ -1,14 +1,14 @@
 """The attitude estimator's sensor inputs: `sense/gyro`, `sense/mag` and `sense/star` gathered into ticks.
 
 Each sensor has its own topic and rate. The plant publishes a tick's magnetometer and star-tracker
-samples before its gyro sample, over one session (so Zenoh delivers them in that order), and the
-gyro closes the tick. The estimator knows its sensors' schedule (their rates, from the scenario's
+samples before its gyro sample, over one session, and the estimator reads them through one
+subscriber (`sense/*`), which keeps that order (three subscribers do not); the gyro closes the tick. The estimator knows its sensors' schedule (their rates, from the scenario's
 [attitude.sensors], are what the flight software configures them to):
 - lock-step: for a tick whose schedule has a magnetometer or star-tracker sample, it waits up to
   `wait_s` for it (a star tracker in an outage still reports, without a fix), so the processes fuse
   exactly the samples the in-process loop fuses;
-- real-time: it takes what has arrived; a sample that comes after its tick was closed is late,
-  counted and dropped.
+- real-time: it waits at most a few milliseconds for a scheduled sample, and takes what has
+  arrived; a sample that comes after its tick was closed is late, counted and dropped.
 
 A message that decodes but whose values are unusable (non-finite, a zero model field, a star-tracker
 quaternion that is not unit, a tick beyond the run) is counted under its topic in `malformed` and

@@ -84,9 +84,23 @@ class NodeContext:
     # --- subscribing ----------------------------------------------------------------------
     def subscribe(self, topic: str, kind: type[Message], on_message: Callable[[Message], None]) -> None:
         """Decode every sample on `topic` as `kind`; count and log the ones that are not."""
+        self.subscribe_topics(topic, {topic: kind}, on_message)
+
+    def subscribe_topics(self, key_topic: str, kinds: dict[str, type[Message]],
+                         on_message: Callable[[Message], None]) -> None:
+        """One subscriber on `key_topic` (a topic or a wildcard such as `sense/*`) for the topics in
+        `kinds`, each decoded as its own type; anything else under it is counted as malformed. One
+        subscriber sees one publisher's samples in publishing order across the topics; separate
+        subscribers do not (benchmarks/bench_sensor_order.py: up to a quarter of the earlier topics'
+        samples came after the last topic's sample of the same tick)."""
+        prefix = keys.key(self.run_id, "")
 
         def handle(sample: zenoh.Sample) -> None:
+            topic = str(sample.key_expr)[len(prefix):]
+            kind = kinds.get(topic)
             try:
+                if kind is None:
+                    raise MalformedMessage(f"no message is expected on {topic}")
                 message = decode(sample.payload.to_bytes(), kind)
             except MalformedMessage as exc:
                 self.malformed[topic] += 1
@@ -99,7 +113,7 @@ class NodeContext:
                 return
             on_message(message)
 
-        self._keepalive.append(self.session.declare_subscriber(keys.key(self.run_id, topic), handle))
+        self._keepalive.append(self.session.declare_subscriber(keys.key(self.run_id, key_topic), handle))
 
     def subscribe_queue(self, topic: str, kind: type[Message]) -> "queue.Queue[Message]":
         q: queue.Queue[Message] = queue.Queue()
