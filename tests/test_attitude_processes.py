@@ -209,3 +209,24 @@ def test_detumble_from_8_dps_reaches_0_1_dps_within_two_orbits():  # ~16 min on 
     # Reaches 0.1 deg/s; B-dot then hovers near 2n (0.13 deg/s), so "stays below" is not asked.
     assert metrics["first_below_detumble_threshold_s"] is not None
     assert metrics["first_below_detumble_threshold_s"] < 11_400.0
+
+
+# --- real time: the magnetometer in the board's coil-blanking windows ----------------------------
+def test_real_time_smoother_with_the_magnetometer_in_coil_blanking_windows(runs):
+    run = bench_run(runs, "attitude_pointing_rt", "pointing_rt")
+    s = run.scenario
+    gyro, mag, star = (run.on(topic) for topic in ("sense/gyro", "sense/mag", "sense/star"))
+    assert len(gyro) == s.n_steps
+    # One sample per 1 s board window (wall clock, the run at 1x): at most one per window, never two
+    # ticks running; the windows are the board's, so the count is the run's length in windows.
+    seqs = [m.seq for m in mag]
+    assert s.n_steps * s.step_s / s.can.board.mag_window_period_s - 3 <= len(seqs) <= s.n_steps * s.step_s + 1
+    assert all(b - a >= 2 for a, b in zip(seqs, seqs[1:]))
+    no_fix = [m.body["header"]["sim_time_s"] for m in star if m.body["q_wxyz"] is None]
+    (start, end), = s.attitude.sensors.star_tracker_outages_s
+    assert no_fix and all(start <= t < end for t in no_fix)
+    estimates = run.on("estimate/attitude")
+    assert len(estimates) == s.n_steps and all(m.body["valid"] for m in estimates)
+    stats = json.loads((run.run_dir / "recorder_counts.json").read_text())["publishers"]
+    assert stats["plant"]["sense/mag"] == len(seqs) and not stats.get("estimator", {}).get("malformed")
+    assert pointing_error_deg(run.trajectory, s).max() < POINTING_BOUND_DEG
