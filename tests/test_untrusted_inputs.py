@@ -182,7 +182,8 @@ def test_the_attitude_estimator_counts_and_drops_bad_sensor_messages_and_goes_on
                                          lambda s: estimates.append(decode(s.payload.to_bytes(), AttitudeEstimate)))
         node = threading.Thread(target=attitude_node.run, args=(ctx,), daemon=True)
         node.start()
-        wait_until(lambda: ctx._keepalive and len(ctx._keepalive) >= 4)        # three subscribers and ready
+        probe = plant_session.declare_publisher(keys.key(run_id, keys.SENSE_GYRO))
+        wait_until(lambda: probe.matching_status.matching)          # the estimator's sense/* subscriber
         for topic, payload in bad:
             plant_session.put(keys.key(run_id, topic), payload)
         wait_until(lambda: sum(ctx.malformed.values()) == len(bad))
