@@ -101,6 +101,9 @@ ATTITUDE_LAWS: dict[str, str] = {
     "bdot": "bench.controller.attitude_laws:bdot",
     "sliding_mode": "bench.controller.attitude_laws:sliding_mode",
     "pd": "bench.controller.attitude_laws:pd",
+    "rate_damping": "bench.controller.attitude_laws:rate_damping",
+    # B-dot, then gyro rate damping below [attitude_control] handover_rate_dps
+    "bdot_then_rate_damping": "bench.controller.attitude_laws:bdot_then_rate_damping",
     # issue 12: TVLQR tracking of the planner process's MILQR plans ([attitude_control.planner])
     "tvlqr_plan": "bench.controller.plan_tracking:tvlqr_plan",
 }
@@ -108,6 +111,8 @@ ATTITUDE_LAWS: dict[str, str] = {
 PLANNED_LAWS = {"tvlqr_plan"}
 # Laws that need no attitude estimate (they fly before the smoother's first fix).
 ATTITUDE_FREE_LAWS = {"bdot"}
+# Laws with no attitude target (rate laws): no pointing error to report.
+TARGET_FREE_LAWS = {"bdot", "rate_damping", "bdot_then_rate_damping"}
 
 
 class AttitudeTargetConfig(msgspec.Struct, forbid_unknown_fields=True):
@@ -158,6 +163,14 @@ class AttitudeControlConfig(msgspec.Struct, forbid_unknown_fields=True):
     # ~1e4 A m^2 s / T for the default body at 500 km. Measured here: 5e5 (too high) locks the spin
     # to the field and stalls at ~2.7 deg/s for two orbits; 1e4 reaches 0.3 deg/s in 3200 s.
     bdot_gain_am2_s_per_t: PositiveGain = 1.0e4
+    # Rate damping: tau = -k omega_perp (N m s). k/J is the damping rate of the rate across B;
+    # 2e-5 on the 1U body (J ~ 2e-3) is 1/100 s, and saturates (0.2 A m^2) only above ~0.3 rad/s.
+    rate_damping_gain_nms: PositiveGain = 2.0e-5
+    handover_rate_dps: PositiveGain = 0.5    # bdot_then_rate_damping: B-dot above, rate damping below
+    # The spacecraft's residual dipole as calibrated (A m^2, body axes); every law's command is
+    # offset by minus this (bench.gnc.attitude_law.ResidualDipoleCompensation). Zero: none.
+    residual_dipole_compensation_am2: Annotated[list[float], msgspec.Meta(min_length=3, max_length=3)] = \
+        msgspec.field(default_factory=lambda: [0.0, 0.0, 0.0])
     # Seed 002 sliding mode (lambda, k) and PD (kp, kd).
     sliding_gain_radps: PositiveGain = 0.05
     convergence_gain_radps: PositiveGain = 0.02
