@@ -59,12 +59,22 @@ class DipoleSender:
                 done.set()
 
 
+LOCK_STEP_SEND_TIMEOUT_S = 2.0   # the plant waits for the board's report up to 0.5 + 1.0 s after it
+
+
 def run(ctx: NodeContext) -> int:
     scenario = ctx.scenario
     cycle = AttitudeCycle(scenario)
     link = MagnetorquerLink(ctx, scenario.can, scripted=False) if scenario.can is not None else None
     sender = DipoleSender(link) if link is not None else None
-    send_timeout_s = 5 * scenario.can.driver.command_period_s if scenario.can is not None else 0.0
+    send_timeout_s = 0.0
+    if scenario.can is not None:
+        # Real time: a frame not out within 5 command periods is late, the plant holds the last
+        # report. Lock-step must not depend on the host's speed: on a loaded host (load ~5 on 2
+        # cores) the driver thread woke up to 77 ms late and a 50 ms wait lost step 25 of a
+        # 300-step detumble (alive counter -1), which broke equality with the in-process loop.
+        send_timeout_s = (5 * scenario.can.driver.command_period_s if scenario.run.mode == "real-time"
+                          else LOCK_STEP_SEND_TIMEOUT_S)
     estimates = ctx.subscribe_queue(keys.ESTIMATE_ATTITUDE, AttitudeEstimate)
     follower = None
     if scenario.attitude_control.law in PLANNED_LAWS:
