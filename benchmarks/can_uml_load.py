@@ -31,7 +31,7 @@ sys.path.insert(0, str(REPO / "tests"))
 import uml  # noqa: E402
 
 SELECTION = "tests/uml_guest_can"
-PER_TEST_TIMEOUT_S = 120
+PER_TEST_TIMEOUT_S = uml.CAN_BENCH_TEST_TIMEOUT_S     # as tests/test_can_faults_uml.py
 
 
 def busy_processes(n: int) -> list[subprocess.Popen]:
@@ -43,7 +43,7 @@ def one_run(index: int, job_dir: Path, selection: str, timeout_s: float) -> dict
     junit = job_dir / "junit.xml"
     command = ["env", f"BENCH_CAN_REPORT_DIR={job_dir}", sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
                "-o", "python_files=guest_*.py", f"--junitxml={junit}", f"--basetemp={job_dir / 'tmp'}",
-               f"--timeout={PER_TEST_TIMEOUT_S}", selection]
+               f"--timeout={PER_TEST_TIMEOUT_S:g}", selection]
     started = time.monotonic()
     result = uml.run(command, job_dir, timeout_s=timeout_s)
     outcomes = {}

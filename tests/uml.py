@@ -18,6 +18,8 @@ import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
 
+from bench.runtime.can_bench import EXIT_TIMEOUT_S, STARTUP_TIMEOUT_S
+
 REPO = Path(__file__).resolve().parents[1]
 RUN_IN_UML = REPO / "tools" / "uml" / "run-in-uml.sh"
 INSTALL_DEPS = REPO / "tools" / "install-system-deps.sh"
@@ -25,6 +27,15 @@ UML_KERNEL = Path("/usr/bin/linux.uml")
 INSTALL_TIMEOUT_S = 300
 BOOT_ERROR = 125          # run-in-uml.sh: UML or the guest's CAN setup failed
 INIT_REACHED = "as init process"   # the kernel's console line when it starts our init
+# Each guest test's bound (tests may set their own): one test that hangs fails alone and the
+# boot still reports the others.
+PER_TEST_TIMEOUT_S = 90
+# A guest test on bench.runtime.can_bench.CanBench (the fault suite): longer than CanBench's own
+# bounds (two node start-ups of STARTUP_TIMEOUT_S each, two exits of EXIT_TIMEOUT_S, 2.4 s of
+# driving) so that a slow start fails with CanBench's message naming the node, not with a bare
+# timeout; and a healthy test slowed by host load is not cut off. Measured 2026-12 in UML on a
+# host at load average ~9: `bench node mtq` spawn to first heartbeat 5.8-15.8 s (lazy CLI).
+CAN_BENCH_TEST_TIMEOUT_S = 2 * STARTUP_TIMEOUT_S + 2 * EXIT_TIMEOUT_S + 40
 
 
 class UmlUnavailable(Exception):
@@ -69,14 +80,15 @@ def run(command: list[str], job_dir: Path, *, timeout_s: float = 60) -> UmlResul
 
 
 def run_pytest(selection: list[str], job_dir: Path, *, timeout_s: float = 60,
-               per_test_timeout_s: float = 90) -> tuple[UmlResult, dict[str, str]]:
+               per_test_timeout_s: float = PER_TEST_TIMEOUT_S) -> tuple[UmlResult, dict[str, str]]:
     """Run a pytest selection inside one UML boot; returns the result and {test name: outcome}.
 
     Guest tests live in files named guest_*.py so the host's pytest never collects them.
     per_test_timeout_s bounds each guest test (a timeout marker on the test wins), so one hung
-    test fails alone and the boot still reports the others within timeout_s. 90 s: a CAN fault
-    test takes 12-33 s on UML's one emulated CPU on an idle host (measured 2026-12: 24-33 s when
-    run six in a row), so the former 30 s cut off slow but healthy tests.
+    test fails alone and the boot still reports the others within timeout_s. A CAN fault test
+    takes 12-33 s on UML's one emulated CPU on an idle host (measured 2026-12: 24-33 s when run
+    six in a row); under host load its two node start-ups alone may take up to CanBench's bound
+    each, hence CAN_BENCH_TEST_TIMEOUT_S for those.
     """
     junit = job_dir / "junit.xml"
     command = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-o", "python_files=guest_*.py",
@@ -95,12 +107,12 @@ def run_pytest(selection: list[str], job_dir: Path, *, timeout_s: float = 60,
     return result, outcomes
 
 
-def guest_session(guest_dir: Path, job_dir: Path, timeout_s: float):
+def guest_session(guest_dir: Path, job_dir: Path, timeout_s: float, per_test_timeout_s: float = PER_TEST_TIMEOUT_S):
     """Run a guest pytest directory in one UML boot; skip (with UML's reason) where it cannot boot."""
     import pytest
 
     try:
-        return run_pytest([guest_dir], job_dir, timeout_s=timeout_s)
+        return run_pytest([guest_dir], job_dir, timeout_s=timeout_s, per_test_timeout_s=per_test_timeout_s)
     except UmlUnavailable as exc:
         pytest.skip(str(exc))
 

@@ -1,0 +1,34 @@
+"""The attitude loop over the kernel's SocketCAN, inside user-mode Linux (tests/uml.py).
+
+One UML boot runs every test of tests/uml_guest_attitude/ (two real-time `bench run`s of
+attitude_detumble_socketcan, clean and with dropped commands); each is reported here by name, so a
+guest test that fails, errors or silently stops being collected fails on the host.
+"""
+from __future__ import annotations
+
+import pytest
+
+import uml
+
+GUEST_DIR = "tests/uml_guest_attitude"
+# Two runs of six processes each on UML's one CPU: start-up 1-3 min a run under host load, 12 s of
+# real time, shutdown. A bound for a hang, not a speed check.
+BOOT_TIMEOUT_S = 1200
+PER_TEST_TIMEOUT_S = 560     # each guest test; its `bench run` is bounded at 500 s inside
+GUEST_TESTS = [
+    "test_attitude_detumble_over_kernel_socketcan",
+    "test_attitude_detumble_with_dropped_commands_over_kernel_socketcan",
+]
+
+pytestmark = pytest.mark.timeout(BOOT_TIMEOUT_S + 60)
+
+
+@pytest.fixture(scope="module")
+def guest(tmp_path_factory):
+    return uml.guest_session(GUEST_DIR, tmp_path_factory.mktemp("uml-can-attitude"), BOOT_TIMEOUT_S,
+                             per_test_timeout_s=PER_TEST_TIMEOUT_S)
+
+
+@pytest.mark.parametrize("name", GUEST_TESTS)
+def test_attitude_loop_on_kernel_vcan(guest, name):
+    uml.assert_guest_passed(guest, name)
