@@ -3,6 +3,7 @@
     .venv/bin/python benchmarks/can_uml_startup.py                       # this checkout, 5 starts
     .venv/bin/python benchmarks/can_uml_startup.py --tree /tmp/old-tree  # another checkout of the bench
     .venv/bin/python benchmarks/can_uml_startup.py --busy 2              # with both host cores busy
+    .venv/bin/python benchmarks/can_uml_startup.py --mem 1024M           # the guest's memory
 
 One UML boot; inside it, for each repeat: `bench node --help` (the CLI's own start-up), and
 `bench node mtq` on a socketcan scenario, timed from its spawn to the board's first heartbeat on
@@ -87,6 +88,7 @@ def main() -> int:
     parser.add_argument("--tree", type=Path, default=REPO, help="checkout whose bench to start")
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--busy", type=int, default=0, help="host processes spinning meanwhile")
+    parser.add_argument("--mem", default="384M", help="the guest's memory (tests/uml.py DEFAULT_MEM is the tests')")
     parser.add_argument("--job", type=Path, default=Path("/tmp/can-uml-startup"))
     parser.add_argument("--guest", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -97,11 +99,12 @@ def main() -> int:
     sys.path.insert(0, str(REPO / "tests"))
     import uml
     uml.ensure_uml()
+    load_before = os.getloadavg()[0]
     busy = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(args.busy)]
     try:
         command = ["env", f"PYTHONPATH={tree}", sys.executable, str(Path(__file__).resolve()), "--guest",
                    "--tree", str(tree), "--repeats", str(args.repeats)]
-        result = uml.run(command, args.job, timeout_s=120 + args.repeats * 2 * HEARTBEAT_WAIT_S)
+        result = uml.run(command, args.job, timeout_s=120 + args.repeats * 2 * HEARTBEAT_WAIT_S, mem=args.mem)
     finally:
         for proc in busy:
             proc.kill()
@@ -111,7 +114,8 @@ def main() -> int:
         print(result.output[-3000:])
         return 1
     figures = json.loads(line[len("RESULT "):])
-    print(f"tree {tree} (busy host processes: {args.busy})")
+    print(f"tree {tree} (guest memory {args.mem}, busy host processes: {args.busy}, "
+          f"host load average before: {load_before:.1f})")
     for name in ("cli_help_s", "mtq_first_heartbeat_s"):
         values = figures[name]
         print(f"  {name}: median {statistics.median(values):.1f} s, max {max(values):.1f} s, all {values}")

@@ -15,6 +15,8 @@ GUEST_DIR = "tests/uml_guest_attitude"
 # real time, shutdown. A bound for a hang, not a speed check.
 BOOT_TIMEOUT_S = 1200
 PER_TEST_TIMEOUT_S = 560     # each guest test; its `bench run` is bounded at 500 s inside
+# Seven Python processes in the guest (pytest, the launcher, six nodes): 384M ran out (OOM killer).
+GUEST_MEM = "1536M"
 GUEST_TESTS = [
     "test_attitude_detumble_over_kernel_socketcan",
     "test_attitude_detumble_with_dropped_commands_over_kernel_socketcan",
@@ -26,7 +28,7 @@ pytestmark = pytest.mark.timeout(BOOT_TIMEOUT_S + 60)
 @pytest.fixture(scope="module")
 def guest(tmp_path_factory):
     return uml.guest_session(GUEST_DIR, tmp_path_factory.mktemp("uml-can-attitude"), BOOT_TIMEOUT_S,
-                             per_test_timeout_s=PER_TEST_TIMEOUT_S)
+                             per_test_timeout_s=PER_TEST_TIMEOUT_S, mem=GUEST_MEM)
 
 
 @pytest.mark.parametrize("name", GUEST_TESTS)
