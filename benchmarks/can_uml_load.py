@@ -76,7 +76,7 @@ def main() -> int:
     parser.add_argument("--runs", type=int, default=10)
     parser.add_argument("--busy", type=int, default=2, help="host processes spinning meanwhile (2: both cores)")
     parser.add_argument("--selection", default=SELECTION)
-    parser.add_argument("--timeout-s", type=float, default=900)
+    parser.add_argument("--timeout-s", type=float, default=1200, help="bound of one boot (both cores busy: slower than the test's 840 s)")
     parser.add_argument("--jobs", type=Path, default=Path("/tmp/can-uml-load"))
     parser.add_argument("--out", type=Path)
     args = parser.parse_args()
