@@ -20,6 +20,8 @@ from bench.controller.plan_tracking import replan_reason
 from bench.report.attitude_metrics import pointing_error_deg
 from bench.report.rundata import load_run
 from bench.scenario import load_scenario
+from bench.scenario import scenario_to_toml_dict
+from bench.sim import simulate_attitude_in_process
 from conftest import run_bench_cli
 
 RUN_TIMEOUT_S = 900
@@ -162,3 +164,28 @@ def test_planned_slew_as_processes_tracks_every_plan_and_ignores_bad_plans(slew_
     metrics = json.loads((run.run_dir / "metrics.json").read_text())
     assert all(p["exit_code"] == 0 for p in metrics["processes"].values()) and "planner" in metrics["processes"]
     assert len(run.on(keys.PLAN_ATTITUDE)) >= len(planner["plans"])
+
+
+# --- determinism: planning time does not reach a lock-step run ---------------------------------
+def test_lock_step_planned_slew_as_processes_equals_the_in_process_loop_with_a_slow_planner(tmp_path):
+    """100 steps (the first plan at step 0, a tracking-error replan at step 74) with every plan held
+    back 2 s before the planner publishes it: the controller waits for the plan the replan rule
+    says is due, so the processes fly exactly the in-process loop (which plans in line)."""
+    data = scenario_to_toml_dict(load_scenario("attitude_slew_milqr"))
+    data["controller"]["deadline"]["stress"] = {"process": "planner", "extra_cycle_time_s": 2.0, "kind": "sleep",
+                                                "every_nth_cycle": 1}
+    path = tmp_path / "slow_planner.json"
+    path.write_text(json.dumps(data))
+    result = run_bench_cli("run", str(path), "--steps", "100", "--run-id", "slow_planner", "--runs-dir",
+                           str(tmp_path), "--no-progress", timeout_s=RUN_TIMEOUT_S)
+    assert result.returncode == 0, result.stderr + result.stdout
+    run = load_run(tmp_path / "slow_planner")
+    planner = json.loads((run.run_dir / "planner.json").read_text())
+    controller = json.loads((run.run_dir / "deadline_controller.json").read_text())
+    assert [p["reason"] for p in planner["plans"]] == ["first_plan", "tracking_error"]
+    assert planner["stress_injected_plans"] == 2
+    assert controller["plans_applied"] == 2 and controller["plan_waits_timed_out"] == 0
+    reference = simulate_attitude_in_process(run.scenario)
+    for name in ("att_q_wxyz", "att_omega_radps", "att_dipole_applied_am2", "att_dipole_commanded_am2"):
+        np.testing.assert_allclose(run.trajectory[name], reference[name], rtol=0, atol=1e-9, err_msg=name)
+    assert not np.any(run.trajectory["att_refused"])

@@ -65,6 +65,13 @@ def run(ctx: NodeContext) -> int:
     link = MagnetorquerLink(ctx, scenario.can, scripted=False) if scenario.can is not None else None
     sender = DipoleSender(link) if link is not None else None
     send_timeout_s = 5 * scenario.can.driver.command_period_s if scenario.can is not None else 0.0
+    if scenario.run.mode == "lock-step":
+        # Lock-step results must not depend on the host's load: the driver's command loop sends
+        # the new dipole within a command period on an idle host, but on a loaded one it once took
+        # more than 5 periods (50 ms; issue 12, attitude_slew_milqr step 140 at load 10): the step
+        # went without a counter, the plant applied the previous dipole and the run left the
+        # in-process loop. Wait as long as the plant waits for the command.
+        send_timeout_s = scenario.run.command_timeout_s
     estimates = ctx.subscribe_queue(keys.ESTIMATE_ATTITUDE, AttitudeEstimate)
     follower = None
     if scenario.attitude_control.law in PLANNED_LAWS:

@@ -14,8 +14,9 @@ Seconds = Annotated[float, msgspec.Meta(ge=0, le=60.0)]
 PositiveSeconds = Annotated[float, msgspec.Meta(gt=0, le=60.0)]
 FallbackPolicy = Literal["hold", "shifted_plan", "lqr"]
 # Processes that apply a StressConfig (call StressInjector(config, name).apply(cycle) in their
-# loop). Only the controller does so far; a scenario naming another is refused, not ignored.
-StressedProcess = Literal["controller"]
+# loop): the controller per cycle, the planner per plan (its "cycle" is the plan's number: a slow
+# planner, to show lock-step runs do not depend on planning time). Another name is refused.
+StressedProcess = Literal["controller", "planner"]
 PositiveWeights = Annotated[list[Annotated[float, msgspec.Meta(gt=0, le=1e12)]], msgspec.Meta(min_length=1, max_length=64)]
 # The QP grows with N (3N inputs, 6N states); 1000 steps is already a 9000-variable QP per cycle.
 Horizon = Annotated[int, msgspec.Meta(ge=1, le=1000)]
