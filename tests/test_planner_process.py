@@ -189,3 +189,14 @@ def test_lock_step_planned_slew_as_processes_equals_the_in_process_loop_with_a_s
     for name in ("att_q_wxyz", "att_omega_radps", "att_dipole_applied_am2", "att_dipole_commanded_am2"):
         np.testing.assert_allclose(run.trajectory[name], reference[name], rtol=0, atol=1e-9, err_msg=name)
     assert not np.any(run.trajectory["att_refused"])
+
+
+def test_lock_step_controller_waits_for_its_can_frame_as_long_as_the_plant_waits_for_the_command():
+    """The CAN frame carrying a new dipole: 5 command periods in real time; in lock-step as long as
+    the plant waits (a 50 ms wall-clock wait ran out on a loaded host and changed a lock-step run)."""
+    from bench.controller.attitude_node import command_send_timeout_s
+
+    lock_step = load_scenario("attitude_slew_milqr")
+    assert command_send_timeout_s(lock_step) == lock_step.run.command_timeout_s == 300.0
+    real_time = load_scenario("attitude_fault_commands")
+    assert command_send_timeout_s(real_time) == pytest.approx(5 * real_time.can.driver.command_period_s)

@@ -108,6 +108,7 @@ class CaseResult:
     cycle_p99_ms: float
     error_deg: np.ndarray           # per step (plots)
     time_s: np.ndarray
+    dipole_applied_am2: np.ndarray
 
 
 def score(trajectory: dict, scored_against: Scenario, law: str, bus: str) -> CaseResult:
@@ -132,7 +133,7 @@ def score(trajectory: dict, scored_against: Scenario, law: str, bus: str) -> Cas
         planner_wall_s=float(planning.sum()) if len(planning) else None, plans=len(planning),
         cycle_p50_ms=float(np.percentile(cycle_ms, 50)) if len(cycle_ms) else float("nan"),
         cycle_p99_ms=float(np.percentile(cycle_ms, 99)) if len(cycle_ms) else float("nan"),
-        error_deg=error_deg, time_s=np.asarray(trajectory["att_time_s"]))
+        error_deg=error_deg, time_s=np.asarray(trajectory["att_time_s"]), dipole_applied_am2=applied)
 
 
 def run_comparison(base: Scenario, laws=LAWS, fault: FaultSpec | None = DEFAULT_FAULT, steps: int | None = None,
