@@ -88,8 +88,10 @@ def test_replan_rule_first_schedule_and_tracking_error():
     settings = load_scenario("attitude_slew_milqr").attitude_control.planner
     q = np.array([1.0, 0, 0, 0])
     plan = small_plan(dt_s=100.0)
-    assert replan_reason(0.0, True, q, None, settings) == "first_plan"
-    assert replan_reason(0.0, False, q, None, settings) is None
+    assert settings.first_plan_after_s == 30.0                     # the smoother's bias converges first
+    assert replan_reason(29.0, True, q, None, settings) is None
+    assert replan_reason(30.0, True, q, None, settings) == "first_plan"
+    assert replan_reason(30.0, False, q, None, settings) is None
     assert replan_reason(0.0, True, [np.nan, 0, 0, 1], None, settings) is None
     assert replan_reason(settings.replan_period_s, True, q, plan, settings) == "schedule"
     off = np.array([np.cos(np.deg2rad(6)), np.sin(np.deg2rad(6)), 0, 0])    # 12 deg off the plan
@@ -138,10 +140,10 @@ def slew_run(tmp_path_factory):
 
 
 @pytest.mark.timeout(2 * RUN_TIMEOUT_S)
-@pytest.mark.xfail(reason="not met yet: with the smoother's rate (noisy, biased gyro) the tracker leaves the plan "
-                          "within ~75 s and replans; in process 2.3-6.8 deg at 1800 s (0.14 deg on truth, 0.17 deg "
-                          "with the smoother and a perfect gyro)", strict=False)
 def test_planned_slew_as_processes_ends_within_two_degrees(slew_run):
+    """Measured 0.093 deg at 1800 s, bit for bit the in-process loop's (the lock-step run is the
+    in-process run: see the slow-planner test below); 4 plans (first, a tracking-error replan at
+    74 s, the schedule at 974 s, a tracking-error replan at 1150 s)."""
     run, _ = slew_run
     s, t = run.scenario, run.trajectory
     assert s.estimator.mode == "smoother" and s.attitude_control.law == "tvlqr_plan"
@@ -168,10 +170,11 @@ def test_planned_slew_as_processes_tracks_every_plan_and_ignores_bad_plans(slew_
 
 # --- determinism: planning time does not reach a lock-step run ---------------------------------
 def test_lock_step_planned_slew_as_processes_equals_the_in_process_loop_with_a_slow_planner(tmp_path):
-    """100 steps (the first plan at step 0, a tracking-error replan at step 74) with every plan held
+    """100 steps (the first plan at step 30, a scheduled replan at step 70) with every plan held
     back 2 s before the planner publishes it: the controller waits for the plan the replan rule
     says is due, so the processes fly exactly the in-process loop (which plans in line)."""
     data = scenario_to_toml_dict(load_scenario("attitude_slew_milqr"))
+    data["attitude_control"]["planner"]["replan_period_s"] = 40.0
     data["controller"]["deadline"]["stress"] = {"process": "planner", "extra_cycle_time_s": 2.0, "kind": "sleep",
                                                 "every_nth_cycle": 1}
     path = tmp_path / "slow_planner.json"
@@ -182,7 +185,7 @@ def test_lock_step_planned_slew_as_processes_equals_the_in_process_loop_with_a_s
     run = load_run(tmp_path / "slow_planner")
     planner = json.loads((run.run_dir / "planner.json").read_text())
     controller = json.loads((run.run_dir / "deadline_controller.json").read_text())
-    assert [p["reason"] for p in planner["plans"]] == ["first_plan", "tracking_error"]
+    assert [(p["seq"], p["reason"]) for p in planner["plans"]] == [(30, "first_plan"), (70, "schedule")]
     assert planner["stress_injected_plans"] == 2
     assert controller["plans_applied"] == 2 and controller["plan_waits_timed_out"] == 0
     reference = simulate_attitude_in_process(run.scenario)
