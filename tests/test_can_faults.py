@@ -32,6 +32,7 @@ COMMAND_TIMEOUT_S = 0.1
 FAULT_START_S = 1.0
 DRIVE_S = 2.0
 SILENCE_S = 0.4          # commands stop: the board must go safe within this
+STARVED_RETRIES = 2
 _runs = itertools.count()
 
 pytestmark = pytest.mark.timeout(60)
@@ -42,6 +43,22 @@ SOCKETCAN = {"transport": "socketcan", "flight_channel": "vcan0", "board_channel
 
 
 def run_fault(tmp_path, *faults: dict, drive_s: float = DRIVE_S, transport: dict = ZENOH) -> CanRunResult:
+    """One bench run with these faults. A run the host starved so badly that a fault never acted
+    (the injector affected no frame, and the driver or the board counted host overruns) proves
+    nothing about the bus: it is run again, at most STARVED_RETRIES times, and said so."""
+    for attempt in range(STARVED_RETRIES + 1):
+        result = _run_once(tmp_path / (f"retry{attempt}" if attempt else "."), faults, drive_s, transport)
+        _report_host_overruns(tmp_path, result)
+        if not (faults and starved(result)):
+            return result
+        print(f"{tmp_path.name}: the host starved the run (host overruns: driver "
+              f"{sum(e.kind == 'host_overrun' for e in result.events)}, board {result.board.get('host_overruns', 0)}; "
+              f"no fault acted): run again")
+    return result
+
+
+def _run_once(tmp_path, faults, drive_s, transport) -> CanRunResult:
+    tmp_path.mkdir(parents=True, exist_ok=True)
     scenario = write_scenario(tmp_path / "scenario", {**transport, "faults": list(faults)})
     bench = CanBench(scenario, tmp_path / "run", f"canfault-{os.getpid()}-{next(_runs)}")
     try:
@@ -51,9 +68,12 @@ def run_fault(tmp_path, *faults: dict, drive_s: float = DRIVE_S, transport: dict
     except BaseException:
         bench.close()
         raise
-    result = bench.stop()
-    _report_host_overruns(tmp_path, result)
-    return result
+    return bench.stop()
+
+
+def starved(r: CanRunResult) -> bool:
+    host = any(e.kind == "host_overrun" for e in r.events) or r.board.get("host_overruns", 0) > 0
+    return host and all(f["affected"] == 0 for f in r.report.get("faults", []))
 
 
 def _report_host_overruns(tmp_path, r: CanRunResult) -> None:
@@ -71,10 +91,20 @@ def _report_host_overruns(tmp_path, r: CanRunResult) -> None:
         f.write(json.dumps(record) + "\n")
 
 
-def latency_s(result: CanRunResult, kind: str, since_ns: int, detail: str = "") -> float:
+def latency_s(result: CanRunResult, kind: str, since_ns: int, detail: str = "", host_excused: bool = True) -> float:
+    """Seconds from since_ns to the driver's first `kind` event, less the time the host held the
+    driver's own loop up in between (its host_overrun events: how late each command period
+    started), unless host_excused is False. A detection bound is a property of the bus and the
+    nodes; on a starved host (UML's one CPU under a loaded 2-core machine: loop 74 ms late
+    measured) the wall clock adds what the driver measured of its own lateness, no more."""
+    assert since_ns is not None, f"nothing to measure {kind} from: the fault never acted; events: {result.kinds()}"
     event = result.first_event(kind, after_ns=since_ns, detail=detail)
     assert event is not None, f"no {kind} {detail} detected; events: {result.kinds()}"
-    return (event.detected_ns - since_ns) / 1e9
+    latency = (event.detected_ns - since_ns) / 1e9
+    if host_excused:
+        latency -= sum(e.latency_s for e in result.events
+                       if e.kind == "host_overrun" and since_ns <= e.detected_ns <= event.detected_ns)
+    return latency
 
 
 def window_start_ns(result: CanRunResult, start_s: float = FAULT_START_S) -> int:
@@ -249,7 +279,8 @@ def test_error_frames_take_the_driver_bus_off_and_back(tmp_path):
     passive = latency_s(r, "error_passive", start)
     bus_off = latency_s(r, "bus_off", start)
     assert passive < bus_off <= 5 * COMMAND_PERIOD_S
-    assert 0.2 <= latency_s(r, "bus_restarted", start) <= 0.2 + 5 * COMMAND_PERIOD_S
+    assert 0.2 <= latency_s(r, "bus_restarted", start, host_excused=False)
+    assert latency_s(r, "bus_restarted", start) <= 0.2 + 5 * COMMAND_PERIOD_S
     assert latency_s(r, "board_command_timeout", start) <= 0.2 + 3 * COMMAND_TIMEOUT_S
     assert r.report["bus_off"] == {"flight": 1}
     check_all(r)

@@ -57,7 +57,7 @@ def worker_factory():
     def make(factory, **kw):
         w = WorkerLaw(factory, nx=6, nu=3, plan_rows=8, **kw)
         made.append(w)
-        assert w.wait_ready(30.0)
+        assert w.wait_ready(120.0)   # a hang bound: a spawned worker re-imports numpy, scipy and this module
         return w
 
     yield make
@@ -158,7 +158,7 @@ def test_replace_swaps_the_law_without_a_gap(worker_factory):
 def test_a_law_with_a_record_input_is_served_through_unpack(worker_factory):
     w = WorkerLaw(partial(RecordLaw), nx=8, nu=3, plan_rows=1, unpack=unpack_record)
     try:
-        assert w.wait_ready(30.0)
+        assert w.wait_ready(120.0)   # a hang bound: a spawned worker re-imports numpy, scipy and this module
         u, info = w.evaluate(np.array([5.0, 1, 0, 0, 0, 0.1, 0.2, 0.3]), None)
         np.testing.assert_allclose(u, [-0.2, -0.4, -0.6])
         assert info["status"] == "t=5" and PLAN_KEY not in info

@@ -137,6 +137,7 @@ class MagnetorquerDriver:
         self._bus_off_s: float | None = None
         self.bus_off_recovery_s = errors.BUS_OFF_RECOVERY_BITS / bitrate_bps
         self.host_overruns = 0
+        self.frames_in_last_poll = 0
         self._last_command_s: float | None = None
         self._largest_gap_s = 0.0       # longest time between two of our commands, since the last timeout
         self._nmt_state: int | None = None
@@ -186,6 +187,7 @@ class MagnetorquerDriver:
             if handled >= max_frames:
                 break  # a flood must not starve the deadline checks below
             msg = self.bus.recv(timeout=0.0)
+        self.frames_in_last_poll = handled
         self.check_deadlines(self.clock())
         events, self._new_events = self._new_events, []
         return events
@@ -369,9 +371,10 @@ class MagnetorquerDriver:
         )
 
     def host_overrun(self, late_s: float) -> None:
-        """The owner's loop started a command period late_s late (CommandLoop calls this)."""
+        """The owner's loop woke late_s late, for a command period or after a poll (CommandLoop
+        calls this)."""
         self.host_overruns += 1
-        self._event("host_overrun", late_s, p.CMD, f"command period started {late_s * 1e3:.1f} ms late")
+        self._event("host_overrun", late_s, p.CMD, f"loop woke {late_s * 1e3:.1f} ms late")
 
 
 class CommandLoop:
@@ -407,17 +410,25 @@ class CommandLoop:
         now = clock()
         end = now + duration_s if duration_s is not None else float("inf")
         next_command_s = now
+        wake_by_s = None      # when the last poll should have returned at the latest
         while now < end and not (stop is not None and stop.is_set()):
+            late_s = 0.0
             if commanding and now >= next_command_s:
                 late_s = now - next_command_s
-                if late_s > 0.5 * self.period_s:
-                    self.driver.host_overrun(late_s)   # our thread was late: the host, not the bus
+            elif wake_by_s is not None and self.driver.frames_in_last_poll == 0:
+                # A poll that handled no frame returned this late: the scheduler, not frame work.
+                late_s = now - wake_by_s
+            if late_s > 0.5 * self.period_s:
+                self.driver.host_overrun(late_s)   # our thread was late: the host, not the bus
+            if commanding and now >= next_command_s:
                 self._command(now)
                 next_command_s += self.period_s
                 if next_command_s < now:   # woke late: skip the missed slots rather than burst
                     next_command_s = now + self.period_s
             until = min(next_command_s, end) if commanding else end
-            events = self.driver.poll(timeout_s=max(0.0, min(until - clock(), 0.01)))
+            timeout_s = max(0.0, min(until - clock(), 0.01))
+            wake_by_s = clock() + timeout_s
+            events = self.driver.poll(timeout_s=timeout_s)
             if events and self.on_events is not None:
                 self.on_events(events)
             self.health = self.driver.health()
