@@ -2,13 +2,12 @@
 portable Zenoh transport here): plant, estimator, controller with the flight-side driver, the bus
 model with the fault injector, the board, the recorder.
 
-Simulated durations are kept short (a 1U CubeSat with 0.2 A m^2 coils: the first minute of a
-detumble, 60 s of a slew, 60 s of a hold); the full detumble to 0.1 deg/s takes about an orbit and
-is a long run (BENCH_LONG_TESTS=1), checked in process: the lock-step test shows the processes
-reproduce the in-process loop exactly.
+Simulated durations are kept short (a 1U CubeSat with 0.2 A m^2 coils: the first 300 s of a
+detumble at its 1 Hz loop, the first steps of a slew and of a hold); the convergence over orbits
+(detumble below 0.1 deg/s, the slew and the hold) is checked in process in tests/test_attitude_loop.py:
+the lock-step test here shows the processes reproduce the in-process loop exactly.
 """
 import json
-import os
 
 import numpy as np
 import pytest
@@ -20,7 +19,6 @@ from bench.report.attitude_metrics import (
 from bench.sim import simulate_attitude_in_process
 from bench.report.attitude import fault_windows_sim_s
 from bench.report.rundata import load_run
-from bench.scenario import load_scenario
 from conftest import run_bench_cli
 
 RUN_TIMEOUT_S = 900     # a loaded 2-core machine starts six Python processes slowly
@@ -69,7 +67,7 @@ def test_detumble_over_the_bus_only_applies_commanded_dipoles_and_slows_the_body
 
 
 # --- the smoother in the loop: pointing hold ----------------------------------------------------
-POINTING_BOUND_DEG = 5.0     # from 3 deg, 60 s; in process the full 300 s stays below 3.9 deg
+POINTING_BOUND_DEG = 3.5     # from 3 deg, 60 s; in process the full 300 s stays below 3.02 deg (PD, 2.21 at the end)
 
 
 @pytest.fixture(scope="module")
@@ -152,19 +150,3 @@ def test_fault_effect_and_compare_report(fault_runs, runs):
     result = run_bench_cli("compare", str(clean.run_dir), str(faulted.run_dir), "--out", str(runs / "cmp"), timeout_s=300)
     assert result.returncode == 0, result.stderr
     assert "Attitude: effect of the faults" in (runs / "cmp" / "compare.md").read_text()
-
-
-# --- long: a full detumble ------------------------------------------------------------------------
-@pytest.mark.skipif(not os.environ.get("BENCH_LONG_TESTS"), reason="about an orbit of simulated time; BENCH_LONG_TESTS=1")
-def test_detumble_from_8_dps_reaches_0_1_dps_within_two_orbits():  # ~16 min on a loaded host
-    import msgspec
-
-    scenario = load_scenario("attitude_detumble")
-    attitude = msgspec.structs.replace(scenario.attitude, duration_s=11_400.0)   # two orbits at 500 km
-    scenario = msgspec.structs.replace(scenario, attitude=attitude)
-    metrics = attitude_metrics(simulate_attitude_in_process(scenario), scenario)
-    assert metrics["initial_rate_dps"] == pytest.approx(8.0, abs=0.1)
-    print({k: metrics[k] for k in ("first_below_detumble_threshold_s", "time_to_detumble_s", "min_rate_dps", "final_rate_dps")})
-    # Reaches 0.1 deg/s; B-dot then hovers near 2n (0.13 deg/s), so "stays below" is not asked.
-    assert metrics["first_below_detumble_threshold_s"] is not None
-    assert metrics["first_below_detumble_threshold_s"] < 11_400.0

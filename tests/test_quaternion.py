@@ -61,3 +61,11 @@ def test_error_state_short_way_and_bad_input():
     assert np.isclose(2 * np.arctan(np.linalg.norm(err[:3])), np.deg2rad(160.0))
     with pytest.raises(ValueError, match="normalised"):
         qt.normalize(np.array([np.nan, 0, 0, 0]))
+
+
+def test_rotation_matrix_written_out_equals_the_matrix_product():
+    rng = np.random.default_rng(11)
+    for _ in range(50):
+        q = rng.normal(size=4) * rng.uniform(0.5, 2.0)     # not unit either: the identity is quadratic in q
+        assert np.allclose(qt.rotation_matrix(q), qt.H.T @ qt.left_matrix(q) @ qt.right_matrix(q).T @ qt.H,
+                           rtol=0, atol=1e-14 * (q @ q))

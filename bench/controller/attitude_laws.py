@@ -14,7 +14,9 @@ from scipy.spatial.transform import Rotation
 
 from bench.gnc import quaternion as qt
 from bench.gnc.attitude_law import (
-    AttitudeLaw, AttitudeTarget, BDotDetumble, PdTracking, SlidingModeTracking, TargetState, inertial_hold,
+    AttitudeLaw, AttitudeTarget, BDotDetumble, DetumbleSequence, PdTracking, RateDamping, ResidualDipoleCompensation,
+    SlidingModeTracking,
+    TargetState, inertial_hold,
 )
 from bench.controller.config import ATTITUDE_LAWS
 from bench.plant.config import inertia_matrix
@@ -69,6 +71,14 @@ def bdot(s: Scenario) -> AttitudeLaw:
     return BDotDetumble(s.attitude_control.bdot_gain_am2_s_per_t, dipole_limit_am2(s))
 
 
+def rate_damping(s: Scenario) -> AttitudeLaw:
+    return RateDamping(s.attitude_control.rate_damping_gain_nms, dipole_limit_am2(s))
+
+
+def bdot_then_rate_damping(s: Scenario) -> AttitudeLaw:
+    return DetumbleSequence(bdot(s), rate_damping(s), np.deg2rad(s.attitude_control.handover_rate_dps))
+
+
 def sliding_mode(s: Scenario) -> AttitudeLaw:
     c = s.attitude_control
     return SlidingModeTracking(attitude_target(s), believed_inertia(s), dipole_limit_am2(s),
@@ -82,4 +92,10 @@ def pd(s: Scenario) -> AttitudeLaw:
 
 def build_attitude_law(scenario: Scenario) -> AttitudeLaw:
     module, _, builder = ATTITUDE_LAWS[scenario.attitude_control.law].partition(":")
-    return getattr(importlib.import_module(module), builder)(scenario)
+    law = getattr(importlib.import_module(module), builder)(scenario)
+    residual = np.asarray(scenario.attitude_control.residual_dipole_compensation_am2, float)
+    if not np.all(np.isfinite(residual)):
+        raise ValueError("attitude_control.residual_dipole_compensation_am2: must be finite")
+    if np.any(residual):
+        law = ResidualDipoleCompensation(law, residual, dipole_limit_am2(scenario))
+    return law

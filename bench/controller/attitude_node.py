@@ -59,12 +59,28 @@ class DipoleSender:
                 done.set()
 
 
+def command_send_timeout_s(scenario) -> float:
+    """How long the controller waits for the driver's first CAN frame carrying a new dipole.
+
+    Real-time: 5 command periods, then the step goes without a counter (the plant holds the board's
+    latest report). Lock-step: as long as the plant waits for the command, because lock-step results
+    must not depend on the host's load: the driver's command loop sends the new dipole within a
+    command period on an idle host, but at load 10 it once took more than 5 periods (issue 12,
+    attitude_slew_milqr step 140): the step went without a counter, the plant applied the previous
+    dipole and the run left the in-process loop."""
+    if scenario.can is None:
+        return 0.0
+    if scenario.run.mode == "lock-step":
+        return scenario.run.command_timeout_s
+    return 5 * scenario.can.driver.command_period_s
+
+
 def run(ctx: NodeContext) -> int:
     scenario = ctx.scenario
     cycle = AttitudeCycle(scenario)
     link = MagnetorquerLink(ctx, scenario.can, scripted=False) if scenario.can is not None else None
     sender = DipoleSender(link) if link is not None else None
-    send_timeout_s = 5 * scenario.can.driver.command_period_s if scenario.can is not None else 0.0
+    send_timeout_s = command_send_timeout_s(scenario)
     estimates = ctx.subscribe_queue(keys.ESTIMATE_ATTITUDE, AttitudeEstimate)
     follower = None
     if scenario.attitude_control.law in PLANNED_LAWS:

@@ -14,8 +14,9 @@ Seconds = Annotated[float, msgspec.Meta(ge=0, le=60.0)]
 PositiveSeconds = Annotated[float, msgspec.Meta(gt=0, le=60.0)]
 FallbackPolicy = Literal["hold", "shifted_plan", "lqr"]
 # Processes that apply a StressConfig (call StressInjector(config, name).apply(cycle) in their
-# loop). Only the controller does so far; a scenario naming another is refused, not ignored.
-StressedProcess = Literal["controller"]
+# loop): the controller per cycle, the planner per plan (its "cycle" is the plan's number: a slow
+# planner, to show lock-step runs do not depend on planning time). Another name is refused.
+StressedProcess = Literal["controller", "planner"]
 PositiveWeights = Annotated[list[Annotated[float, msgspec.Meta(gt=0, le=1e12)]], msgspec.Meta(min_length=1, max_length=64)]
 # The QP grows with N (3N inputs, 6N states); 1000 steps is already a 9000-variable QP per cycle.
 Horizon = Annotated[int, msgspec.Meta(ge=1, le=1000)]
@@ -101,6 +102,9 @@ ATTITUDE_LAWS: dict[str, str] = {
     "bdot": "bench.controller.attitude_laws:bdot",
     "sliding_mode": "bench.controller.attitude_laws:sliding_mode",
     "pd": "bench.controller.attitude_laws:pd",
+    "rate_damping": "bench.controller.attitude_laws:rate_damping",
+    # B-dot, then gyro rate damping below [attitude_control] handover_rate_dps
+    "bdot_then_rate_damping": "bench.controller.attitude_laws:bdot_then_rate_damping",
     # issue 12: TVLQR tracking of the planner process's MILQR plans ([attitude_control.planner])
     "tvlqr_plan": "bench.controller.plan_tracking:tvlqr_plan",
 }
@@ -108,6 +112,8 @@ ATTITUDE_LAWS: dict[str, str] = {
 PLANNED_LAWS = {"tvlqr_plan"}
 # Laws that need no attitude estimate (they fly before the smoother's first fix).
 ATTITUDE_FREE_LAWS = {"bdot"}
+# Laws with no attitude target (rate laws): no pointing error to report.
+TARGET_FREE_LAWS = {"bdot", "rate_damping", "bdot_then_rate_damping"}
 
 
 class AttitudeTargetConfig(msgspec.Struct, forbid_unknown_fields=True):
@@ -130,6 +136,11 @@ class AttitudePlannerConfig(msgspec.Struct, forbid_unknown_fields=True):
     # Real-time only: MILQR's wall-time cap (returns its best iterate). Lock-step ignores it so that
     # a run does not depend on how busy the machine was (the iteration cap still holds).
     max_planning_wall_s: PositiveGain = 60.0
+    # No first plan before this (s of simulated time): the smoother's gyro-bias estimate converges
+    # first. A plan flown on a rate still off by the initial bias (1.8e-3 rad/s at t = 0, 5e-5 rad/s
+    # at 30 s on attitude_slew_milqr) left the plan by 10 deg within 75 s; the replans that follow
+    # keep the arrival time on ever shorter horizons the body cannot follow.
+    first_plan_after_s: Annotated[float, msgspec.Meta(ge=0, le=86400.0)] = 0.0
     replan_period_s: PositiveGain = 600.0            # replan this long after the current plan's start
     replan_error_deg: PositiveGain = 10.0            # ... or when the estimate is this far off the plan
     min_replan_interval_s: Seconds = 30.0            # no error-triggered replan sooner than this
@@ -146,6 +157,10 @@ class AttitudePlannerConfig(msgspec.Struct, forbid_unknown_fields=True):
     # Tracker weights (Bryson's rule): tolerated attitude and rate deviation, and terminal factor.
     tracking_attitude_deviation_deg: PositiveGain = 1.0
     tracking_rate_deviation_radps: PositiveGain = 5e-4
+    # Every plan ends with a hold of the target at rest this long after the arrival, tracked with
+    # TVLQR gains designed along the field of the hold (without it the tracker held the arrival
+    # with the last step's gain: 1.04 deg drifted to 3.8 deg in 220 s on attitude_slew_milqr).
+    hold_after_arrival_s: Annotated[float, msgspec.Meta(ge=0, le=86400.0)] = 600.0
 
 
 class AttitudeControlConfig(msgspec.Struct, forbid_unknown_fields=True):
@@ -158,6 +173,14 @@ class AttitudeControlConfig(msgspec.Struct, forbid_unknown_fields=True):
     # ~1e4 A m^2 s / T for the default body at 500 km. Measured here: 5e5 (too high) locks the spin
     # to the field and stalls at ~2.7 deg/s for two orbits; 1e4 reaches 0.3 deg/s in 3200 s.
     bdot_gain_am2_s_per_t: PositiveGain = 1.0e4
+    # Rate damping: tau = -k omega_perp (N m s). k/J is the damping rate of the rate across B;
+    # 2e-5 on the 1U body (J ~ 2e-3) is 1/100 s, and saturates (0.2 A m^2) only above ~0.3 rad/s.
+    rate_damping_gain_nms: PositiveGain = 2.0e-5
+    handover_rate_dps: PositiveGain = 0.5    # bdot_then_rate_damping: B-dot above, rate damping below
+    # The spacecraft's residual dipole as calibrated (A m^2, body axes); every law's command is
+    # offset by minus this (bench.gnc.attitude_law.ResidualDipoleCompensation). Zero: none.
+    residual_dipole_compensation_am2: Annotated[list[float], msgspec.Meta(min_length=3, max_length=3)] = \
+        msgspec.field(default_factory=lambda: [0.0, 0.0, 0.0])
     # Seed 002 sliding mode (lambda, k) and PD (kp, kd).
     sliding_gain_radps: PositiveGain = 0.05
     convergence_gain_radps: PositiveGain = 0.02

@@ -8,7 +8,12 @@ whose torque m x B is the component of the desired torque perpendicular to B: a 
 produce no torque along the field, so that component is lost (the under-actuation of seed 004).
 
 Laws here:
-- `BDotDetumble`: m = -k dB/dt (body frame), the classic rate damper.
+- `BDotDetumble`: m = -k dB/dt (body frame), the classic magnetometer-only rate damper. It drives
+  the body to follow the field direction, which turns at about 2n in a near-polar orbit, so it
+  settles near 2n (~0.13 deg/s at 500 km), not at rest (Avanzini & Giulietti 2012, JGCD 35(4)).
+- `RateDamping`: m = (k/|B|^2) (omega x B), gyro-based: damps the inertial rate itself, to zero.
+- `DetumbleSequence`: B-dot, then rate damping once the believed rate is below a handover rate.
+- `ResidualDipoleCompensation`: any law's dipole minus the spacecraft's calibrated residual dipole.
 - `SlidingModeTracking`: seed 002's sliding-mode tracking law with sgn(q0) against unwinding.
 - `PdTracking`: seed 002's model-agnostic PD law, -kp sgn(q0) q_v - kd omega_e.
 
@@ -172,6 +177,7 @@ class BDotDetumble:
     def eval(self, x: AttitudeControlInput) -> tuple[np.ndarray, dict]:
         field_t = np.asarray(x.field_body_t, float)
         if not np.all(np.isfinite(field_t)):
+            self._previous = None      # never difference across a bad sample
             return np.zeros(3), {"weak_or_bad_field": True, "saturated": False}
         previous, self._previous = self._previous, (x.time_s, field_t)
         if previous is None or x.time_s <= previous[0]:
@@ -179,3 +185,84 @@ class BDotDetumble:
         field_rate_tps = (field_t - previous[1]) / (x.time_s - previous[0])
         dipole, saturated = saturate_dipole(-self.gain_am2_s_per_t * field_rate_tps, self.dipole_limit_am2)
         return dipole, {"weak_or_bad_field": False, "saturated": saturated, "field_rate_tps": field_rate_tps}
+
+
+@dataclass
+class RateDamping:
+    """Gyro-based rate damping: m = (k/|B|^2) (omega x B), so the torque is
+
+        tau = m x B = k (omega x b) x b = -k (omega - (omega . b) b)        (b = B/|B|)
+
+    i.e. -k times the rate component perpendicular to the field (the part a magnetorquer can
+    touch), with k in N m s whatever |B| is. With V = 1/2 omega' J omega (omega the inertial rate in
+    body axes), dV/dt = omega . tau (the gyroscopic term omega x J omega does no work), so
+
+        dV/dt = omega . (m_sat x B) = m_sat . (B x omega) = -(|B|^2/k) m_sat . m <= 0,
+
+    because per-axis saturation (and the board's rounding) keeps each component's sign or zeroes
+    it: m_sat,i m_i >= 0. Unlike B-dot it damps the inertial rate, not the rate relative to the
+    field, so it goes to rest instead of following the field at ~2n. The rate along B is not
+    damped at any instant; it is as the field turns (about 2n in a near-polar orbit), so the
+    slowest mode decays in about an orbit, the rest at k/J. Needs a bias-free rate: a raw gyro
+    with a 1e-3 rad/s bias would park the body at minus the bias (0.06 deg/s per axis).
+    """
+    gain_nms: float
+    dipole_limit_am2: float
+
+    def eval(self, x: AttitudeControlInput) -> tuple[np.ndarray, dict]:
+        field_t = np.asarray(x.field_body_t, float)
+        omega = np.asarray(x.omega_radps, float)
+        field_sq = float(field_t @ field_t)
+        if not np.isfinite(field_sq) or field_sq < MIN_FIELD_T**2 or not np.all(np.isfinite(omega)):
+            return np.zeros(3), {"weak_or_bad_field": True, "saturated": False}
+        dipole, saturated = saturate_dipole(self.gain_nms * np.cross(omega, field_t) / field_sq, self.dipole_limit_am2)
+        return dipole, {"weak_or_bad_field": False, "saturated": saturated}
+
+
+@dataclass
+class DetumbleSequence:
+    """What a detumble mode flies: B-dot (magnetometer only: robust to a gyro that is saturated,
+    biased or not yet calibrated) takes the body from tumbling down to a few times the orbit rate;
+    once the believed rate is below `handover_rate_radps` (latched: no chattering back), gyro rate
+    damping takes it to rest, which B-dot cannot (it follows the field at ~2n)."""
+    bdot: BDotDetumble
+    rate_damping: RateDamping
+    handover_rate_radps: float
+    handover_time_s: float | None = None
+
+    def eval(self, x: AttitudeControlInput) -> tuple[np.ndarray, dict]:
+        if self.handover_time_s is None and np.linalg.norm(x.omega_radps) < self.handover_rate_radps:
+            self.handover_time_s = float(x.time_s)
+        law = self.bdot if self.handover_time_s is None else self.rate_damping
+        dipole, info = law.eval(x)
+        return dipole, {**info, "phase": "bdot" if law is self.bdot else "rate_damping"}
+
+
+@dataclass
+class ResidualDipoleCompensation:
+    """The law's dipole minus the spacecraft's believed (calibrated) residual dipole, re-saturated.
+
+    The residual dipole m_r (harness currents, magnetised parts) adds m_r x B to every torque. On
+    the bench's 1U body (J ~ 2e-3 kg m^2) 1e-3 A m^2 in 30 uT is 3e-8 N m, which turns in body axes
+    at ~2n once the body is near rest; undamped that is a rate of 3e-8/(J 2n) ~ 0.4 deg/s, and
+    against a rate damper of gain k a floor of 3e-8/k (0.09 deg/s at k = 2e-5 N m s, measured).
+    Commanding -m_r cancels it up to the calibration error. (In flight m_r comes from a ground
+    magnetic test or an in-flight fit.)
+    """
+    law: AttitudeLaw
+    residual_dipole_am2: np.ndarray
+    dipole_limit_am2: float
+
+    def eval(self, x: AttitudeControlInput) -> tuple[np.ndarray, dict]:
+        dipole, info = self.law.eval(x)
+        if info.get("weak_or_bad_field"):
+            return dipole, info
+        compensated, saturated = saturate_dipole(dipole - self.residual_dipole_am2, self.dipole_limit_am2)
+        return compensated, {**info, "saturated": bool(info.get("saturated")) or saturated}
+
+    def __getattr__(self, name):
+        # The wrapped law's own interface (set_plan, torque_nm, ...) stays reachable. Dunder names
+        # and `law` itself are not forwarded (unpickling asks before `law` exists).
+        if name == "law" or name.startswith("__"):
+            raise AttributeError(name)
+        return getattr(self.law, name)
