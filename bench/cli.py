@@ -28,6 +28,7 @@ COMMAND_MODULES: dict[str, str] = {
     "tune-lqr": "bench.studies.cli",
     "compare-controllers": "bench.studies.cli",
     "mpc-studies": "bench.studies.cli",
+    "compare-attitude": "bench.studies.attitude_comparison",
     "campaign": "bench.studies.campaign_cli",
     "campaign-report": "bench.studies.campaign_cli",
 }

@@ -149,15 +149,30 @@ def _spawn(name: str, run_id: str, scenario_path: Path, hub: str, run_dir: Path,
 
 
 def _stop_children(children: list[Child], grace_s: float = SHUTDOWN_GRACE_S) -> None:
-    """SIGTERM in reverse start order (recorder last), then SIGKILL whatever is left."""
+    """SIGTERM in reverse start order (recorder last), then SIGKILL whatever is left. A child
+    still working after grace_s (its CPU time advancing: a recorder finishing its file on a busy
+    host) is given up to three times that; one that idles is killed at grace_s."""
     for child in reversed(children):
         if child.process.poll() is None:
             try:
                 child.process.send_signal(signal.SIGTERM)
-                child.process.wait(timeout=grace_s)
-            except (subprocess.TimeoutExpired, ProcessLookupError):
+                _wait_exit_while_working(child.process, grace_s)
+            except ProcessLookupError:
                 pass
     _kill_children(children)
+
+
+def _wait_exit_while_working(process: subprocess.Popen, grace_s: float) -> None:
+    started = last_progress = time.monotonic()
+    ticks = None
+    while process.poll() is None:
+        now = time.monotonic()
+        state = process_state(process.pid)
+        if state is not None and state.cpu_ticks != ticks:
+            ticks, last_progress = state.cpu_ticks, now
+        if now - started > grace_s and (now - last_progress > STARTUP_IDLE_S or now - started > 3 * grace_s):
+            return
+        time.sleep(0.05)
 
 
 def _kill_children(children: list[Child]) -> None:

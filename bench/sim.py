@@ -72,8 +72,11 @@ def _through_the_message(plan):
     return from_message(decode(encode(message), AttitudePlanMessage))
 
 
-def simulate_attitude_in_process(scenario: Scenario) -> dict[str, np.ndarray]:
-    """Run an attitude scenario without processes; the arrays the plant process writes."""
+def simulate_attitude_in_process(scenario: Scenario, coil_fault=None) -> dict[str, np.ndarray]:
+    """Run an attitude scenario without processes; the arrays the plant process writes, and the
+    controller's cycle time per step (NaN when no law ran) and the planner's wall time per plan.
+    coil_fault(time_s, applied_am2) -> applied_am2: what a bus fault does to the coils (a study's
+    fault model, bench.studies.attitude_comparison); None: a fault-free bus."""
     n_steps = scenario.n_steps
     plant = AttitudePlant(scenario.attitude, n_steps, scenario.run.seed)
     estimator = AttitudeEstimator(scenario)
@@ -84,7 +87,7 @@ def simulate_attitude_in_process(scenario: Scenario) -> dict[str, np.ndarray]:
         from bench.planner.planner import AttitudePlanner
 
         planner = AttitudePlanner(scenario)
-    commanded, estimated_q, valid = [], [], []
+    commanded, estimated_q, valid, cycle_time_s, planning_wall_s = [], [], [], [], []
     # The board model goes through the DBC encoder (~0.3 ms); a saturating or zero command repeats.
     board_dipoles: dict[bytes, np.ndarray] = {}
     for k in range(n_steps):
@@ -93,11 +96,15 @@ def simulate_attitude_in_process(scenario: Scenario) -> dict[str, np.ndarray]:
             planned = planner.on_estimate(k, plant.time_s, estimate.valid, estimate.q_wxyz, estimate.omega_radps)
             if planned is not None:
                 cycle.law.set_plan(_through_the_message(planned[0]))
+                planning_wall_s.append(planned[1]["wall_time_s"])
         outcome = cycle.run(plant.time_s, estimate.valid, estimate.q_wxyz, estimate.omega_radps, estimate.field_body_t)
         key = np.asarray(outcome.dipole_am2, float).tobytes()
         if key not in board_dipoles:
             board_dipoles[key] = board_dipole_without_bus(outcome.dipole_am2, scenario.can)
         dipole, _ = acceptance.accept(board_dipoles[key].copy(), None)
+        if coil_fault is not None:
+            dipole = coil_fault(plant.time_s, dipole)
+        cycle_time_s.append(np.nan if outcome.monitored is None else outcome.monitored.cycle_time_s)
         commanded.append(outcome.dipole_am2)
         estimated_q.append(estimate.q_wxyz)
         valid.append(estimate.valid)
@@ -106,6 +113,8 @@ def simulate_attitude_in_process(scenario: Scenario) -> dict[str, np.ndarray]:
         "att_dipole_commanded_am2": np.array(commanded).reshape(-1, 3),
         "att_estimate_q_wxyz": np.array(estimated_q).reshape(-1, 4),
         "att_estimate_valid": np.array(valid, dtype=bool),
+        "att_control_cycle_time_s": np.array(cycle_time_s),
+        "planner_wall_time_s": np.array(planning_wall_s),
     }
 
 

@@ -12,11 +12,14 @@ import pytest
 import uml
 
 GUEST_DIR = "tests/uml_guest_canutils"
-BOOT_TIMEOUT_S = 180
+# Four guest tests, each a few can-utils processes (seconds each to start on UML's one CPU) and
+# waits of at most 10 s per step; a bound for a hang, not a speed check.
+BOOT_TIMEOUT_S = 300
 GUEST_TESTS = [
     "test_cansend_and_canplayer_on_the_e2e_profile",
     "test_cansend_and_canplayer_on_the_secoc_profile",
     "test_the_frames_sent_are_the_dbc_frames_decoded_by_cantools",
+    "test_error_frames_from_cansend_leave_the_driver_error_active_again",
 ]
 
 pytestmark = pytest.mark.timeout(BOOT_TIMEOUT_S + 60)

@@ -20,6 +20,8 @@ from bench.controller.plan_tracking import replan_reason
 from bench.report.attitude_metrics import pointing_error_deg
 from bench.report.rundata import load_run
 from bench.scenario import load_scenario
+from bench.scenario import scenario_to_toml_dict
+from bench.sim import simulate_attitude_in_process
 from conftest import run_bench_cli
 
 RUN_TIMEOUT_S = 900
@@ -86,8 +88,10 @@ def test_replan_rule_first_schedule_and_tracking_error():
     settings = load_scenario("attitude_slew_milqr").attitude_control.planner
     q = np.array([1.0, 0, 0, 0])
     plan = small_plan(dt_s=100.0)
-    assert replan_reason(0.0, True, q, None, settings) == "first_plan"
-    assert replan_reason(0.0, False, q, None, settings) is None
+    assert settings.first_plan_after_s == 30.0                     # the smoother's bias converges first
+    assert replan_reason(29.0, True, q, None, settings) is None
+    assert replan_reason(30.0, True, q, None, settings) == "first_plan"
+    assert replan_reason(30.0, False, q, None, settings) is None
     assert replan_reason(0.0, True, [np.nan, 0, 0, 1], None, settings) is None
     assert replan_reason(settings.replan_period_s, True, q, plan, settings) == "schedule"
     off = np.array([np.cos(np.deg2rad(6)), np.sin(np.deg2rad(6)), 0, 0])    # 12 deg off the plan
@@ -136,10 +140,10 @@ def slew_run(tmp_path_factory):
 
 
 @pytest.mark.timeout(2 * RUN_TIMEOUT_S)
-@pytest.mark.xfail(reason="not met yet: with the smoother's rate (noisy, biased gyro) the tracker leaves the plan "
-                          "within ~75 s and replans; in process 2.3-6.8 deg at 1800 s (0.14 deg on truth, 0.17 deg "
-                          "with the smoother and a perfect gyro)", strict=False)
 def test_planned_slew_as_processes_ends_within_two_degrees(slew_run):
+    """Measured 1.11 deg at 1800 s in process, which the lock-step processes equal (see the
+    slow-planner test below); plans at 30 s (first, after the smoother's bias estimate) and 930 s
+    (schedule), none for tracking error. docs/attitude_planning.md: why the margin is thin."""
     run, _ = slew_run
     s, t = run.scenario, run.trajectory
     assert s.estimator.mode == "smoother" and s.attitude_control.law == "tvlqr_plan"
@@ -162,3 +166,40 @@ def test_planned_slew_as_processes_tracks_every_plan_and_ignores_bad_plans(slew_
     metrics = json.loads((run.run_dir / "metrics.json").read_text())
     assert all(p["exit_code"] == 0 for p in metrics["processes"].values()) and "planner" in metrics["processes"]
     assert len(run.on(keys.PLAN_ATTITUDE)) >= len(planner["plans"])
+
+
+# --- determinism: planning time does not reach a lock-step run ---------------------------------
+def test_lock_step_planned_slew_as_processes_equals_the_in_process_loop_with_a_slow_planner(tmp_path):
+    """100 steps (the first plan at step 30, a scheduled replan at step 70) with every plan held
+    back 2 s before the planner publishes it: the controller waits for the plan the replan rule
+    says is due, so the processes fly exactly the in-process loop (which plans in line)."""
+    data = scenario_to_toml_dict(load_scenario("attitude_slew_milqr"))
+    data["attitude_control"]["planner"]["replan_period_s"] = 40.0
+    data["controller"]["deadline"]["stress"] = {"process": "planner", "extra_cycle_time_s": 2.0, "kind": "sleep",
+                                                "every_nth_cycle": 1}
+    path = tmp_path / "slow_planner.json"
+    path.write_text(json.dumps(data))
+    result = run_bench_cli("run", str(path), "--steps", "100", "--run-id", "slow_planner", "--runs-dir",
+                           str(tmp_path), "--no-progress", timeout_s=RUN_TIMEOUT_S)
+    assert result.returncode == 0, result.stderr + result.stdout
+    run = load_run(tmp_path / "slow_planner")
+    planner = json.loads((run.run_dir / "planner.json").read_text())
+    controller = json.loads((run.run_dir / "deadline_controller.json").read_text())
+    assert [(p["seq"], p["reason"]) for p in planner["plans"]] == [(30, "first_plan"), (70, "schedule")]
+    assert planner["stress_injected_plans"] == 2
+    assert controller["plans_applied"] == 2 and controller["plan_waits_timed_out"] == 0
+    reference = simulate_attitude_in_process(run.scenario)
+    for name in ("att_q_wxyz", "att_omega_radps", "att_dipole_applied_am2", "att_dipole_commanded_am2"):
+        np.testing.assert_allclose(run.trajectory[name], reference[name], rtol=0, atol=1e-9, err_msg=name)
+    assert not np.any(run.trajectory["att_refused"])
+
+
+def test_lock_step_controller_waits_for_its_can_frame_as_long_as_the_plant_waits_for_the_command():
+    """The CAN frame carrying a new dipole: 5 command periods in real time; in lock-step as long as
+    the plant waits (a 50 ms wall-clock wait ran out on a loaded host and changed a lock-step run)."""
+    from bench.controller.attitude_node import command_send_timeout_s
+
+    lock_step = load_scenario("attitude_slew_milqr")
+    assert command_send_timeout_s(lock_step) == lock_step.run.command_timeout_s == 300.0
+    real_time = load_scenario("attitude_fault_commands")
+    assert command_send_timeout_s(real_time) == pytest.approx(5 * real_time.can.driver.command_period_s)

@@ -18,6 +18,8 @@ import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
 
+from bench.runtime.can_bench import EXIT_TIMEOUT_S, STARTUP_TIMEOUT_S
+
 REPO = Path(__file__).resolve().parents[1]
 RUN_IN_UML = REPO / "tools" / "uml" / "run-in-uml.sh"
 INSTALL_DEPS = REPO / "tools" / "install-system-deps.sh"
@@ -25,6 +27,22 @@ UML_KERNEL = Path("/usr/bin/linux.uml")
 INSTALL_TIMEOUT_S = 300
 BOOT_ERROR = 125          # run-in-uml.sh: UML or the guest's CAN setup failed
 INIT_REACHED = "as init process"   # the kernel's console line when it starts our init
+# The guest's memory (no swap): enough for the three processes of a CAN bench. A whole attitude
+# run (seven Python processes, 80-300 MB virtual each) needs more: with 384M the guest's OOM
+# killer took pytest itself (measured 2026-12). UML maps it from a file in /dev/shm, and only
+# the pages the guest touches take host memory.
+DEFAULT_MEM = "384M"
+# Each guest test's bound (tests may set their own): one test that hangs fails alone and the
+# boot still reports the others.
+PER_TEST_TIMEOUT_S = 90
+# A guest test on bench.runtime.can_bench.CanBench (the fault suite): longer than CanBench's own
+# bounds (two node start-ups of STARTUP_TIMEOUT_S each, two exits of EXIT_TIMEOUT_S, 2.4 s of
+# driving) so that a slow start fails with CanBench's message naming the node, not with a bare
+# timeout; plus the two re-runs tests/test_can_faults.py makes of a run the host starved (about
+# 60 s each on a loaded host), so that a healthy test slowed by host load is not cut off.
+# Measured 2026-12 in UML on a host at load average ~9: `bench node mtq` spawn to first
+# heartbeat 5.8-15.8 s (lazy CLI).
+CAN_BENCH_TEST_TIMEOUT_S = 2 * STARTUP_TIMEOUT_S + 2 * EXIT_TIMEOUT_S + 40 + 2 * 60
 
 
 class UmlUnavailable(Exception):
@@ -52,11 +70,11 @@ def ensure_uml() -> None:
         raise UmlUnavailable(f"user-mode Linux is not installed and could not be installed: {said}")
 
 
-def run(command: list[str], job_dir: Path, *, timeout_s: float = 60) -> UmlResult:
+def run(command: list[str], job_dir: Path, *, timeout_s: float = 60, mem: str = DEFAULT_MEM) -> UmlResult:
     """Boot UML, run `command` (from the repository root) inside it, and return its result."""
     ensure_uml()
     proc = subprocess.run(
-        ["bash", str(RUN_IN_UML), "--timeout", str(int(timeout_s)), "--job", str(job_dir), "--", *command],
+        ["bash", str(RUN_IN_UML), "--timeout", str(int(timeout_s)), "--mem", mem, "--job", str(job_dir), "--", *command],
         capture_output=True, text=True, cwd=REPO, timeout=timeout_s + 15,
     )
     console = job_dir / "console.log"
@@ -69,19 +87,20 @@ def run(command: list[str], job_dir: Path, *, timeout_s: float = 60) -> UmlResul
 
 
 def run_pytest(selection: list[str], job_dir: Path, *, timeout_s: float = 60,
-               per_test_timeout_s: float = 90) -> tuple[UmlResult, dict[str, str]]:
+               per_test_timeout_s: float = PER_TEST_TIMEOUT_S, mem: str = DEFAULT_MEM) -> tuple[UmlResult, dict[str, str]]:
     """Run a pytest selection inside one UML boot; returns the result and {test name: outcome}.
 
     Guest tests live in files named guest_*.py so the host's pytest never collects them.
     per_test_timeout_s bounds each guest test (a timeout marker on the test wins), so one hung
-    test fails alone and the boot still reports the others within timeout_s. 90 s: a CAN fault
-    test takes 12-33 s on UML's one emulated CPU on an idle host (measured 2026-12: 24-33 s when
-    run six in a row), so the former 30 s cut off slow but healthy tests.
+    test fails alone and the boot still reports the others within timeout_s. A CAN fault test
+    takes 12-33 s on UML's one emulated CPU on an idle host (measured 2026-12: 24-33 s when run
+    six in a row); under host load its two node start-ups alone may take up to CanBench's bound
+    each, hence CAN_BENCH_TEST_TIMEOUT_S for those.
     """
     junit = job_dir / "junit.xml"
     command = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-o", "python_files=guest_*.py",
                f"--junitxml={junit}", f"--basetemp={job_dir / 'tmp'}", f"--timeout={per_test_timeout_s:g}", *selection]
-    result = run(command, job_dir, timeout_s=timeout_s)
+    result = run(command, job_dir, timeout_s=timeout_s, mem=mem)
     outcomes: dict[str, str] = {}
     if junit.exists():
         for case in ET.parse(junit).getroot().iter("testcase"):
@@ -95,12 +114,13 @@ def run_pytest(selection: list[str], job_dir: Path, *, timeout_s: float = 60,
     return result, outcomes
 
 
-def guest_session(guest_dir: Path, job_dir: Path, timeout_s: float):
+def guest_session(guest_dir: Path, job_dir: Path, timeout_s: float, per_test_timeout_s: float = PER_TEST_TIMEOUT_S,
+                  mem: str = DEFAULT_MEM):
     """Run a guest pytest directory in one UML boot; skip (with UML's reason) where it cannot boot."""
     import pytest
 
     try:
-        return run_pytest([guest_dir], job_dir, timeout_s=timeout_s)
+        return run_pytest([guest_dir], job_dir, timeout_s=timeout_s, per_test_timeout_s=per_test_timeout_s, mem=mem)
     except UmlUnavailable as exc:
         pytest.skip(str(exc))
 

@@ -33,6 +33,7 @@ class AttitudePlanMessage(Message, tag="attitude_plan"):
     iterations: Annotated[int, msgspec.Meta(ge=0)]
     cost: float
     planning_time_s: float
+    hold_steps: Annotated[int, msgspec.Meta(ge=0)] = 0     # the last steps: a hold at the target after arrival
 
 
 def to_message(plan: AttitudePlan, header: Header, target_wxyz, info: dict) -> AttitudePlanMessage:
@@ -41,7 +42,7 @@ def to_message(plan: AttitudePlan, header: Header, target_wxyz, info: dict) -> A
         states=plan.states.tolist(), dipoles_am2=plan.dipoles_am2.tolist(),
         gains=plan.gains.reshape(plan.steps, 18).tolist(), target_wxyz=list(map(float, target_wxyz)),
         stop_reason=info["stop_reason"], iterations=info["iterations"], cost=float(info["cost"]),
-        planning_time_s=float(info["wall_time_s"]))
+        planning_time_s=float(info["wall_time_s"]), hold_steps=plan.hold_steps)
 
 
 def from_message(message: AttitudePlanMessage) -> AttitudePlan:
@@ -51,4 +52,4 @@ def from_message(message: AttitudePlanMessage) -> AttitudePlan:
         raise ValueError(f"AttitudePlanMessage: {len(message.states)} states, {n} dipoles and "
                          f"{len(message.gains)} gains (need N+1, N, N)")
     return AttitudePlan(message.start_time_s, message.dt_s, np.array(message.states), np.array(message.dipoles_am2),
-                        np.array(message.gains).reshape(n, 3, 6), message.plan_id)
+                        np.array(message.gains).reshape(n, 3, 6), message.plan_id, message.hold_steps)

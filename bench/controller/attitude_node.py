@@ -59,7 +59,20 @@ class DipoleSender:
                 done.set()
 
 
-LOCK_STEP_SEND_TIMEOUT_S = 2.0   # the plant waits for the board's report up to 0.5 + 1.0 s after it
+def command_send_timeout_s(scenario) -> float:
+    """How long the controller waits for the driver's first CAN frame carrying a new dipole.
+
+    Real-time: 5 command periods, then the step goes without a counter (the plant holds the board's
+    latest report). Lock-step: as long as the plant waits for the command, because lock-step results
+    must not depend on the host's load: the driver's command loop sends the new dipole within a
+    command period on an idle host, but at load 10 it once took more than 5 periods (issue 12,
+    attitude_slew_milqr step 140): the step went without a counter, the plant applied the previous
+    dipole and the run left the in-process loop."""
+    if scenario.can is None:
+        return 0.0
+    if scenario.run.mode == "lock-step":
+        return scenario.run.command_timeout_s
+    return 5 * scenario.can.driver.command_period_s
 
 
 def run(ctx: NodeContext) -> int:
@@ -67,14 +80,7 @@ def run(ctx: NodeContext) -> int:
     cycle = AttitudeCycle(scenario)
     link = MagnetorquerLink(ctx, scenario.can, scripted=False) if scenario.can is not None else None
     sender = DipoleSender(link) if link is not None else None
-    send_timeout_s = 0.0
-    if scenario.can is not None:
-        # Real time: a frame not out within 5 command periods is late, the plant holds the last
-        # report. Lock-step must not depend on the host's speed: on a loaded host (load ~5 on 2
-        # cores) the driver thread woke up to 77 ms late and a 50 ms wait lost step 25 of a
-        # 300-step detumble (alive counter -1), which broke equality with the in-process loop.
-        send_timeout_s = (5 * scenario.can.driver.command_period_s if scenario.run.mode == "real-time"
-                          else LOCK_STEP_SEND_TIMEOUT_S)
+    send_timeout_s = command_send_timeout_s(scenario)
     estimates = ctx.subscribe_queue(keys.ESTIMATE_ATTITUDE, AttitudeEstimate)
     follower = None
     if scenario.attitude_control.law in PLANNED_LAWS:

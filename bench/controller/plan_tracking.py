@@ -52,7 +52,7 @@ def replan_reason(time_s: float, valid: bool, q_wxyz, plan: AttitudePlan | None,
     if not valid or not np.all(np.isfinite(q)) or abs(np.linalg.norm(q) - 1.0) > UNIT_NORM_TOLERANCE:
         return None
     if plan is None:
-        return "first_plan"
+        return "first_plan" if time_s >= settings.first_plan_after_s else None
     since_s = time_s - plan.start_time_s
     if since_s >= settings.replan_period_s:
         return "schedule"

@@ -12,6 +12,8 @@ replan_period_s, or sooner (not before min_replan_interval_s) when the estimate 
 replan_error_deg off the plan ([attitude_control.planner]). Lock-step: every estimate is looked at
 in order, and the controller waits for a plan it knows is due, so planning time does not change
 the run. Real-time: the estimates queued while MILQR ran are stale; only the newest is looked at.
+[controller.deadline.stress] with process = "planner" slows every listed plan (cycle i = plan i)
+by extra_cycle_time_s before it is published: planning time made longer on purpose.
 Planning takes seconds; the controller keeps tracking the previous plan (or its fallback) meanwhile.
 """
 from __future__ import annotations
@@ -23,6 +25,7 @@ import time
 from bench.bus import keys
 from bench.bus.schemas import AttitudeEstimate
 from bench.bus.plan_message import to_message
+from bench.controller.deadline import StressInjector
 from bench.planner.planner import AttitudePlanner
 from bench.runtime.node import NodeContext
 
@@ -43,6 +46,7 @@ def run(ctx: NodeContext) -> int:
     estimates = ctx.subscribe_queue(keys.ESTIMATE_ATTITUDE, AttitudeEstimate)
     ctx.declare_ready([keys.PLAN_ATTITUDE])
     skipped_total = 0
+    stress = StressInjector(ctx.scenario.controller.deadline.stress, "planner")
     for estimate in ctx.until_stopped(estimates):
         if realtime:
             estimate, skipped = _newest(estimate, estimates)
@@ -58,12 +62,14 @@ def run(ctx: NodeContext) -> int:
             planner.failures += 1
             ctx.log.error("planning from step %d failed: %s", hdr.seq, exc)
             continue
+        stress.apply(plan.plan_id)
         ctx.publish(keys.PLAN_ATTITUDE, to_message(plan, hdr.stamped("planned", time.monotonic_ns()),
                                                    planner.target_wxyz, info))
         ctx.log.info("plan %d (%s) from t = %.1f s: %d steps of %.0f s (horizon %.0f s, cond %.2f), %s after %d "
                      "iterations in %.2f s", plan.plan_id, reason, plan.start_time_s, plan.steps, plan.dt_s,
                      info["horizon_s"], info["gramian_condition_number"], info["stop_reason"], info["iterations"],
                      info["wall_time_s"])
-    summary = planner.summary() | {"stale_estimates_skipped": skipped_total}
+    summary = planner.summary() | {"stale_estimates_skipped": skipped_total,
+                                   "stress_injected_plans": len(stress.injected_cycles)}
     (ctx.run_dir / "planner.json").write_text(json.dumps(summary, indent=2))
     return 0

@@ -30,6 +30,9 @@ class PlannerConfig:
     final_rate_weight: float = 1e7
     tracking_attitude_deviation_rad: float = np.deg2rad(1.0)   # Bryson's rule for the tracker
     tracking_rate_deviation_radps: float = 5e-4
+    # After the arrival the plan holds the target at rest for this long, tracked with TVLQR gains
+    # designed along the field of those steps (AttitudePlan.hold_steps).
+    hold_after_arrival_s: float = 0.0
     milqr: MilqrOptions = MilqrOptions(max_wall_time_s=60.0)
 
 
@@ -42,7 +45,8 @@ def plan_from_estimate(time_s: float, q_wxyz, omega_radps, target_wxyz, orbit, g
     if not np.all(np.isfinite(x0)) or not np.isfinite(time_s):
         raise ValueError(f"plan_from_estimate: non-finite estimate (time {time_s}, state {x0})")
     max_steps = int(np.ceil(config.max_horizon_s / config.dt_s))
-    field = field_along_orbit_t(orbit, geomagnetic, time_s, config.dt_s, max_steps)
+    hold_steps = int(np.ceil(config.hold_after_arrival_s / config.dt_s - 1e-9))
+    field = field_along_orbit_t(orbit, geomagnetic, time_s, config.dt_s, max_steps + hold_steps)
     horizon = gramian_horizon(field, config.dt_s, config.gramian_condition_tolerance)
     if horizon_steps is not None:
         if not 1 <= horizon_steps <= max_steps:
@@ -57,8 +61,18 @@ def plan_from_estimate(time_s: float, q_wxyz, omega_radps, target_wxyz, orbit, g
     result = milqr(model, cost, x0, np.zeros((horizon.steps, 3)), -limit, limit, config.milqr)
     Q, R = bryson_weights([np.tan(config.tracking_attitude_deviation_rad / 2)] * 3
                           + [config.tracking_rate_deviation_radps] * 3, [limit] * 3)
-    gains = tvlqr_gains_along(model, result.states, result.dipoles_am2, Q, R, 10 * Q)
-    plan = AttitudePlan(time_s, config.dt_s, result.states, result.dipoles_am2, gains, plan_id)
+    # The hold after the arrival: the target at rest with zero dipole (an equilibrium of the planning
+    # model), tracked with gains designed along the field of those steps. Without it the tracker held
+    # the final state with the last step's gain, designed for the field at the arrival only: on
+    # attitude_slew_milqr (gyro without bias) 1.04 deg at the arrival drifted to 3.8 deg 220 s later.
+    steps = horizon.steps + hold_steps
+    q_hold = qt.normalize(np.asarray(target_wxyz, dtype=float))
+    q_hold = q_hold if q_hold @ result.states[-1, :4] >= 0 else -q_hold     # same hemisphere: slerp the short way
+    states = np.concatenate([result.states, np.tile(np.concatenate([q_hold, np.zeros(3)]), (hold_steps, 1))])
+    dipoles = np.concatenate([result.dipoles_am2, np.zeros((hold_steps, 3))])
+    tracking_model = MagnetorquerAttitudeModel(config.inertia_kgm2, field[:steps], config.dt_s)
+    gains = tvlqr_gains_along(tracking_model, states, dipoles, Q, R, 10 * Q)
+    plan = AttitudePlan(time_s, config.dt_s, states, dipoles, gains, plan_id, hold_steps)
     info = dict(result.info, cost=result.cost, horizon_s=horizon.horizon_s,
                 horizon_reached=horizon.reached if horizon_steps is None else None, horizon_given=horizon_steps is not None,
                 gramian_condition_number=horizon.condition_number)

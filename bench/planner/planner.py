@@ -42,7 +42,7 @@ def planner_config(scenario: Scenario) -> PlannerConfig:
         inertia_kgm2=believed_inertia(scenario), dipole_limit_am2=dipole_limit_am2(scenario), dt_s=s.plan_step_s,
         gramian_condition_tolerance=s.gramian_condition_tolerance, max_horizon_s=s.max_horizon_s,
         tracking_attitude_deviation_rad=np.deg2rad(s.tracking_attitude_deviation_deg),
-        tracking_rate_deviation_radps=s.tracking_rate_deviation_radps,
+        tracking_rate_deviation_radps=s.tracking_rate_deviation_radps, hold_after_arrival_s=s.hold_after_arrival_s,
         milqr=replace(MilqrOptions(), max_iterations=s.max_iterations, max_wall_time_s=wall_s))
 
 
@@ -63,7 +63,8 @@ class AttitudePlanner:
         self.config = planner_config(scenario)
         self.target_wxyz = inertial_target_wxyz(scenario)
         self.orbit = build_orbit(scenario.attitude)
-        duration_s = scenario.n_steps * scenario.step_s + self.config.max_horizon_s + 2 * self.config.dt_s
+        duration_s = (scenario.n_steps * scenario.step_s + self.config.max_horizon_s + self.config.hold_after_arrival_s
+                      + 2 * self.config.dt_s)
         self.field = build_field(scenario.attitude, self.orbit, duration_s)
         self.plan: AttitudePlan | None = None
         self.records: list[PlanRecord] = []
@@ -79,7 +80,7 @@ class AttitudePlanner:
         else None, a fresh Gramian horizon."""
         if self.plan is None:
             return None
-        left_s = self.plan.end_time_s - time_s
+        left_s = self.plan.arrival_time_s - time_s
         if left_s < self.settings.min_replan_horizon_s:
             return None
         return int(np.ceil(left_s / self.config.dt_s - 1e-9))

@@ -8,6 +8,8 @@ of a can-utils process in UML cannot reset its E2E state between two frames; the
 still widens its tolerated counter jump every command period without a command (AUTOSAR P02), so
 the cases below are chosen to be decided whatever the gaps: repeated (delta 0), wrong CRC, wrong
 length, remote frame, extended identifier, NMT state, and on the secoc profile MAC and freshness.
+Error frames sent with `cansend`/`canplayer` reach the flight-side driver on the same vcan (python-can
+sets CAN_RAW_ERR_FILTER), which must come back to error-active from each, as ISO 11898 says.
 """
 from __future__ import annotations
 
@@ -20,10 +22,12 @@ from pathlib import Path
 import can
 import pytest
 
+from bench.bus.can import errors
 from bench.bus.can import protocol as p
 from bench.bus.can import secoc
 from bench.bus.can.board import MagnetorquerBoard
-from bench.bus.can.config import BENCH_KEY_HEX, BoardConfig, SecurityConfig
+from bench.bus.can.config import BENCH_KEY_HEX, BoardConfig, DriverConfig, SecurityConfig
+from bench.bus.can.driver import CommandLoop, MagnetorquerDriver
 from bench.bus.can.transport import kernel_has_can
 
 pytestmark = pytest.mark.skipif(not (kernel_has_can() and shutil.which("cansend")),
@@ -34,8 +38,16 @@ WAIT_S = 10.0
 FRESHNESS_MARGIN_S = 0.5      # stated for this test: a can-utils process starts slowly in UML
 
 
+CAN_ERR_FLAG = 0x20000000       # linux/can.h: in the identifier of an error frame
+BOARD_CONFIG = BoardConfig(command_timeout_s=30.0)
+BUS_STATE_KINDS = {"error_warning", "error_passive", "bus_off", "bus_restarted", "error_active"}
+
+
 def cansend_text(msg: can.Message) -> str:
-    """The frame as cansend and canplayer write it: 123#data, 123#R, 12345678#data, 123##<flags>data."""
+    """The frame as cansend and canplayer write it: 123#data, 123#R, 12345678#data, 123##<flags>data;
+    an error frame as 8 digits with CAN_ERR_FLAG (cansend sends it as an error frame, not extended)."""
+    if msg.is_error_frame:
+        return f"{CAN_ERR_FLAG | msg.arbitration_id:08X}#{bytes(msg.data).hex().upper()}"
     frame_id = f"{msg.arbitration_id:08X}" if msg.is_extended_id else f"{msg.arbitration_id:03X}"
     if msg.is_remote_frame:
         return f"{frame_id}#R"
@@ -59,7 +71,7 @@ class BoardOnVcan:
     def __init__(self, profile: str):
         self.bus = can.Bus(interface="socketcan", channel=CHANNEL, fd=True, ignore_config=True)
         security = SecurityConfig(profile=profile, freshness_margin_s=FRESHNESS_MARGIN_S)
-        self.board = MagnetorquerBoard(self.bus, BoardConfig(command_timeout_s=30.0),
+        self.board = MagnetorquerBoard(self.bus, BOARD_CONFIG,
                                        p.Protocol(profile=profile, key=KEY if profile == "secoc" else None),
                                        security=security)
         self.stop = threading.Event()
@@ -81,6 +93,37 @@ class BoardOnVcan:
                 f"{dict(self.board.rejected)}, ignored {dict(self.board.ignored)}, bad {dict(self.board.protocol.bad.counts)}"
             time.sleep(0.01)
         time.sleep(0.1)   # and nothing more arrives after it
+
+
+class DriverOnVcan:
+    """The flight-side driver on the same vcan, commanding every period on its own thread."""
+
+    def __init__(self):
+        self.bus = can.Bus(interface="socketcan", channel=CHANNEL, fd=True, ignore_config=True)
+        self.driver = MagnetorquerDriver(self.bus, DriverConfig(), BOARD_CONFIG, p.Protocol())
+        self.events = []
+        self.loop = CommandLoop(self.driver, DriverConfig().command_period_s, on_events=self.events.extend)
+        self.loop.set_dipole([0.05, -0.05, 0.02])
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self.loop.run, args=(self.stop,), daemon=True)
+
+    def __enter__(self):
+        self.thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        self.stop.set()
+        self.thread.join(5)
+        self.bus.shutdown()
+
+    def bus_states(self) -> list[str]:
+        return [e.kind for e in list(self.events) if e.kind in BUS_STATE_KINDS]
+
+    def wait(self, what, predicate) -> None:
+        deadline = time.monotonic() + WAIT_S
+        while not predicate(self):
+            assert time.monotonic() < deadline, f"{what}: bus states {self.bus_states()}, health {self.loop.health}"
+            time.sleep(0.01)
 
 
 def nmt(command: int, node_id: int = p.DBC_NODE_ID) -> can.Message:
@@ -156,3 +199,36 @@ def test_the_frames_sent_are_the_dbc_frames_decoded_by_cantools():
     decoded = db.decode_message(0x310, bytes.fromhex(text.split("##")[1][1:]))
     assert decoded["AliveCounter"] == 3 and decoded["DipoleY"] == pytest.approx(-0.1)
     assert decoded["Freshness"] == secoc.freshness_ticks(1.0) % 2**32
+
+
+def test_error_frames_from_cansend_leave_the_driver_error_active_again(tmp_path):
+    # Issue 13: one error frame from `cansend` left the driver bus_off forever (on the virtual bus
+    # that is tests/test_can_health.py; here the kernel carries the error frames).
+    with BoardOnVcan("e2e") as rig, DriverOnVcan() as flight:
+        flight.wait("board started and healthy", lambda f: f.loop.health.ok)   # the driver is its NMT master
+        assert flight.bus_states() == []
+        # One bare bus-off error frame, as typed at a terminal. Nothing reports a restart: the
+        # driver is back when it hears the board after the ISO 11898 recovery time (128 x 11 bits).
+        cansend_raw(f"{CAN_ERR_FLAG | errors.CAN_ERR_BUSOFF:08X}#")
+        flight.wait("bus-off and back", lambda f: f.bus_states() == ["bus_off", "error_active"] and f.loop.health.ok)
+        assert flight.loop.health.bus_state == "error_active"
+        # Error-passive by the counters, then the controller's own error-active report.
+        cansend(errors.error_frame(errors.ErrorState.PASSIVE, 130))
+        flight.wait("error-passive", lambda f: f.bus_states()[2:] == ["error_passive"])
+        assert flight.loop.health.bus_state == "error_passive"
+        cansend(errors.error_frame(errors.ErrorState.ACTIVE, 90))
+        flight.wait("error-active reported", lambda f: f.bus_states()[2:] == ["error_passive", "error_active"])
+        # A few in a burst (bus-off with bit errors, 1 ms apart): error-active and healthy after it.
+        accepted = rig.board.accepted
+        burst = [errors.error_frame(errors.ErrorState.BUS_OFF, 256)] * 5
+        canplayer(tmp_path / "error_frames.log", burst, period_s=0.001)
+        flight.wait("after the burst", lambda f: "bus_off" in f.bus_states()[4:] and f.bus_states()[-1] == "error_active"
+                    and f.loop.health.ok)
+        assert flight.driver.received["error_frame"] == 1 + 2 + 5
+        # The board went on applying commands throughout; error frames are not commands to it.
+        rig.wait("commands applied after", lambda b: b.accepted > accepted + 10)
+        assert rig.board.rejected == {} and not rig.board.state.safe_state
+
+
+def cansend_raw(text: str) -> None:
+    subprocess.run(["cansend", CHANNEL, text], check=True, timeout=30)

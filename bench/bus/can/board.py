@@ -37,6 +37,7 @@ from bench.bus.can import protocol as p
 from bench.bus.can import secoc
 from bench.bus.can.config import BoardConfig, SecurityConfig
 
+LATE_RECORD_LIMIT = 1000
 log = logging.getLogger(__name__)
 
 ERROR_REGISTER_GENERIC = 0x01
@@ -106,6 +107,9 @@ class MagnetorquerBoard:
         self.accepted = 0
         self.lost_commands = 0
         self.host_overruns = 0                 # periodic frames sent more than half a period late
+        # (when noticed on the board's clock in s, how late in s) of each overrun, the first
+        # LATE_RECORD_LIMIT: the flight side's tests excuse a board-side detection only this much.
+        self.host_late_s: list[tuple[float, float]] = []
         self.sent: Counter = Counter()
         self.received: Counter = Counter()     # every frame heard, by name (frame accounting)
         self._tx_counter: Counter = Counter()  # alive counters of the board's own protected frames
@@ -324,6 +328,8 @@ class MagnetorquerBoard:
         time (a host overrun, which the flight side would otherwise take for a bus fault)."""
         if late_s > 0.5 * period_s:
             self.host_overruns += 1
+            if len(self.host_late_s) < LATE_RECORD_LIMIT:
+                self.host_late_s.append((self.clock(), late_s))
 
     def _enter_safe_state(self, now_s: float) -> None:
         self.state.safe_state = self.state.command_timeout = True
