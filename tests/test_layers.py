@@ -154,7 +154,7 @@ BENCH = import_graph(Path(bench.__file__).parent, "bench")
 def test_the_graph_sees_the_bench():
     # A checker that reads nothing passes everything: make sure it reads real arrows.
     assert "bench.gnc.cwh" in BENCH["bench.controller.factory"]
-    assert "bench.runtime.deadline" in BENCH["bench.plant.node"]
+    assert "bench.runtime.deadline" in BENCH["bench.plant.stepping"]
     assert "bench.bus.can.protocol" in BENCH["bench.bus.can.board"]      # `from bench.bus.can import protocol`
 
 

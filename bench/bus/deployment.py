@@ -27,7 +27,6 @@ A node the file does not place runs on the launcher's host.
 from __future__ import annotations
 
 import tomllib
-from dataclasses import dataclass
 from pathlib import Path
 
 import msgspec

@@ -6,7 +6,7 @@ payload raises `MalformedMessage`, which the receiving process counts and logs, 
 """
 from __future__ import annotations
 
-from typing import Annotated, Literal, TypeVar
+from typing import Annotated, TypeVar
 
 import msgspec
 

@@ -6,7 +6,6 @@ estimated mean motion, so the controller's A and B are the estimated ones.
 """
 from __future__ import annotations
 
-from dataclasses import replace
 from functools import partial
 
 import numpy as np

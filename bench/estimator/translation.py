@@ -18,7 +18,7 @@ shape, non-finite numbers, seq not increasing) raises ValueError naming the prob
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import gtsam
 import numpy as np

@@ -18,11 +18,10 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from bench.controller.attitude_laws import believed_inertia, dipole_limit_am2
-from bench.controller.config import AttitudePlannerConfig
 # The replan rule is the flight side's: the controller applies the same one in lock-step.
-from bench.controller.plan_tracking import plan_tracking_error_rad, replan_reason  # noqa: F401
+from bench.controller.plan_tracking import replan_reason
 from bench.gnc import quaternion as qt
-from bench.gnc.attitude_tracking import AttitudePlan, TvlqrAttitudeTracker
+from bench.gnc.attitude_tracking import AttitudePlan
 from bench.gnc.milqr import MilqrOptions
 from bench.planner.plan import PlannerConfig, plan_from_estimate
 from bench.scenario import Scenario

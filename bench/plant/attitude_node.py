@@ -40,7 +40,7 @@ from bench.plant.attitude import AttitudeSample
 from bench.plant.attitude_plant import AttitudePlant
 from bench.plant.mtq_acceptance import DipoleAcceptance, board_dipole_without_bus
 from bench.plant.acceptance import ActuatorEnvelope, CommandGate
-from bench.plant.node import LoopBroken, RealTimeClock, StampLog, _wait_command_lockstep
+from bench.plant.stepping import LoopBroken, RealTimeClock, StampLog, wait_command_lockstep
 
 COUNTER_MODULO = 16
 COUNTER_WINDOW = 8        # reports of frames c .. c+7 answer command c (later frames, same dipole)
@@ -166,7 +166,7 @@ def run(ctx: NodeContext) -> int:
     for topic in (*keys.SENSE_ATTITUDE_TOPICS, keys.TRUTH_ATTITUDE, keys.EVENT_DEADLINE, keys.COMMAND_APPLIED):
         ctx.declare_publisher(topic)
     ctx.declare_ready([keys.TRUTH_ATTITUDE] if estimator_truth else list(keys.SENSE_ATTITUDE_TOPICS))
-    ctx.wait_for_tokens(keys.READY, ctx.peers, timeout_s=30.0)
+    ctx.wait_for_tokens(keys.READY, ctx.peers, timeout_s=ctx.scenario.run.liveliness.startup_timeout_s)
     ctx.watch_peers(ctx.peers)
     ctx.log.info("peers ready (%s); attitude loop, %d steps of %.3f s in %s mode", ", ".join(ctx.peers), n_steps,
                  plant.dt_s, scenario.run.mode)
@@ -197,7 +197,7 @@ def run(ctx: NodeContext) -> int:
                 last_command = command or last_command
                 dipole, report = _realtime_dipole(scenario, acceptance, reports, last_command, log, k)
             else:
-                command = _wait_command_lockstep(ctx, commands, k, scenario.run.command_timeout_s, command_gate,
+                command = wait_command_lockstep(ctx, commands, k, scenario.run.command_timeout_s, command_gate,
                                                  value=lambda c: c.dipole_am2)
                 if command is None:   # only refused commands came: the controller's step is lost
                     raise LoopBroken(f"step {k}: every dipole command was refused ({dict(command_gate.rejected)})")

@@ -123,7 +123,7 @@ def deployment_toml(lab: NetnsLab, placement: dict[str, list[str]], launcher: st
                     hub_port: int = 7447, certs: str = "certs", router: str | None = None) -> str:
     """A deployment file for `placement` (host -> nodes) on the lab's addresses."""
     protocol = "tls" if secure else "tcp"
-    lines = [f'name = "netns"', f'certs = "{certs}"', f'launcher = "{launcher}"', f"secure = {str(secure).lower()}"]
+    lines = ['name = "netns"', f'certs = "{certs}"', f'launcher = "{launcher}"', f"secure = {str(secure).lower()}"]
     if router:
         lines.append(f'router = "{router}"')
     for host in lab.hosts:

@@ -1,7 +1,6 @@
 """`bench tune-lqr` and `bench compare-controllers`: the seed 003 studies from the command line."""
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
 import numpy as np

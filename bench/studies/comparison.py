@@ -16,7 +16,6 @@ from bench.controller.factory import build_controller, weights_from_config
 from bench.studies.metrics import POSITION_TOL_M, THRUST_TOL_N, fuel_delta_v_mps, traj_constraints, traj_cost
 from bench.gnc.cwh import RendezvousParams
 from bench.plant.dynamics import propagate
-from bench.studies.metrics import POSITION_TOL_M, THRUST_TOL_N, fuel_delta_v_mps, traj_constraints
 
 VARIANTS = ["mpc", "mpc_te", "mpc_ts", "mpc_ts_sc", "mpc_tube"]
 LABELS = {"lqr": "LQR", "mpc": "MPC", "mpc_te": "MPC_TE", "mpc_ts": "MPC_TS", "mpc_ts_sc": "MPC_TS_SC",
