@@ -3,7 +3,7 @@
     .venv/bin/python benchmarks/can_uml_load.py                 # 10 runs, 2 busy processes
     .venv/bin/python benchmarks/can_uml_load.py --runs 3 --busy 0 --selection tests/uml_guest_can/guest_can_faults.py::test_socketcan_clean_bus
 
-Each run boots UML once and runs the guest suite (tests/uml_guest_can, as test_can_faults_uml.py
+Each run boots UML once and runs the guest suite (tests/uml_guest_can, as test_kernel_can_uml.py
 does) with BENCH_CAN_REPORT_DIR set, so that every fault run inside the guest appends what the
 driver and the board said about their own lateness to host_overruns.jsonl:
 - host_overruns: command periods the driver's command loop started more than half a period late;
@@ -31,7 +31,7 @@ sys.path.insert(0, str(REPO / "tests"))
 import uml  # noqa: E402
 
 SELECTION = "tests/uml_guest_can"
-PER_TEST_TIMEOUT_S = uml.CAN_BENCH_TEST_TIMEOUT_S     # as tests/test_can_faults_uml.py
+PER_TEST_TIMEOUT_S = uml.CAN_BENCH_TEST_TIMEOUT_S     # as tests/test_kernel_can_uml.py
 
 
 def busy_processes(n: int) -> list[subprocess.Popen]:
@@ -41,7 +41,7 @@ def busy_processes(n: int) -> list[subprocess.Popen]:
 def one_run(index: int, job_dir: Path, selection: str, timeout_s: float) -> dict:
     job_dir.mkdir(parents=True, exist_ok=True)
     junit = job_dir / "junit.xml"
-    command = ["env", f"BENCH_CAN_REPORT_DIR={job_dir}", sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
+    command = ["env", f"BENCH_CAN_REPORT_DIR={job_dir}", sys.executable, "-m", "pytest", "-q", "-n", "0", "-p", "no:cacheprovider",
                "-o", "python_files=guest_*.py", f"--junitxml={junit}", f"--basetemp={job_dir / 'tmp'}",
                f"--timeout={PER_TEST_TIMEOUT_S:g}", selection]
     started = time.monotonic()

@@ -30,16 +30,7 @@ def bench_processes(run_id: str) -> list[int]:
     return pids
 
 
-UML_GROUP = "uml"
-
-
-def pytest_collection_modifyitems(config, items):
-    """One xdist group per test file, one for all the user-mode Linux files (see pyproject.toml)."""
-    for item in items:
-        stem = item.path.stem
-        item.add_marker(pytest.mark.xdist_group(UML_GROUP if stem.endswith("_uml") else stem))
-
-
 @pytest.fixture
 def runs_dir(tmp_path) -> Path:
     return tmp_path / "runs"
+

@@ -6,7 +6,7 @@ set -u
 PACKAGES=(
   user-mode-linux kmod iproute2   # SocketCAN tests: a kernel with vcan in user-mode Linux (tools/uml);
                                   # iproute2 also: network-namespace hosts (tests/test_deployment.py, `ip`, `ss`)
-  can-utils                       # cansend/canplayer against the board in UML (tests/test_can_utils_uml.py)
+  can-utils                       # cansend/canplayer against the board in UML (tests/test_kernel_can_uml.py)
   chromium                        # report rendering test (tests/test_report_render.py)
 )
 [ ${#PACKAGES[@]} -eq 0 ] && exit 0

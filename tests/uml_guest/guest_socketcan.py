@@ -1,6 +1,6 @@
 """python-can's socketcan interface on a real kernel vcan. Runs inside user-mode Linux only.
 
-The host's test_can_socketcan_uml.py boots UML and runs this file there (tools/uml/init.sh has
+The host's test_kernel_can_uml.py boots UML and runs this file there (tools/uml/init.sh has
 loaded can, can-raw, can-gw, vcan and brought vcan0 and vcan1 up).
 """
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """The attitude loop closed through the magnetorquer board over the kernel's SocketCAN.
 
-Runs inside user-mode Linux (tests/test_can_attitude_uml.py boots it): `bench run` of
+Runs inside user-mode Linux (tests/test_kernel_can_uml.py boots it): `bench run` of
 attitude_detumble_socketcan in real time, as separate processes: the controller's driver on
 vcan0, the bus model and fault injector (`bench node canbus`) bridging vcan0 and vcan1, the board
 (`bench node mtq`) on vcan1, plant, estimator and recorder over Zenoh. The same checks as the
@@ -29,12 +29,12 @@ from bench.report.attitude_metrics import applied_is_commanded_or_zero  # noqa: 
 from bench.report.rundata import load_run  # noqa: E402
 
 pytestmark = pytest.mark.skipif(not (kernel_has_can() and interface_exists("vcan1")),
-                                reason="runs inside user-mode Linux (tests/test_can_attitude_uml.py)")
+                                reason="runs inside user-mode Linux (tests/test_kernel_can_uml.py)")
 SCENARIO = "attitude_detumble_socketcan"
 SCENARIO_FILE = Path(__file__).resolve().parents[2] / "bench" / "scenarios" / f"{SCENARIO}.toml"
 # Six processes start on UML's one CPU (1-2 min in all at host load average ~9, over 2 min for
 # the estimator alone at 12-17; the scenario allows 600 s), then 12 s of real time and the
-# shutdown: a hang bound, inside the guest's per-test timeout (tests/test_can_attitude_uml.py),
+# shutdown: a hang bound, inside the guest's per-test timeout (tests/test_kernel_can_uml.py),
 # so a hung run fails with the launcher's output.
 RUN_TIMEOUT_S = 900
 DROP_START_S = 5.0

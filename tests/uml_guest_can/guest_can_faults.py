@@ -2,7 +2,7 @@
 
 Driver on vcan0, board on vcan1, the bus model bridging them: the same processes, checks and
 bounds as tests/test_can_faults.py (imported from there), only the transport differs. The host's
-test_can_faults_uml.py boots UML and runs this file there.
+test_kernel_can_uml.py boots UML and runs this file there.
 """
 from __future__ import annotations
 

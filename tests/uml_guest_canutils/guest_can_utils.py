@@ -1,7 +1,7 @@
 """can-utils against the board on a kernel vcan: frames built from the DBC, sent with `cansend`
 and `canplayer`, are applied, rejected or ignored exactly as the protocol says.
 
-Runs inside user-mode Linux (tests/test_can_utils_uml.py boots it). The board runs here on vcan0
+Runs inside user-mode Linux (tests/test_kernel_can_uml.py boots it). The board runs here on vcan0
 (CAN FD capable: mtu 72); the frames come from the can-utils processes, as an avionics test
 engineer would send them. The board's command timeout is set long (30 s) so that the slow start
 of a can-utils process in UML cannot reset its E2E state between two frames; the E2E receiver
@@ -31,7 +31,7 @@ from bench.bus.can.driver import CommandLoop, MagnetorquerDriver
 from bench.bus.can.transport import kernel_has_can
 
 pytestmark = pytest.mark.skipif(not (kernel_has_can() and shutil.which("cansend")),
-                                reason="runs inside user-mode Linux with can-utils (tests/test_can_utils_uml.py)")
+                                reason="runs inside user-mode Linux with can-utils (tests/test_kernel_can_uml.py)")
 CHANNEL = "vcan0"
 KEY = bytes.fromhex(BENCH_KEY_HEX)
 WAIT_S = 10.0
