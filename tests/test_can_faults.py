@@ -33,6 +33,9 @@ FAULT_START_S = 1.0
 DRIVE_S = 2.0
 SILENCE_S = 0.4          # commands stop: the board must go safe within this
 STARVED_RETRIES = 2
+# Deadline events of the board's periodic frames that its own lateness explains (host_caused).
+HOST_EXPLAINED_KINDS = ("telemetry_timeout", "heartbeat_timeout", "heartbeat_resumed", "telemetry_lost")
+HOST_WINDOW_NS = 500_000_000
 _runs = itertools.count()
 
 # A hang bound above CanBench's own (two 60 s start-ups, two 10 s exits) and the re-runs of a
@@ -71,6 +74,15 @@ def _run_once(tmp_path, faults, drive_s, transport) -> CanRunResult:
         bench.close()
         raise
     return bench.stop()
+
+
+def affected(r: CanRunResult) -> int:
+    """Frames the faults acted on. A count-limited fault ("count": 5, "every": 10) acts on fewer
+    when a starved host sent fewer commands in the fault's window; what it did act on must then be
+    caught, each one."""
+    n = sum(f["affected"] for f in r.report.get("faults", []))
+    assert n > 0, "no fault acted in this run"
+    return n
 
 
 def starved(r: CanRunResult) -> bool:
@@ -159,7 +171,11 @@ def host_caused(r: CanRunResult) -> list:
     after it. Reported apart (benchmarks/can_uml_load.py counts them), never a bus fault."""
     timeouts = [e for e in r.events if e.kind == "board_command_timeout" and e.detail.startswith("cause host_overrun")]
     resets = [e for e in r.events if e.kind == "board_error_reset"] if timeouts else []
-    return [e for e in r.events if e.kind == "host_overrun"] + timeouts + resets
+    # A board frame missing its deadline while the board or the driver measured itself late
+    # (within HOST_WINDOW_S): the board's process was not scheduled, the bus lost nothing.
+    late_frames = [e for e in r.events if e.kind in HOST_EXPLAINED_KINDS
+                   and host_late_s(r, e.detected_ns - HOST_WINDOW_NS, e.detected_ns + HOST_WINDOW_NS) > 0]
+    return [e for e in r.events if e.kind == "host_overrun"] + timeouts + resets + late_frames
 
 
 def before_silence(r: CanRunResult) -> list:
@@ -201,25 +217,25 @@ def test_a_delayed_command_arriving_late_is_rejected(tmp_path):
 
 def test_duplicated_commands_are_rejected_as_repeated(tmp_path):
     r = run_fault(tmp_path, {"name": "duplicate", "start_s": FAULT_START_S, "count": 5, "every": 10})
-    assert r.board["rejected"] == {"REPEATED": 5}
+    assert r.board["rejected"] == {"REPEATED": affected(r)}
     assert latency_s(r, "command_rejected", r.first_injection_ns("injected"), "REPEATED") <= 5 * COMMAND_PERIOD_S
-    assert r.kinds()["spoofed_command"] == 5        # the copy was not sent by this driver
+    assert r.kinds()["spoofed_command"] == affected(r)        # the copy was not sent by this driver
     check_all(r)
 
 
 def test_replayed_commands_are_seen_as_foreign(tmp_path):
     r = run_fault(tmp_path, {"name": "replay", "start_s": FAULT_START_S, "count": 3, "every": 10,
                              "params": {"after_s": 0.3}})
-    assert len(r.injected(p.CMD)) == 3
+    assert len(r.injected(p.CMD)) == affected(r)
     assert latency_s(r, "spoofed_command", r.first_injection_ns("injected")) <= 5 * COMMAND_PERIOD_S
-    assert r.kinds()["spoofed_command"] == 3
+    assert r.kinds()["spoofed_command"] == affected(r)
     check_all(r)   # a replayed command is an old genuine one: never a value nobody commanded
 
 
 def test_corrupted_commands_fail_the_crc_and_are_never_applied(tmp_path):
     r = run_fault(tmp_path, {"name": "corrupt", "start_s": FAULT_START_S, "count": 5, "every": 10,
                              "params": {"bits": 3}})
-    assert r.board["rejected"] == {"WRONG_CRC": 5}
+    assert r.board["rejected"] == {"WRONG_CRC": affected(r)}
     assert latency_s(r, "command_rejected", r.first_injection_ns("replaced"), "WRONG_CRC") <= 5 * COMMAND_PERIOD_S
     check_all(r)
 
@@ -238,7 +254,7 @@ def test_corruption_before_protection_is_applied_but_caught_by_plausibility(tmp_
 def test_spoofed_commands_are_rejected_and_reported(tmp_path):
     r = run_fault(tmp_path, {"name": "spoof", "start_s": FAULT_START_S, "count": 3, "every": 10,
                              "params": {"dipole_am2": 0.15}})
-    assert r.board["rejected"] == {"WRONG_CRC": 3}
+    assert r.board["rejected"] == {"WRONG_CRC": affected(r)}
     assert latency_s(r, "spoofed_command", r.first_injection_ns("injected")) <= 5 * COMMAND_PERIOD_S
     assert latency_s(r, "command_rejected", r.first_injection_ns("injected"), "WRONG_CRC") <= 5 * COMMAND_PERIOD_S
     check_all(r)
@@ -287,9 +303,9 @@ def test_error_frames_take_the_driver_bus_off_and_back(tmp_path):
     r = run_fault(tmp_path, {"name": "error_frames", "start_s": FAULT_START_S, "count": 32,
                              "params": {"restart_delay_s": 0.2}})
     start = r.first_injection_ns("destroyed")
-    passive = latency_s(r, "error_passive", start)
-    bus_off = latency_s(r, "bus_off", start)
-    assert passive < bus_off <= 5 * COMMAND_PERIOD_S
+    # The order on the wall clock; the bound less what the host held the loop up.
+    assert latency_s(r, "error_passive", start, host_excused=False) < latency_s(r, "bus_off", start, host_excused=False)
+    assert latency_s(r, "bus_off", start) <= 5 * COMMAND_PERIOD_S
     assert 0.2 <= latency_s(r, "bus_restarted", start, host_excused=False)
     assert latency_s(r, "bus_restarted", start) <= 0.2 + 5 * COMMAND_PERIOD_S
     assert latency_s(r, "board_command_timeout", start) <= 0.2 + 3 * COMMAND_TIMEOUT_S
