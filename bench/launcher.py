@@ -44,7 +44,7 @@ from bench.plant.divergence import EXIT_DIVERGED, read_divergence
 from bench.report.jsonout import write_json
 from bench.report.run_metrics import trajectory_metrics
 from bench.runtime.node import NODES
-from bench.runtime.ownership import child_environment, kill_group, process_state
+from bench.runtime.ownership import CpuProgress, child_environment, kill_group, process_state
 from bench.runtime.process import start_node
 from bench.scenario import LivelinessConfig, Scenario, ScenarioError, builtin_names, load_scenario, parse_scenario
 
@@ -162,14 +162,12 @@ def _stop_children(children: list[Child], grace_s: float = SHUTDOWN_GRACE_S) -> 
 
 
 def _wait_exit_while_working(process: subprocess.Popen, grace_s: float) -> None:
-    started = last_progress = time.monotonic()
-    ticks = None
+    started = time.monotonic()
+    progress = CpuProgress(process.pid)
     while process.poll() is None:
         now = time.monotonic()
-        state = process_state(process.pid)
-        if state is not None and state.cpu_ticks != ticks:
-            ticks, last_progress = state.cpu_ticks, now
-        if now - started > grace_s and (now - last_progress > STARTUP_IDLE_S or now - started > 3 * grace_s):
+        idle_s = progress.idle_s(now)
+        if now - started > grace_s and (idle_s > STARTUP_IDLE_S or now - started > 3 * grace_s):
             return
         time.sleep(0.05)
 
@@ -523,7 +521,7 @@ def _wait_alive(session, run_id: str, children: list[Child], timeout_s: float = 
     to three times that while its CPU time advances (slow on a busy machine), not while it idles."""
     names = {c.name for c in children} | set(remote or {})
     started = time.monotonic()
-    progress: dict[str, tuple[float, int]] = {}      # name -> (when its CPU time last advanced, ticks)
+    progress = {c.name: CpuProgress(c.process.pid) for c in children}
     while True:
         _check_children(children, allowed_done=set())
         alive = set()
@@ -533,13 +531,11 @@ def _wait_alive(session, run_id: str, children: list[Child], timeout_s: float = 
         if names <= alive:
             return
         now = time.monotonic()
-        for child in children:
-            state = process_state(child.process.pid)
-            if state is not None and (child.name not in progress or progress[child.name][1] != state.cpu_ticks):
-                progress[child.name] = (now, state.cpu_ticks)
+        idle_s = {name: p.idle_s(now) for name, p in progress.items()}
         missing = sorted(names - alive)
         if now - started > timeout_s:
-            still_working = all(now - progress.get(n, (0.0, 0))[0] < STARTUP_IDLE_S for n in missing)
+            # A remote node (no local process to watch) never counts as still working.
+            still_working = all(idle_s.get(n, float("inf")) < STARTUP_IDLE_S for n in missing)
             if not still_working or now - started > 3 * timeout_s:
                 raise NodeFailed(f"processes not alive after {now - started:.0f} s: {', '.join(missing)}")
         time.sleep(0.05)

@@ -115,3 +115,20 @@ def process_state(pid: int) -> ProcessState | None:
     # The command name (field 2) is in parentheses and may itself hold spaces or ')'.
     fields = text[text.rindex(")") + 2:].split()
     return ProcessState(state=fields[0], cpu_ticks=int(fields[11]) + int(fields[12]))
+
+
+class CpuProgress:
+    """When a process's CPU time last advanced: a process still working (slow on a busy machine)
+    against one that idles or is stuck."""
+
+    def __init__(self, pid: int):
+        self.pid = pid
+        self._ticks: int | None = None
+        self._advanced_s = time.monotonic()
+
+    def idle_s(self, now_s: float) -> float:
+        """Seconds since its CPU time last advanced, as of now_s (reads /proc once)."""
+        state = process_state(self.pid)
+        if state is not None and state.cpu_ticks != self._ticks:
+            self._ticks, self._advanced_s = state.cpu_ticks, now_s
+        return now_s - self._advanced_s

@@ -67,15 +67,12 @@ def canplayer(path: Path, frames: list[can.Message], period_s: float = 0.02) -> 
     subprocess.run(["canplayer", "-I", str(path)], check=True, timeout=60)
 
 
-class BoardOnVcan:
-    def __init__(self, profile: str):
-        self.bus = can.Bus(interface="socketcan", channel=CHANNEL, fd=True, ignore_config=True)
-        security = SecurityConfig(profile=profile, freshness_margin_s=FRESHNESS_MARGIN_S)
-        self.board = MagnetorquerBoard(self.bus, BOARD_CONFIG,
-                                       p.Protocol(profile=profile, key=KEY if profile == "secoc" else None),
-                                       security=security)
+class _OnVcan:
+    """A node on its own bus and thread; `run(stop)` is its loop, started and stopped with `with`."""
+
+    def __init__(self, run):
         self.stop = threading.Event()
-        self.thread = threading.Thread(target=self.board.run, args=(self.stop,), daemon=True)
+        self.thread = threading.Thread(target=run, args=(self.stop,), daemon=True)
 
     def __enter__(self):
         self.thread.start()
@@ -85,6 +82,16 @@ class BoardOnVcan:
         self.stop.set()
         self.thread.join(5)
         self.bus.shutdown()
+
+
+class BoardOnVcan(_OnVcan):
+    def __init__(self, profile: str):
+        self.bus = can.Bus(interface="socketcan", channel=CHANNEL, fd=True, ignore_config=True)
+        security = SecurityConfig(profile=profile, freshness_margin_s=FRESHNESS_MARGIN_S)
+        self.board = MagnetorquerBoard(self.bus, BOARD_CONFIG,
+                                       p.Protocol(profile=profile, key=KEY if profile == "secoc" else None),
+                                       security=security)
+        super().__init__(self.board.run)
 
     def wait(self, what, predicate) -> None:
         deadline = time.monotonic() + WAIT_S
@@ -95,7 +102,7 @@ class BoardOnVcan:
         time.sleep(0.1)   # and nothing more arrives after it
 
 
-class DriverOnVcan:
+class DriverOnVcan(_OnVcan):
     """The flight-side driver on the same vcan, commanding every period on its own thread."""
 
     def __init__(self):
@@ -104,17 +111,7 @@ class DriverOnVcan:
         self.events = []
         self.loop = CommandLoop(self.driver, DriverConfig().command_period_s, on_events=self.events.extend)
         self.loop.set_dipole([0.05, -0.05, 0.02])
-        self.stop = threading.Event()
-        self.thread = threading.Thread(target=self.loop.run, args=(self.stop,), daemon=True)
-
-    def __enter__(self):
-        self.thread.start()
-        return self
-
-    def __exit__(self, *exc):
-        self.stop.set()
-        self.thread.join(5)
-        self.bus.shutdown()
+        super().__init__(self.loop.run)
 
     def bus_states(self) -> list[str]:
         return [e.kind for e in list(self.events) if e.kind in BUS_STATE_KINDS]
