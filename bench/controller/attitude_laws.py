@@ -14,8 +14,8 @@ from scipy.spatial.transform import Rotation
 
 from bench.gnc import quaternion as qt
 from bench.gnc.attitude_law import (
-    AttitudeLaw, AttitudeTarget, BDotDetumble, DetumbleSequence, PdTracking, RateDamping, ResidualDipoleCompensation,
-    SlidingModeTracking,
+    AttitudeLaw, AttitudeTarget, BDotDetumble, DetumbleSequence, PdTracking, QuantisationErrorFeedback, RateDamping,
+    ResidualDipoleCompensation, SlidingModeTracking,
     TargetState, inertial_hold,
 )
 from bench.controller.config import ATTITUDE_LAWS
@@ -98,4 +98,7 @@ def build_attitude_law(scenario: Scenario) -> AttitudeLaw:
         raise ValueError("attitude_control.residual_dipole_compensation_am2: must be finite")
     if np.any(residual):
         law = ResidualDipoleCompensation(law, residual, dipole_limit_am2(scenario))
+    if scenario.attitude_control.quantisation_error_feedback:
+        resolution = scenario.can.board.dipole_resolution_am2 if scenario.can is not None else 1e-3
+        law = QuantisationErrorFeedback(law, resolution, dipole_limit_am2(scenario))
     return law

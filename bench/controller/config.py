@@ -181,6 +181,10 @@ class AttitudeControlConfig(msgspec.Struct, forbid_unknown_fields=True):
     # offset by minus this (bench.gnc.attitude_law.ResidualDipoleCompensation). Zero: none.
     residual_dipole_compensation_am2: Annotated[list[float], msgspec.Meta(min_length=3, max_length=3)] = \
         msgspec.field(default_factory=lambda: [0.0, 0.0, 0.0])
+    # Round the law's dipole to the board's step in the law and carry the rounding error to the next
+    # cycle (bench.gnc.attitude_law.QuantisationErrorFeedback): without it the board's rounding
+    # zeroes every torque under ~1.5e-8 N m, which is all a converging low-gain law asks for.
+    quantisation_error_feedback: bool = False
     # Seed 002 sliding mode (lambda, k) and PD (kp, kd).
     sliding_gain_radps: PositiveGain = 0.05
     convergence_gain_radps: PositiveGain = 0.02

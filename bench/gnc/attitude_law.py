@@ -266,3 +266,40 @@ class ResidualDipoleCompensation:
         if name == "law" or name.startswith("__"):
             raise AttributeError(name)
         return getattr(self.law, name)
+
+
+@dataclass
+class QuantisationErrorFeedback:
+    """The law's dipole rounded to the board's step here, with each cycle's rounding error carried
+    to the next (first-order sigma-delta), so that the coils' dipole *averaged over a few cycles* is
+    the law's, not the law's rounded.
+
+    Why: the board rounds every command to `dipole_resolution_am2` (1e-3 A m^2 on the bench), so a
+    law asking for less than half a step gets nothing: 1.5e-8 N m in 30 uT. The gains that let a
+    magnetorquer-only loop converge are the low ones (control slower than the field turns, ~2n),
+    whose torques near the target are 1e-9..1e-8 N m: all inside that dead zone without this
+    (docs/attitude.md). The carried error stays within half a step per axis (|e| <= step/2), so the
+    torque error averages out over seconds while the attitude moves over hundreds of seconds.
+    A command the law saturated is not carried (the coil cannot give more anyway).
+    """
+    law: AttitudeLaw
+    dipole_resolution_am2: float
+    dipole_limit_am2: float
+    _carried_am2: np.ndarray = field(default_factory=lambda: np.zeros(3), repr=False)
+
+    def eval(self, x: AttitudeControlInput) -> tuple[np.ndarray, dict]:
+        dipole, info = self.law.eval(x)
+        if info.get("weak_or_bad_field") or not np.all(np.isfinite(dipole)):
+            self._carried_am2 = np.zeros(3)      # never carry across a cycle that commanded nothing
+            return dipole, info
+        wanted = np.asarray(dipole, float) + self._carried_am2
+        step = self.dipole_resolution_am2
+        unclipped = np.round(wanted / step) * step
+        rounded, saturated = saturate_dipole(unclipped, self.dipole_limit_am2)
+        self._carried_am2 = np.where(rounded == unclipped, wanted - rounded, 0.0)
+        return rounded, {**info, "saturated": bool(info.get("saturated")) or saturated}
+
+    def __getattr__(self, name):
+        if name == "law" or name.startswith("__"):
+            raise AttributeError(name)
+        return getattr(self.law, name)
