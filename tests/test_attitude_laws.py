@@ -178,3 +178,30 @@ def test_rate_damping_goes_to_rest_where_bdot_follows_the_field_and_full_torque_
     assert rate_bdot[-1] < 0.05 * rate_bdot[0]
     assert 0.4 * two_n_dps < np.median(last_orbit) < 2.0 * two_n_dps     # following the field, not at rest
     assert np.median(last_orbit) > 10 * np.median(rate[steps // 2:])
+
+
+def test_quantisation_error_feedback_gives_the_law_s_dipole_on_average_on_the_board_s_grid():
+    """The board rounds every command to 1e-3 A m^2 (so 3e-4 alone would be nothing); the error
+    feedback sends grid values the board applies unchanged, whose mean is the law's dipole to within
+    one step over the run, and never carries a saturated axis."""
+    from bench.gnc.attitude_law import AttitudeControlInput, QuantisationErrorFeedback
+    from bench.plant.mtq_acceptance import board_dipole_without_bus
+
+    class Constant:
+        def __init__(self, dipole):
+            self.dipole = np.asarray(dipole, float)
+
+        def eval(self, x):
+            return self.dipole.copy(), {"weak_or_bad_field": False, "saturated": False}
+
+    wanted = [3e-4, -2.5e-4, 1.7e-3]
+    law = QuantisationErrorFeedback(Constant(wanted), 1e-3, 0.2)
+    x = AttitudeControlInput(0.0, np.array([1.0, 0, 0, 0]), np.zeros(3), np.array([2e-5, 0, 1e-5]))
+    sent = np.array([law.eval(x)[0] for _ in range(200)])
+    np.testing.assert_array_equal(sent, [board_dipole_without_bus(m, None) for m in sent])
+    np.testing.assert_allclose(sent.mean(axis=0), wanted, atol=1e-3 / 200 + 1e-15)
+    assert np.abs(board_dipole_without_bus(wanted, None)).tolist() == [0.0, 0.0, 2e-3]   # what the board alone gives
+    saturating = QuantisationErrorFeedback(Constant([0.25, 0.0, 0.0]), 1e-3, 0.2)
+    for _ in range(3):
+        np.testing.assert_array_equal(saturating.eval(x)[0], [0.2, 0.0, 0.0])
+    np.testing.assert_array_equal(saturating._carried_am2, 0.0)
