@@ -25,7 +25,8 @@ from bench.sim import simulate_attitude_in_process
 ORBIT_S = 5670.0     # 500 km circular
 
 
-def case_scenario(name: str, orbits: float, spec: str, truth: bool, rate_hz: float | None, dither: bool = False):
+def case_scenario(name: str, orbits: float, spec: str, truth: bool, rate_hz: float | None, dither: bool = False,
+                  compensation_am2: float | None = None, no_gravity_gradient: bool = False):
     data = tomllib.loads(resources.files("bench.scenarios").joinpath(f"{name}.toml").read_text())
     data = copy.deepcopy(data)
     data["attitude"]["duration_s"] = round(orbits * ORBIT_S)
@@ -39,6 +40,10 @@ def case_scenario(name: str, orbits: float, spec: str, truth: bool, rate_hz: flo
     kind, a, b = spec.split(",")
     control = data["attitude_control"]
     control["quantisation_error_feedback"] = dither
+    if compensation_am2 is not None:
+        control["residual_dipole_compensation_am2"] = [compensation_am2, 0.0, 0.0]
+    if no_gravity_gradient:
+        data["attitude"]["disturbances"]["gravity_gradient"] = False
     for key in ("sliding_gain_radps", "convergence_gain_radps", "kp_nm", "kd_nms"):
         control.pop(key, None)
     if kind == "sm":
@@ -56,9 +61,13 @@ def main():
     parser.add_argument("--truth", action="store_true")
     parser.add_argument("--rate-hz", type=float, default=None)
     parser.add_argument("--dither", action="store_true", help="quantisation_error_feedback = true")
+    parser.add_argument("--compensation-am2", type=float, default=None,
+                        help="residual_dipole_compensation_am2 x component (the plant's residual is 1e-3 along x)")
+    parser.add_argument("--no-gravity-gradient", action="store_true")
     args = parser.parse_args()
     for spec in args.cases:
-        scenario = case_scenario(args.scenario, args.orbits, spec, args.truth, args.rate_hz, args.dither)
+        scenario = case_scenario(args.scenario, args.orbits, spec, args.truth, args.rate_hz, args.dither, args.compensation_am2,
+                                 args.no_gravity_gradient)
         started = time.process_time()
         trajectory = simulate_attitude_in_process(scenario)
         error = pointing_error_deg(trajectory, scenario)
@@ -67,7 +76,9 @@ def main():
         last_orbit = t >= t[-1] - ORBIT_S
         idx = np.linspace(0, len(error) - 1, 13).astype(int)
         saturated = float(np.mean(np.any(np.abs(trajectory["att_dipole_commanded_am2"]) >= 0.2 - 1e-9, axis=1)))
-        print(f"{spec}{' dither' if args.dither else ''} ({args.scenario}, {args.orbits} orbits, {len(t)} steps, cpu {time.process_time() - started:.0f} s): "
+        extras = (" dither" if args.dither else "") + (f" compensation {args.compensation_am2}" if args.compensation_am2 is not None else "") \
+            + (" no-gg" if args.no_gravity_gradient else "")
+        print(f"{spec}{extras} ({args.scenario}, {args.orbits} orbits, {len(t)} steps, cpu {time.process_time() - started:.0f} s): "
               f"final {error[-1]:.2f} deg, last-orbit max {error[last_orbit].max():.2f} deg, "
               f"min rotation angle {angle.min():.1f} deg, saturated {saturated:.2f}; "
               f"at t = {[int(t[i]) for i in idx]} s: {[round(float(error[i]), 1) for i in idx]}", flush=True)
