@@ -5,6 +5,7 @@ for what is idealised. Prints the pointing error (deg) at 13 instants and the fi
 
     PYTHONPATH=$PWD python benchmarks/attitude_magnetic_gain_study.py hold 5670 sm,0.03,0.01 pd,2e-6,1e-4
     NODIST=1 NOQ=1 ... (no disturbances, no board quantisation)   FULL=1 ... (3-axis torque: the reference)
+    DITHER=1 NOQ=1 ... (the board's step with the law's quantisation error feedback)
 
 A spec is `sm,lambda,k` (sliding mode) or `pd,kp,kd`. `slew` starts 200 deg from the target
 (160 the short way), `hold` 3 deg. Disturbances: gravity gradient and a 1e-4 A m^2 residual dipole
@@ -16,7 +17,8 @@ import sys
 import numpy as np
 
 from bench.gnc import quaternion as qt
-from bench.gnc.attitude_law import AttitudeControlInput, PdTracking, SlidingModeTracking, inertial_hold
+from bench.gnc.attitude_law import (AttitudeControlInput, PdTracking, QuantisationErrorFeedback, SlidingModeTracking,
+                                    inertial_hold)
 from bench.gnc.environment import gravity_gradient_torque_nm
 from bench.plant.attitude import CircularOrbit, TiltedDipole, rk4_attitude_step
 
@@ -56,6 +58,8 @@ def main():
         target = inertial_hold(qt.IDENTITY_WXYZ)
         law = (SlidingModeTracking(target, J, 0.2, float(a), float(b)) if kind == "sm"
                else PdTracking(target, 0.2, float(a), float(b)))
+        if os.environ.get("DITHER"):      # the board's step with the law's error feedback (then NOQ=1)
+            law = QuantisationErrorFeedback(law, 1e-3, 0.2)
         e = run(law, start, steps)
         idx = np.linspace(0, len(e) - 1, 13).astype(int)
         print(f"{spec}: final {e[-1]:.2f} deg; at t = {idx.tolist()} s: {[round(float(e[i]), 1) for i in idx]}", flush=True)
