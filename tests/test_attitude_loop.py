@@ -184,25 +184,45 @@ def test_pointing_with_the_smoother_in_the_loop_closes_in_on_the_target():
 
 
 def test_sliding_mode_from_200_degrees_converges_the_short_way_over_three_orbits():
-    """`attitude_slew` (1 Hz, truth estimate, IGRF, gravity gradient, 10 %-calibrated residual
-    dipole, the board's rounding with the law's error feedback): seed 002's sliding mode with
-    lambda = 1e-3 rad/s, k = 1e-2 /s from 200 deg. The rotation angle never goes below where it
-    started (the short way, 160 deg, not the long 200), the error is below 20 deg over the last two
-    orbits and its final value is below 15 deg (measured: 14.8 deg at one orbit, 10.9-14.0 deg over
-    the last orbit, 12.1 deg at the end). The floor is the disturbances against the law's stiffness
-    (docs/attitude.md); with the old gains (0.03, 0.01) or without the error feedback this fails.
-    ~17000 steps: 20-60 s on a loaded host."""
+    """`attitude_slew` (1 Hz, truth estimate, IGRF, gravity gradient, residual dipole calibrated to
+    1 %, the board's rounding with the law's error feedback): seed 002's sliding mode with
+    lambda = 1e-3 rad/s, k = 5e-3 /s from 200 deg. The rotation angle never goes below where it
+    started (the short way, 160 deg, not the long 200); the error is below 10 deg from one orbit on
+    and below 5 deg over the last orbit (measured: 8.3 deg at one orbit, 1.4-2.6 deg over the last,
+    1.37 deg at the end). The old gains (0.03, 0.01), k = 0.01, no error feedback, or a 10 %
+    calibration fail this (docs/attitude.md). ~17000 steps: 20-60 s on a loaded host."""
     scenario = parse_scenario(builtin("attitude_slew"), "slew")
     assert scenario.n_steps == 17010
     trajectory = simulate_attitude_in_process(scenario)
     error = pointing_error_deg(trajectory, scenario)
     angle = continuous_rotation_angle_deg(trajectory, scenario)
     t = trajectory["att_time_s"]
-    last_two = t >= t[-1] - 2 * ORBIT_S
-    print(f"slew: min angle {angle.min():.2f} deg; error at one orbit {error[int(ORBIT_S)]:.2f}, "
-          f"last two orbits {error[last_two].min():.2f}-{error[last_two].max():.2f}, final {error[-1]:.2f} deg")
+    after_one, last = t >= ORBIT_S, t >= t[-1] - ORBIT_S
+    print(f"slew: min angle {angle.min():.2f} deg; error at one orbit {error[int(ORBIT_S)]:.2f}, max after it "
+          f"{error[after_one].max():.2f}, last orbit {error[last].min():.2f}-{error[last].max():.2f}, final {error[-1]:.2f} deg")
     assert angle[0] == pytest.approx(200.0, abs=1e-6)
     assert angle.min() > 199.9            # the long way would take it down through 180 deg
-    assert error[last_two].max() < 20.0
-    assert error[-1] < 15.0
+    assert error[after_one].max() < 10.0
+    assert error[last].max() < 5.0
+    assert applied_is_commanded_or_zero(trajectory, scenario.can).all()
+
+
+def test_pointing_hold_with_the_smoother_stays_within_5_degrees_over_two_orbits():
+    """`attitude_pointing_hold` (1 Hz, gtsam smoother through a star-tracker outage, the slew's
+    sliding-mode gains, 1 %-calibrated residual dipole): from 3 deg the error stays below 5 deg for
+    two orbits and below 4 deg over the second (measured: 1.0-3.0 deg, 2.66 deg at most over the
+    second orbit, 2.31 deg at the end). Bounded by the disturbances, not converging to zero (with
+    gravity gradient alone the slew settles at 1.1 deg). ~11000 steps with the smoother: 30-90 s."""
+    scenario = parse_scenario(builtin("attitude_pointing_hold"), "hold")
+    assert scenario.estimator.mode == "smoother" and scenario.n_steps == 11340
+    trajectory = simulate_attitude_in_process(scenario)
+    error = pointing_error_deg(trajectory, scenario)
+    t = trajectory["att_time_s"]
+    second = t >= ORBIT_S
+    print(f"hold: max {error.max():.2f}, second orbit {error[second].min():.2f}-{error[second].max():.2f}, "
+          f"final {error[-1]:.2f} deg")
+    assert error[0] == pytest.approx(3.0, abs=1e-3)
+    assert error.max() < 5.0
+    assert error[second].max() < 4.0
+    assert trajectory["att_estimate_valid"].all()
     assert applied_is_commanded_or_zero(trajectory, scenario.can).all()
