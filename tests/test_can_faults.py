@@ -22,6 +22,7 @@ from pathlib import Path
 
 import pytest
 
+from bench.bus.can import host_lateness
 from bench.bus.can import protocol as p
 from bench.runtime.can_bench import CanBench, CanRunResult, write_scenario
 
@@ -86,7 +87,8 @@ def affected(r: CanRunResult) -> int:
 
 
 def starved(r: CanRunResult) -> bool:
-    host = any(e.kind == "host_overrun" for e in r.events) or r.board.get("host_overruns", 0) > 0
+    host = (any(e.kind == "host_overrun" for e in r.events) or r.board.get("host_overruns", 0) > 0
+            or r.report.get("host_overruns", 0) > 0)
     return host and all(f["affected"] == 0 for f in r.report.get("faults", []))
 
 
@@ -99,6 +101,7 @@ def _report_host_overruns(tmp_path, r: CanRunResult) -> None:
     host = host_caused(r)
     record = {"test": tmp_path.name, "host_overruns": sum(e.kind == "host_overrun" for e in r.events),
               "board_host_overruns": r.board.get("host_overruns", 0),
+              "bus_model_host_overruns": r.report.get("host_overruns", 0),
               "host_caused": [f"{e.kind} {e.detail}" for e in host],
               "bus_events_before_silence": [e.kind for e in before_silence(r)]}
     with open(Path(out) / "host_overruns.jsonl", "a") as f:
@@ -122,12 +125,9 @@ def latency_s(result: CanRunResult, kind: str, since_ns: int, detail: str = "", 
 
 
 def host_late_s(r: CanRunResult, from_ns: int, to_ns: int) -> float:
-    """How long the host held up the driver's loop, or the board's (its late periodic frames),
-    between from_ns and to_ns, whichever is more: both run on the same starved CPUs, so their
-    delays overlap rather than add."""
-    driver = sum(e.latency_s for e in r.events if e.kind == "host_overrun" and from_ns <= e.detected_ns <= to_ns)
-    board = sum(late for t_ns, late in r.board.get("host_late_ns_s", []) if from_ns <= t_ns <= to_ns)
-    return max(driver, board)
+    """How long the host held up the driver, the board or the bus model between from_ns and to_ns
+    (bench.bus.can.host_lateness)."""
+    return host_lateness.host_late_s(host_lateness.host_late_records(r.events, r.board, r.report), from_ns, to_ns)
 
 
 def window_start_ns(result: CanRunResult, start_s: float = FAULT_START_S) -> int:
@@ -169,7 +169,12 @@ def host_caused(r: CanRunResult) -> list:
     """Events of the host, not the bus: the driver's own command thread late (host_overrun), a
     board timeout the driver attributes to its own command gap, and the board's error reset
     after it. Reported apart (benchmarks/can_uml_load.py counts them), never a bus fault."""
-    timeouts = [e for e in r.events if e.kind == "board_command_timeout" and e.detail.startswith("cause host_overrun")]
+    # A board timeout the driver puts down to its own silence: a command gap it measured, or no
+    # command sent for longer than the timeout while a host lateness was measured around it (the
+    # command thread was not scheduled; it only stops for good at the end of the run).
+    timeouts = [e for e in r.events if e.kind == "board_command_timeout" and (
+        e.detail.startswith("cause host_overrun") or (e.detail == "cause driver stopped commanding" and host_late_s(
+            r, e.detected_ns - HOST_WINDOW_NS, e.detected_ns + HOST_WINDOW_NS) > 0))]
     resets = [e for e in r.events if e.kind == "board_error_reset"] if timeouts else []
     # A board frame missing its deadline while the board or the driver measured itself late
     # (within HOST_WINDOW_S): the board's process was not scheduled, the bus lost nothing.
