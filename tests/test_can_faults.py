@@ -86,6 +86,19 @@ def affected(r: CanRunResult) -> int:
     return n
 
 
+def diagnosis(r: CanRunResult) -> str:
+    """What a failed check needs to be understood from its message alone (the UML guest's files
+    are gone when the host reads its output)."""
+    lateness = host_lateness.host_late_records(r.events, r.board, r.report)
+    longest = {node: max((x.late_s for x in lateness if x.node == node), default=0.0)
+               for node in ("driver", "board", "bus_model")}
+    board = {k: r.board.get(k) for k in ("received", "accepted", "rejected", "ignored", "bad_frames", "lost_commands")}
+    return (f"board {board}; wire {dict(r.wire)}; dropped {dict(r.dropped)}; driver sent {r.driver_sent}; "
+            f"injections {Counter(i['action'] for i in r.injections)}; faults {r.report.get('faults')}; "
+            f"bus model send failures {r.report.get('send_failures')}; longest host lateness s {longest}; "
+            f"events {Counter(e.kind for e in r.events)}")
+
+
 def starved(r: CanRunResult) -> bool:
     host = (any(e.kind == "host_overrun" for e in r.events) or r.board.get("host_overruns", 0) > 0
             or r.report.get("host_overruns", 0) > 0)
@@ -222,7 +235,7 @@ def test_a_delayed_command_arriving_late_is_rejected(tmp_path):
 
 def test_duplicated_commands_are_rejected_as_repeated(tmp_path):
     r = run_fault(tmp_path, {"name": "duplicate", "start_s": FAULT_START_S, "count": 5, "every": 10})
-    assert r.board["rejected"] == {"REPEATED": affected(r)}
+    assert r.board["rejected"] == {"REPEATED": affected(r)}, diagnosis(r)
     assert latency_s(r, "command_rejected", r.first_injection_ns("injected"), "REPEATED") <= 5 * COMMAND_PERIOD_S
     assert r.kinds()["spoofed_command"] == affected(r)        # the copy was not sent by this driver
     check_all(r)
@@ -240,7 +253,7 @@ def test_replayed_commands_are_seen_as_foreign(tmp_path):
 def test_corrupted_commands_fail_the_crc_and_are_never_applied(tmp_path):
     r = run_fault(tmp_path, {"name": "corrupt", "start_s": FAULT_START_S, "count": 5, "every": 10,
                              "params": {"bits": 3}})
-    assert r.board["rejected"] == {"WRONG_CRC": affected(r)}
+    assert r.board["rejected"] == {"WRONG_CRC": affected(r)}, diagnosis(r)
     assert latency_s(r, "command_rejected", r.first_injection_ns("replaced"), "WRONG_CRC") <= 5 * COMMAND_PERIOD_S
     check_all(r)
 
@@ -259,7 +272,7 @@ def test_corruption_before_protection_is_applied_but_caught_by_plausibility(tmp_
 def test_spoofed_commands_are_rejected_and_reported(tmp_path):
     r = run_fault(tmp_path, {"name": "spoof", "start_s": FAULT_START_S, "count": 3, "every": 10,
                              "params": {"dipole_am2": 0.15}})
-    assert r.board["rejected"] == {"WRONG_CRC": affected(r)}
+    assert r.board["rejected"] == {"WRONG_CRC": affected(r)}, diagnosis(r)
     assert latency_s(r, "spoofed_command", r.first_injection_ns("injected")) <= 5 * COMMAND_PERIOD_S
     assert latency_s(r, "command_rejected", r.first_injection_ns("injected"), "WRONG_CRC") <= 5 * COMMAND_PERIOD_S
     check_all(r)

@@ -16,6 +16,7 @@ import numpy as np
 
 from bench.bus.can.host_lateness import load_host_late_records, longest_host_late_s
 from bench.gnc import quaternion as qt
+from bench.plant.mtq_acceptance import board_dipole_without_bus
 from bench.scenario import Scenario
 
 DETUMBLE_THRESHOLD_DPS = 0.1
@@ -71,8 +72,6 @@ def _percentiles_ms(start: np.ndarray, end: np.ndarray) -> dict:
 
 def attitude_metrics(trajectory: dict, scenario: Scenario) -> dict:
     from bench.controller.attitude_laws import dipole_limit_am2
-    from bench.plant.mtq_acceptance import board_dipole_without_bus
-
     times = trajectory["att_time_s"]
     rate_dps = np.rad2deg(np.linalg.norm(trajectory["att_omega_radps"], axis=1))
     applied = trajectory["att_dipole_applied_am2"]
@@ -150,29 +149,31 @@ def applied_is_commanded_or_zero(trajectory: dict, can, commanded=None) -> np.nd
     the law commanded in this run (so no frame altered on the bus moved the coils). `commanded`:
     every dipole the controller published (the recording's command/dipole); the plant's own log
     misses commands that reached it after their step in real time."""
-    from bench.plant.mtq_acceptance import board_dipole_without_bus
-
     commanded = trajectory["att_dipole_commanded_am2"] if commanded is None else np.asarray(commanded, float)
     expected = {tuple(board_dipole_without_bus(c, can)) for c in commanded if np.all(np.isfinite(c))}
     return np.array([not np.any(a) or tuple(a) in expected for a in trajectory["att_dipole_applied_am2"]])
 
 
-def loop_recovery_s(trajectory: dict, can, after_sim_s: float, excused: np.ndarray | None = None) -> float | None:
-    """Simulated time after `after_sim_s` until the plant applies, at every later step, what the
-    board makes of the dipole commanded in that step (the loop is whole again); None if never.
-    excused: steps not to count against the loop (for example those the host held up, see
-    `host_held_steps`)."""
-    from bench.plant.mtq_acceptance import board_dipole_without_bus
-
-    times = trajectory["att_time_s"]
+def whole_steps(trajectory: dict, can) -> np.ndarray:
+    """Per step, whether the plant applied what the board makes of the dipole commanded in that
+    step (or, in real time, in the step before: the latest report is held over a step, so a
+    command that changed mid-step shows the previous value)."""
     commanded, applied = trajectory["att_dipole_commanded_am2"], trajectory["att_dipole_applied_am2"]
-    whole = np.array([np.all(np.isfinite(c)) and np.array_equal(board_dipole_without_bus(c, can), a)
-                      for c, a in zip(commanded, applied)])
-    # Real time holds the latest report over a step: a command that changed mid-step shows the
-    # previous value, so "whole" allows the previous step's command as well.
-    previous = np.concatenate([[False], [np.all(np.isfinite(c)) and np.array_equal(board_dipole_without_bus(c, can), a)
-                                         for c, a in zip(commanded[:-1], applied[1:])]])
-    whole |= previous
+
+    def as_board_applies(c, a) -> bool:
+        return bool(np.all(np.isfinite(c)) and np.array_equal(board_dipole_without_bus(c, can), a))
+
+    whole = np.array([as_board_applies(c, a) for c, a in zip(commanded, applied)])
+    previous = np.array([False] + [as_board_applies(c, a) for c, a in zip(commanded[:-1], applied[1:])])
+    return whole | previous
+
+
+def loop_recovery_s(trajectory: dict, can, after_sim_s: float, excused: np.ndarray | None = None) -> float | None:
+    """Simulated time after `after_sim_s` until the loop is whole (`whole_steps`) at every later
+    step; None if never. excused: steps not to count against the loop (for example those the
+    host held up, see `host_held_steps`)."""
+    times = trajectory["att_time_s"]
+    whole = whole_steps(trajectory, can)
     if excused is not None:
         whole |= np.asarray(excused, bool)
     later = times >= after_sim_s
