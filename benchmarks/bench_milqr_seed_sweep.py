@@ -4,7 +4,7 @@
 the last 300 s, and the plans (time, reason, arrival). A study, not a test: each seed is a whole
 1800-step run with MILQR planning in line (about a minute or two each).
 
-    PYTHONPATH=$PWD python benchmarks/bench_milqr_seed_sweep.py [--seeds 0-9] [--set key=value ...]
+    PYTHONPATH=$PWD python benchmarks/bench_milqr_seed_sweep.py [--seeds 0-9] [--steps N] [--set key=value ...]
 
 --set changes [attitude_control.planner] settings for the sweep (e.g. --set replan_period_s=3000).
 """
@@ -33,15 +33,16 @@ def seeds_from(text: str) -> list[int]:
     return seeds
 
 
-def scenario_for(seed: int, planner_changes: dict):
+def scenario_for(seed: int, planner_changes: dict, steps: int | None = None):
     s = load_scenario(SCENARIO)
     planner = msgspec.structs.replace(s.attitude_control.planner, **planner_changes)
-    return msgspec.structs.replace(s, run=msgspec.structs.replace(s.run, seed=seed),
+    run = msgspec.structs.replace(s.run, seed=seed) if steps is None else msgspec.structs.replace(s.run, seed=seed, steps=steps)
+    return msgspec.structs.replace(s, run=run,
                                    attitude_control=msgspec.structs.replace(s.attitude_control, planner=planner))
 
 
-def run_seed(seed: int, planner_changes: dict) -> dict:
-    s = scenario_for(seed, planner_changes)
+def run_seed(seed: int, planner_changes: dict, steps: int | None = None) -> dict:
+    s = scenario_for(seed, planner_changes, steps)
     started = time.perf_counter()
     t = simulate_attitude_in_process(s)
     error = pointing_error_deg(t, s)
@@ -55,6 +56,7 @@ def run_seed(seed: int, planner_changes: dict) -> dict:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", default="0-4")
+    parser.add_argument("--steps", type=int, default=None, help="run length in steps (default: the scenario's)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     args = parser.parse_args()
     changes = {k: json.loads(v) for k, v in (item.split("=", 1) for item in args.set)}
@@ -62,7 +64,7 @@ def main() -> None:
     print("| seed | final error [deg] | max, last 300 s [deg] | plans (time s, reason, arrival s) |")
     print("| --- | --- | --- | --- |")
     for seed in seeds_from(args.seeds):
-        row = run_seed(seed, changes)
+        row = run_seed(seed, changes, args.steps)
         rows.append(row)
         plans = ", ".join(f"({a} {r} -> {b})" for a, r, b in row["plans"])
         print(f"| {seed} | {row['final_error_deg']:.2f} | {row['max_error_last_300s_deg']:.2f} | {plans} |", flush=True)
