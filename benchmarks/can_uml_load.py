@@ -5,11 +5,13 @@
 
 Each run boots UML once and runs the guest suite (tests/uml_guest_can, as test_kernel_can_uml.py
 does) with BENCH_CAN_REPORT_DIR set, so that every fault run inside the guest appends what the
-driver and the board said about their own lateness to host_overruns.jsonl:
+driver, the board and the bus model said about their own lateness to host_overruns.jsonl:
 - host_overruns: command periods the driver's command loop started more than half a period late;
 - board_host_overruns: periodic frames the board sent more than half a period late;
-- host_caused: board command timeouts the driver attributes to its own command gap (and the
-  error reset after them): the host's doing, not the bus's;
+- bus_model_host_overruns: deliveries or wake-ups of the bus model more than 5 ms late;
+- host_caused: what those explain (tests/test_can_faults.py::host_caused): board command
+  timeouts, missed frame deadlines and actuator mismatches next to measured lateness, and the
+  error reset after them: the host's doing, not the bus's;
 - bus_events_before_silence: everything else the driver reported while commanding.
 A test that fails where its run had host overruns is reported as "failed with host overruns", not
 as a bus fault. `--busy N` starts N processes spinning on the host (N = 2: both cores here) for
@@ -32,6 +34,8 @@ import uml  # noqa: E402
 
 SELECTION = "tests/uml_guest_can"
 PER_TEST_TIMEOUT_S = uml.CAN_BENCH_TEST_TIMEOUT_S     # as tests/test_kernel_can_uml.py
+# what each fault run records of the nodes' own lateness (tests/test_can_faults.py)
+HOST_OVERRUN_KEYS = ("host_overruns", "board_host_overruns", "bus_model_host_overruns")
 
 
 def busy_processes(n: int) -> list[subprocess.Popen]:
@@ -60,11 +64,12 @@ def one_run(index: int, job_dir: Path, selection: str, timeout_s: float) -> dict
     tests = {}
     for name, outcome in outcomes.items():
         record = next((r for prefix, r in by_prefix.items() if name.startswith(prefix)), {})
-        host = record.get("host_overruns", 0) + record.get("board_host_overruns", 0)
+        host = sum(record.get(k, 0) for k in HOST_OVERRUN_KEYS)
         if outcome == "failed" and host:
             outcome = "failed with host overruns"
         tests[name] = {"outcome": outcome, "driver_host_overruns": record.get("host_overruns"),
                        "board_host_overruns": record.get("board_host_overruns"),
+                       "bus_model_host_overruns": record.get("bus_model_host_overruns"),
                        "host_caused": record.get("host_caused", []),
                        "bus_events": record.get("bus_events_before_silence", [])}
     return {"run": index, "uml_exit": result.returncode, "wall_s": round(time.monotonic() - started, 1),
@@ -88,7 +93,7 @@ def main() -> int:
             run = one_run(i, args.jobs / f"run{i}", args.selection, args.timeout_s)
             runs.append(run)
             passed = sum(t["outcome"] == "passed" for t in run["tests"].values())
-            host = sum((t["driver_host_overruns"] or 0) + (t["board_host_overruns"] or 0) for t in run["tests"].values())
+            host = sum((t[f"{k}_host_overruns"] or 0) for t in run["tests"].values() for k in ("driver", "board", "bus_model"))
             print(f"run {i}: {passed}/{len(run['tests'])} passed in {run['wall_s']} s (UML exit {run['uml_exit']}), "
                   f"host overruns {host}", flush=True)
             for name, t in run["tests"].items():

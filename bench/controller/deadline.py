@@ -102,6 +102,10 @@ class DeadlineMonitor:
         self.fallbacks_applied: dict[str, int] = {}
         self._last = _LastGood(command=np.zeros(n_inputs))
         self.cycle_times_s: list[float] = []
+        # Per cycle, how long after the deadline the OS ran the controller again (a law in a worker
+        # process reports it, `WorkerLaw.last_wake_late_s`): the host's share of an overrun, so a
+        # report tells a slow solver from a busy machine.
+        self.host_wake_late_s: list[float] = []
 
     # --- the cycle ---------------------------------------------------------------------------
     def run_cycle(
@@ -123,6 +127,7 @@ class DeadlineMonitor:
             result = compute(x)
             self.stress.apply(cycle_index)
         cycle_time_s = (self.clock_ns() - start_ns) / 1e9
+        self.host_wake_late_s.append(float(getattr(compute, "last_wake_late_s", 0.0)) if evaluate else 0.0)
         if result is None:
             u, info = None, {"ctrl_feas": False, "status": "NO_RESULT_BY_DEADLINE", "solve_time": cycle_time_s,
                              "iterations": 0}
@@ -175,10 +180,15 @@ class DeadlineMonitor:
     def summary(self) -> dict:
         """Numbers for metrics.json: cycles, misses, worst cycle time, fallbacks applied."""
         times = np.asarray(self.cycle_times_s) if self.cycle_times_s else np.zeros(1)
+        host_late = np.asarray(self.host_wake_late_s) if self.host_wake_late_s else np.zeros(1)
         return {
             **self.counter.summary(),
             "cycle_time_p50_s": float(np.percentile(times, 50)),
             "cycle_time_p99_s": float(np.percentile(times, 99)),
+            "host_wake_late_p99_s": float(np.percentile(host_late, 99)),
+            "host_wake_late_max_s": float(host_late.max()),
+            # what the controller itself took, the host's lateness to wake it taken out
+            "cycle_time_less_host_p99_s": float(np.percentile(times - host_late, 99)),
             "budget_s": self.budget_s,
             "fallback": self.config.fallback,
             "fallbacks_applied": dict(self.fallbacks_applied),

@@ -10,9 +10,13 @@
 """
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
+from bench.bus.can.host_lateness import load_host_late_records, longest_host_late_s
 from bench.gnc import quaternion as qt
+from bench.plant.mtq_acceptance import board_dipole_without_bus
 from bench.scenario import Scenario
 
 DETUMBLE_THRESHOLD_DPS = 0.1
@@ -68,8 +72,6 @@ def _percentiles_ms(start: np.ndarray, end: np.ndarray) -> dict:
 
 def attitude_metrics(trajectory: dict, scenario: Scenario) -> dict:
     from bench.controller.attitude_laws import dipole_limit_am2
-    from bench.plant.mtq_acceptance import board_dipole_without_bus
-
     times = trajectory["att_time_s"]
     rate_dps = np.rad2deg(np.linalg.norm(trajectory["att_omega_radps"], axis=1))
     applied = trajectory["att_dipole_applied_am2"]
@@ -147,33 +149,53 @@ def applied_is_commanded_or_zero(trajectory: dict, can, commanded=None) -> np.nd
     the law commanded in this run (so no frame altered on the bus moved the coils). `commanded`:
     every dipole the controller published (the recording's command/dipole); the plant's own log
     misses commands that reached it after their step in real time."""
-    from bench.plant.mtq_acceptance import board_dipole_without_bus
-
     commanded = trajectory["att_dipole_commanded_am2"] if commanded is None else np.asarray(commanded, float)
     expected = {tuple(board_dipole_without_bus(c, can)) for c in commanded if np.all(np.isfinite(c))}
     return np.array([not np.any(a) or tuple(a) in expected for a in trajectory["att_dipole_applied_am2"]])
 
 
-def loop_recovery_s(trajectory: dict, can, after_sim_s: float) -> float | None:
-    """Simulated time after `after_sim_s` until the plant applies, at every later step, what the
-    board makes of the dipole commanded in that step (the loop is whole again); None if never."""
-    from bench.plant.mtq_acceptance import board_dipole_without_bus
-
-    times = trajectory["att_time_s"]
+def whole_steps(trajectory: dict, can) -> np.ndarray:
+    """Per step, whether the plant applied what the board makes of the dipole commanded in that
+    step (or, in real time, in the step before: the latest report is held over a step, so a
+    command that changed mid-step shows the previous value)."""
     commanded, applied = trajectory["att_dipole_commanded_am2"], trajectory["att_dipole_applied_am2"]
-    whole = np.array([np.all(np.isfinite(c)) and np.array_equal(board_dipole_without_bus(c, can), a)
-                      for c, a in zip(commanded, applied)])
-    # Real time holds the latest report over a step: a command that changed mid-step shows the
-    # previous value, so "whole" allows the previous step's command as well.
-    previous = np.concatenate([[False], [np.all(np.isfinite(c)) and np.array_equal(board_dipole_without_bus(c, can), a)
-                                         for c, a in zip(commanded[:-1], applied[1:])]])
-    whole |= previous
+
+    def as_board_applies(c, a) -> bool:
+        return bool(np.all(np.isfinite(c)) and np.array_equal(board_dipole_without_bus(c, can), a))
+
+    whole = np.array([as_board_applies(c, a) for c, a in zip(commanded, applied)])
+    previous = np.array([False] + [as_board_applies(c, a) for c, a in zip(commanded[:-1], applied[1:])])
+    return whole | previous
+
+
+def loop_recovery_s(trajectory: dict, can, after_sim_s: float, excused: np.ndarray | None = None) -> float | None:
+    """Simulated time after `after_sim_s` until the loop is whole (`whole_steps`) at every later
+    step; None if never. excused: steps not to count against the loop (for example those the
+    host held up, see `host_held_steps`)."""
+    times = trajectory["att_time_s"]
+    whole = whole_steps(trajectory, can)
+    if excused is not None:
+        whole |= np.asarray(excused, bool)
     later = times >= after_sim_s
     broken = np.nonzero(later & ~whole)[0]
     if len(broken) == 0:
         return 0.0
     last = broken[-1]
     return float(times[last + 1] - after_sim_s) if last + 1 < len(times) else None
+
+
+def host_held_steps(trajectory: dict, run_dir: Path, min_late_s: float, window_s: float = 0.5) -> np.ndarray:
+    """Per step, whether a CAN node measured itself held up by the host for min_late_s or more at
+    once within window_s of the step's sensing stamp (real time only; bench.bus.can.host_lateness): a
+    broken step there may be the busy machine's doing, not the bus's. A few ms late is common on
+    a busy machine and breaks nothing; min_late_s near a plant step is what can."""
+    stamps = trajectory.get("stamp_sensed_ns")
+    records = load_host_late_records(Path(run_dir) / "can")
+    if stamps is None or not records:
+        return np.zeros(len(trajectory["att_time_s"]), bool)
+    window_ns = int(window_s * 1e9)
+    return np.array([s > 0 and longest_host_late_s(records, int(s) - window_ns, int(s) + window_ns) >= min_late_s
+                     for s in stamps])
 
 
 def fault_effect(clean: dict, faulted: dict, scenario: Scenario, fault_end_sim_s: float) -> dict:

@@ -102,6 +102,10 @@ def clock_table(run: RunData) -> Table:
 
 def deadline_section(result: DeadlineResult, plot_dir: Path) -> Section:
     m = result.to_metrics()
+
+    def ms(value_s: float | None) -> str:
+        return fmt(None if value_s is None else value_s * 1e3)
+
     rows = [
         ["budget [ms]", fmt(None if m["budget_s"] is None else m["budget_s"] * 1e3)],
         ["controller cycles", fmt(m["controller_cycles"])],
@@ -112,6 +116,8 @@ def deadline_section(result: DeadlineResult, plot_dir: Path) -> Section:
         ["  of which the controller was slow", fmt(m["plant_misses_controller_slow"])],
         ["  of which transport/estimator was slow", fmt(m["plant_misses_transport_slow"])],
         ["solve time p50 / p99 [ms]", f"{fmt(m['solve_time_p50_ms'])} / {fmt(m['solve_time_p99_ms'])}"],
+        ["host late to wake the controller after a worker timeout, max [ms]", ms(m["host_wake_late_max_s"])],
+        ["controller cycle p99 less that lateness [ms]", ms(m["cycle_time_less_host_p99_s"])],
     ]
     section = Section("Deadlines", [
         "A controller miss is a cycle (estimate received to command ready) over the budget; the fallback "

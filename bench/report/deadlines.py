@@ -10,6 +10,7 @@ estimator), not to the controller: the report counts both kinds separately.
 """
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -28,6 +29,10 @@ class DeadlineResult:
     fallbacks: dict[str, int]               # fallback name -> commands it produced
     plant_miss_seq: list[int] = field(default_factory=list)
     events_by_process: dict[str, int] = field(default_factory=dict)
+    # the controller's own summary (deadline_controller.json): how late the OS woke it after a
+    # worker timeout, the host's share of an overrun that the recording cannot show
+    host_wake_late_max_s: float | None = None
+    cycle_time_less_host_p99_s: float | None = None
 
     @property
     def plant_misses_controller_slow(self) -> int:
@@ -50,6 +55,8 @@ class DeadlineResult:
             "events_by_process": self.events_by_process,
             "solve_time_p50_ms": _p(self.solve_time_s, 50),
             "solve_time_p99_ms": _p(self.solve_time_s, 99),
+            "host_wake_late_max_s": self.host_wake_late_max_s,
+            "cycle_time_less_host_p99_s": self.cycle_time_less_host_p99_s,
         }
 
 
@@ -83,6 +90,8 @@ def deadlines(run: RunData) -> DeadlineResult:
         else:
             solve_s.append(float(body["solve_time_s"]))   # a fallback's solve time is not a solve
     budget = run.scenario.controller.deadline.budget_s if run.scenario is not None else None
+    summary_path = run.run_dir / "deadline_controller.json"
+    summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
     return DeadlineResult(
         budget_s=budget,
         cycle_seq=np.asarray(seqs, dtype=int),
@@ -92,4 +101,6 @@ def deadlines(run: RunData) -> DeadlineResult:
         fallbacks=fallbacks,
         plant_miss_seq=plant_missed_steps(run),
         events_by_process=events_by_process,
+        host_wake_late_max_s=summary.get("host_wake_late_max_s"),
+        cycle_time_less_host_p99_s=summary.get("cycle_time_less_host_p99_s"),
     )

@@ -38,6 +38,9 @@ from bench.scenario import load_scenario
 # has taken over 30 s (when `bench node` still imported every command).
 STARTUP_TIMEOUT_S = 60.0
 EXIT_TIMEOUT_S = 10.0
+# How long stop() waits for the board to act on the last command sent (a host-starved bus model
+# holds frames back and delivers them late; measured up to 0.8 s in UML under load).
+DRAIN_TIMEOUT_S = 5.0
 
 
 @dataclass
@@ -92,6 +95,7 @@ class CanBench:
     events: list = field(default_factory=list)
     commanded: list = field(default_factory=list)
     sent: list = field(default_factory=list)          # (alive counter, monotonic ns) per command
+    _applied_before_last_command: int = 0             # len(mtq_applied) when the last command left
 
     def __post_init__(self):
         self.scenario = load_scenario(self.scenario_path)
@@ -156,14 +160,17 @@ class CanBench:
         if not self.sent:
             self.command_start_ns = sent_ns
         self.last_command_ns = sent_ns
+        self._applied_before_last_command = len(self.mtq_applied)
         self.commanded.append(dipole_am2)
         self.sent.append((counter, sent_ns))
 
     # --- stopping and collecting ----------------------------------------------------------
     def stop(self) -> CanRunResult:
-        """Board first (so its last frames reach the bus model), then the bus model."""
+        """Board first (so its last frames reach the bus model), then the bus model; the board
+        only once it has the last command, so no frame on the wire is lost to the shutdown."""
         try:
             events = list(self.events)   # what happens while the nodes shut down is not the run's
+            self._await_last_command_at_board()
             self._terminate("mtq")
             self.drive(0.2, commanding=False)
             self._terminate("canbus")
@@ -172,6 +179,21 @@ class CanBench:
             return self._collect()
         finally:
             self.close()
+
+    def _await_last_command_at_board(self) -> None:
+        """Poll (silent) until the board applied the last command sent, at most DRAIN_TIMEOUT_S:
+        a bus model the host held up delivers its backlog late, and a board stopped before
+        that would leave commands on the wire it never received. A last command a fault
+        rejected is never applied: that costs the timeout, no more."""
+        if not self.sent:
+            return
+        last_counter = self.sent[-1][0]
+        deadline = time.monotonic() + DRAIN_TIMEOUT_S
+        while time.monotonic() < deadline:
+            applied = self.mtq_applied[self._applied_before_last_command:]
+            if any(m.alive_counter == last_counter for m in applied):
+                return
+            self.driver.poll(timeout_s=0.05)
 
     def _terminate(self, name: str) -> None:
         proc = self.procs.get(name)

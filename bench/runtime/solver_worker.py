@@ -231,6 +231,7 @@ class WorkerLaw:
         self._ctx = mp.get_context("spawn")       # the flight process has Zenoh threads: no fork
         self._shape = (self.nx, self.nu, self.plan_rows)
         self._seq = 0
+        self.last_wake_late_s = 0.0
         self._outstanding: tuple[int, int] | None = None     # (seq, sent_ns)
         self._worker = self._start(self.factory)
         self._next: _Worker | None = None
@@ -298,7 +299,10 @@ class WorkerLaw:
     def evaluate(self, x: np.ndarray, deadline_ns: int | None,
                  cycle_index: int | None = None) -> tuple[np.ndarray, dict] | None:
         """(u, info) if the law answers by deadline_ns (None: wait as long as it takes), else None.
-        cycle_index: the controller's cycle (the stress schedule follows it; default the request count)."""
+        cycle_index: the controller's cycle (the stress schedule follows it; default the request count).
+        After a timeout, `last_wake_late_s` says how long after deadline_ns this thread ran again:
+        the host's share of the overrun (the wait ends at the deadline; a busy machine runs us later)."""
+        self.last_wake_late_s = 0.0
         self._collect_late()
         self._swap_if_ready()
         if self._outstanding is not None:
@@ -324,6 +328,7 @@ class WorkerLaw:
         timeout = None if deadline_ns is None else max(0.0, (deadline_ns - self.clock_ns()) / 1e9)
         if not w.response.acquire(timeout=timeout):
             self.stats.timeouts += 1
+            self.last_wake_late_s = max(0.0, (self.clock_ns() - deadline_ns) / 1e9)
             return None
         self._outstanding = None
         if int(blk.ints[RESP_SEQ]) != self._seq:          # cannot happen: one request at a time

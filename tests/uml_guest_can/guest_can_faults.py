@@ -40,14 +40,14 @@ def test_socketcan_dropped_commands(tmp_path):
 def test_socketcan_corrupted_commands(tmp_path):
     r = run(tmp_path, {"name": "corrupt", "start_s": suite.FAULT_START_S, "count": 5, "every": 10,
                        "params": {"bits": 3}})
-    assert r.board["rejected"] == {"WRONG_CRC": suite.affected(r)}
+    assert r.board["rejected"] == {"WRONG_CRC": suite.affected(r)}, suite.diagnosis(r)
     assert suite.latency_s(r, "command_rejected", r.first_injection_ns("replaced"), "WRONG_CRC") <= 5 * suite.COMMAND_PERIOD_S
     suite.check_all(r)
 
 
 def test_socketcan_spoofed_commands(tmp_path):
     r = run(tmp_path, {"name": "spoof", "start_s": suite.FAULT_START_S, "count": 3, "every": 10})
-    assert r.board["rejected"] == {"WRONG_CRC": suite.affected(r)}
+    assert r.board["rejected"] == {"WRONG_CRC": suite.affected(r)}, suite.diagnosis(r)
     assert suite.latency_s(r, "spoofed_command", r.first_injection_ns("injected")) <= 5 * suite.COMMAND_PERIOD_S
     suite.check_all(r)
 

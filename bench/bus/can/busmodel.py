@@ -427,12 +427,19 @@ class RealTimeBridge:
 
     # A timestamp further from the arrival than this is another host's clock: use the arrival.
     MAX_TRANSPORT_DELAY_NS = 1_000_000_000
+    # A delivery leaving this much after its last bit passed in the model, or a wait ending this
+    # much after it should: this process was not scheduled in time (a host overrun). Recorded so
+    # the flight side's fault checks can tell a starved bridge from a bus fault; 10x granularity.
+    HOST_LATE_S = 0.005
+    HOST_LATE_RECORD_LIMIT = 1000
 
     def __init__(self, model: BusModel, buses: dict[str, can.BusABC], granularity_s: float = 0.0005):
         self.model = model
         self.buses = buses
         self.granularity_s = granularity_s
         self.send_failures = 0
+        self.host_overruns = 0
+        self.host_late_ns_s: list[tuple[int, float]] = []      # (monotonic ns, seconds late)
         self._wall_minus_monotonic_ns = time.time_ns() - time.monotonic_ns()
         # queue.Queue, not SimpleQueue: on CPython 3.11 a SimpleQueue.get(timeout) that a signal
         # interrupts (SIGTERM: stop) was seen never to return, so the node could not stop.
@@ -445,7 +452,10 @@ class RealTimeBridge:
                 now_ns = time.monotonic_ns()
                 next_ns = self.model.next_event_ns()
                 wait_s = 0.01 if next_ns is None else min(0.01, max(self.granularity_s, (next_ns - now_ns) / 1e9))
-                for t_ns, side, msg in sorted(self._arrivals(wait_s), key=lambda a: a[0]):
+                arrivals = self._arrivals(wait_s)
+                if not arrivals:
+                    self._count_late((time.monotonic_ns() - now_ns) / 1e9 - wait_s)
+                for t_ns, side, msg in sorted(arrivals, key=lambda a: a[0]):
                     self._deliver(self.model.run_until(t_ns))
                     self.model.submit(side, msg, t_ns)
                 self._deliver(self.model.run_until(time.monotonic_ns()))
@@ -473,7 +483,22 @@ class RealTimeBridge:
                 return sent_ns
         return arrival_ns
 
+    def _count_late(self, late_s: float) -> None:
+        if late_s > self.HOST_LATE_S:
+            self.host_overruns += 1
+            if len(self.host_late_ns_s) < self.HOST_LATE_RECORD_LIMIT:
+                self.host_late_ns_s.append((time.monotonic_ns(), late_s))
+
+    def report(self) -> dict:
+        """The bridge's own figures, for the bus model's report beside the model's."""
+        return {"send_failures": self.send_failures, "host_overruns": self.host_overruns,
+                "host_late_ns_s": [list(x) for x in self.host_late_ns_s]}
+
     def _deliver(self, deliveries: list[Delivery]) -> None:
+        if deliveries:
+            # msg.timestamp: the wall time its last bit passed, in the model
+            last_bit_wall_ns = max(round(d.msg.timestamp * 1e9) for d in deliveries)
+            self._count_late((time.time_ns() - last_bit_wall_ns) / 1e9)
         for delivery in deliveries:
             for side in delivery.destinations:
                 try:

@@ -140,7 +140,7 @@ def run_bus_model(ctx) -> int:
         if capture is not None:
             capture.stop()
         report = model.report()
-        report["send_failures"] = bridge.send_failures
+        report.update(bridge.report())
         report["t0_ns"] = t0_ns
         (out / REPORT_NAME).write_text(json.dumps(report, indent=1))
         with open(out / INJECTIONS_NAME, "w") as f:
