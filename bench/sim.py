@@ -87,7 +87,7 @@ def simulate_attitude_in_process(scenario: Scenario, coil_fault=None) -> dict[st
         from bench.planner.planner import AttitudePlanner
 
         planner = AttitudePlanner(scenario)
-    commanded, estimated_q, valid, cycle_time_s, planning_wall_s = [], [], [], [], []
+    commanded, estimated_q, valid, cycle_time_s, planning_wall_s, plan_records = [], [], [], [], [], []
     # The board model goes through the DBC encoder (~0.3 ms); a saturating or zero command repeats.
     board_dipoles: dict[bytes, np.ndarray] = {}
     for k in range(n_steps):
@@ -97,6 +97,7 @@ def simulate_attitude_in_process(scenario: Scenario, coil_fault=None) -> dict[st
             if planned is not None:
                 cycle.law.set_plan(_through_the_message(planned[0]))
                 planning_wall_s.append(planned[1]["wall_time_s"])
+                plan_records.append((plant.time_s, planned[1]["reason"], planned[0].arrival_time_s))
         outcome = cycle.run(plant.time_s, estimate.valid, estimate.q_wxyz, estimate.omega_radps, estimate.field_body_t)
         key = np.asarray(outcome.dipole_am2, float).tobytes()
         if key not in board_dipoles:
@@ -115,6 +116,10 @@ def simulate_attitude_in_process(scenario: Scenario, coil_fault=None) -> dict[st
         "att_estimate_valid": np.array(valid, dtype=bool),
         "att_control_cycle_time_s": np.array(cycle_time_s),
         "planner_wall_time_s": np.array(planning_wall_s),
+        # per plan: when it was made, why (bench.controller.plan_tracking.replan_reason), its arrival
+        "planner_plan_time_s": np.array([r[0] for r in plan_records], dtype=float),
+        "planner_plan_reason": np.array([r[1] for r in plan_records], dtype=str),
+        "planner_arrival_time_s": np.array([r[2] for r in plan_records], dtype=float),
     }
 
 

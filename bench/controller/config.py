@@ -144,9 +144,6 @@ class AttitudePlannerConfig(msgspec.Struct, forbid_unknown_fields=True):
     replan_period_s: PositiveGain = 600.0            # replan this long after the current plan's start
     replan_error_deg: PositiveGain = 10.0            # ... or when the estimate is this far off the plan
     min_replan_interval_s: Seconds = 30.0            # no error-triggered replan sooner than this
-    # A replan keeps the current plan's arrival time while this much of it is left (else a fresh
-    # Gramian horizon): replanning must not keep postponing the arrival.
-    min_replan_horizon_s: PositiveGain = 300.0
     # Until the first plan arrives (real-time: planning takes seconds) the controller commands
     # zero, or this law of the registry, and counts the cycles.
     fallback_law: Literal["zero", "pd", "sliding_mode"] = "zero"

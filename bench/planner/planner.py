@@ -73,16 +73,28 @@ class AttitudePlanner:
         return replan_reason(time_s, valid, q_wxyz, self.plan, self.settings)
 
     def horizon_steps(self, time_s: float) -> int | None:
-        """A replan keeps the current plan's arrival time while at least min_replan_horizon_s of it
-        is left (a fresh Gramian horizon from every replan would keep postponing the arrival:
-        measured on attitude_slew_milqr, a scheduled replan at 900 s moved it from 1580 s to 2300 s);
-        else None, a fresh Gramian horizon."""
+        """Steps of a replan: to the current plan's arrival time while it lies ahead, however little
+        of it is left; None (a fresh Gramian horizon) for the first plan and in the hold after it.
+
+        A fresh Gramian horizon from every replan keeps postponing the arrival (measured on
+        attitude_slew_milqr with truth feedback: a scheduled replan at 900 s moved it from 1580 s to
+        2300 s). Close to the arrival it also throws the manoeuvre away: a fresh plan runs a whole
+        Gramian horizon (~1500-2200 s) and the run ends in its middle. Measured on the seed sweep
+        (benchmarks/bench_milqr_seed_sweep.py, seed 4, a tracking-error replan 97 s before the
+        arrival at 1570 s, the body 12 deg off the target and 9 deg off its plan, saturated and
+        spinning up): a fresh horizon (arrival 3693 s) ended 106 deg off at 1800 s; no replan (the
+        TVLQR tracker, saturated, kept going) 178 deg; a 300 s minimum horizon 18 deg (a second
+        replan); keeping the arrival (5 steps, cond(W) 435) 2.2 deg. MILQR's box-constrained plan
+        over the few steps left need not arrive exactly; the hold after it (TVLQR along the hold's
+        field) takes it from there. A replan during the hold re-plans the manoeuvre from scratch."""
         if self.plan is None:
             return None
         left_s = self.plan.arrival_time_s - time_s
-        if left_s < self.settings.min_replan_horizon_s:
+        if left_s <= 0:
             return None
-        return int(np.ceil(left_s / self.config.dt_s - 1e-9))
+        # To the nearest plan step (plans have a uniform step): the arrival moves by at most half a
+        # step per replan, either way; rounding up moved it later at every replan.
+        return max(1, int(np.floor(left_s / self.config.dt_s + 0.5)))
 
     def plan_now(self, seq: int, time_s: float, q_wxyz, omega_radps, reason: str) -> tuple[AttitudePlan, dict]:
         plan, info = plan_from_estimate(time_s, q_wxyz, omega_radps, self.target_wxyz, self.orbit, self.field,
