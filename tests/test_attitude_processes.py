@@ -133,6 +133,15 @@ def slew_run(runs):
     return bench_run(runs, "attitude_slew", "slew", "--steps", "600")
 
 
+def test_slew_processes_equal_the_in_process_loop(slew_run):
+    # The sliding-mode law with the quantisation error feedback (state carried from cycle to cycle
+    # in the controller process) flies the same as in process.
+    assert slew_run.scenario.attitude_control.quantisation_error_feedback
+    reference = simulate_attitude_in_process(slew_run.scenario)
+    for name in ("att_q_wxyz", "att_omega_radps", "att_dipole_applied_am2", "att_dipole_commanded_am2"):
+        np.testing.assert_allclose(slew_run.trajectory[name], reference[name], rtol=0, atol=1e-9, err_msg=name)
+
+
 def test_sliding_mode_from_200_degrees_turns_the_short_way(slew_run):
     angle = continuous_rotation_angle_deg(slew_run.trajectory, slew_run.scenario)
     assert angle[0] == pytest.approx(200.0, abs=1e-6)
