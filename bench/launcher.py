@@ -413,7 +413,9 @@ def _follow_run(session, run_id: str, children: list[Child], n_steps: int, show_
             done = 0
             while plant.process.poll() is None:
                 try:
-                    _check_children(children, allowed_done=set())
+                    # The plant may finish between the loop's test and this check (seen on a
+                    # loaded machine: a clean run called failed): its exit is judged after the loop.
+                    _check_children(children, allowed_done={"plant"})
                 except NodeFailed:
                     # A peer that noticed a hung node first may exit before the grace period is
                     # over; the hung one is the cause to name.

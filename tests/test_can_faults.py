@@ -99,7 +99,8 @@ def diagnosis(r: CanRunResult) -> str:
     return (f"board {board}; wire {dict(r.wire)}; dropped {dict(r.dropped)}; driver sent {r.driver_sent}; "
             f"injections {Counter(i['action'] for i in r.injections)}; faults {r.report.get('faults')}; "
             f"bus model send failures {r.report.get('send_failures')}; longest host lateness s {longest}; "
-            f"events {Counter(e.kind for e in r.events)}")
+            f"events {Counter(e.kind for e in r.events)}; waited for the board at the end "
+            f"{'gave up' if r.board_drain_s is None else f'{r.board_drain_s:.2f} s'}")
 
 
 def starved(r: CanRunResult) -> bool:
@@ -155,7 +156,7 @@ def check_accounting(r: CanRunResult) -> None:
     assert r.driver_sent == r.wire[p.CMD] - injected[p.CMD] + r.dropped[p.CMD], "commands unaccounted for"
     for name in p.BOARD_FRAMES:
         assert r.board["sent"].get(name, 0) == r.wire[name] - injected[name] + r.dropped[name], name
-    assert r.board["received"].get(p.CMD, 0) == r.wire[p.CMD], "a command on the wire did not reach the board"
+    assert r.board["received"].get(p.CMD, 0) == r.wire[p.CMD], f"a command on the wire did not reach the board: {diagnosis(r)}"
     to_driver = Counter({n: r.wire[n] for n in p.BOARD_FRAMES}) + Counter({p.CMD: injected[p.CMD], "error_frame": r.wire["error_frame"]})
     assert +r.driver_received == +to_driver, "a frame on the wire did not reach the driver"
 
