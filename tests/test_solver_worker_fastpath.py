@@ -42,15 +42,19 @@ def _states(model, n, seed):
     rng = np.random.default_rng(seed)
     picks = X[:, rng.integers(0, X.shape[1], n)].T
     scale = np.abs(picks).max(axis=0) + 1e-9
-    return picks * rng.uniform(0.3, 1.7, picks.shape) + 0.05 * scale * rng.standard_normal(picks.shape)
+    states = picks * rng.uniform(0.3, 1.7, picks.shape) + 0.05 * scale * rng.standard_normal(picks.shape)
+    closer = np.where(rng.random((n, 1)) < 0.5, 1.0, 10.0 ** rng.uniform(-4.0, 0.0, (n, 1)))
+    return states * closer                  # half of them closer in, down to 1e-4 of it
 
 
 def _same_result(a, b, keys=("objective", "iterations", "status", "ctrl_feas")):
     (ua, ia), (ub, ib) = a, b
     assert np.array_equal(ua, ub), (ua, ub)
-    assert np.array_equal(ia[PLAN_INFO_KEY], ib[PLAN_INFO_KEY])
+    assert (PLAN_INFO_KEY in ia) == (PLAN_INFO_KEY in ib)          # a failed cycle has no plan
+    if PLAN_INFO_KEY in ia:
+        assert np.array_equal(ia[PLAN_INFO_KEY], ib[PLAN_INFO_KEY])
     for k in keys:
-        assert ia[k] == ib[k], (k, ia[k], ib[k])
+        assert ia[k] == ib[k] or (k == "objective" and np.isnan(ia[k]) and np.isnan(ib[k])), (k, ia[k], ib[k])
 
 
 @pytest.fixture(scope="module")
@@ -73,7 +77,9 @@ def test_pickled_explicit_path_gives_eval_bit_for_bit_on_and_off_its_region(vari
     path = pickle.loads(pickle.dumps(ctrl.explicit_path()))     # as the worker sends it
     if name == "MPC_TUBE":
         rng = np.random.default_rng(7)
-        states = [m.initial_state_a * s + 1e-4 * rng.standard_normal(m.nx) for s in rng.uniform(-1.5, 1.5, 60)]
+        # its explicit region is small (z_0 = 0 needs x inside the tube E): scales 1e-4 to 0.3
+        scales = rng.choice([-1.0, 1.0], 60) * 10.0 ** rng.uniform(-4.0, -0.5, 60)
+        states = [m.initial_state_a * s + 1e-5 * rng.standard_normal(m.nx) for s in scales]
     else:
         states = list(_states(model, 60, seed=11))
     on = off = 0
@@ -125,8 +131,12 @@ def test_worker_with_fast_path_equals_in_process_mpc_bit_for_bit_and_counts_expl
     for x in states:
         got = w.evaluate(x, None)
         want = ref.eval(x)
-        explicit += want[1].get("path") == "explicit"
-        _same_result(got, want)
+        on_path = want[1].get("path") == "explicit"
+        explicit += on_path
+        # proxsuite's iteration count varies from run to run even in one process (measured: 1 of
+        # 44 solves differed between two identical controllers); the solution it is polished to
+        # on its active set does not: compare it bit for bit, the count only on explicit cycles.
+        _same_result(got, want, keys=("objective", "status", "ctrl_feas") + (("iterations",) if on_path else ()))
     assert w.stats.explicit_cycles == explicit and 10 <= explicit <= len(states) - 10
     assert w.stats.requests == len(states) - explicit == w.stats.on_time
 
@@ -156,7 +166,8 @@ def test_replace_switches_the_path_with_the_law(workers, model):
     w.replace(new)
     end = time.monotonic() + 120.0
     while w.stats.replacements == 0 and time.monotonic() < end:
-        _same_result(w.evaluate(x, None), old_ref.eval(x))      # the old law and its path serve meanwhile
+        got = w.evaluate(x, None)                # the old law and its path serve until the swap
+        _same_result(got, (new_ref if w.stats.replacements else old_ref).eval(x))
         time.sleep(0.01)
     assert w.stats.replacements == 1
     got = w.evaluate(x, None)
