@@ -256,6 +256,8 @@ class WorkerLaw:
     [t, q_wxyz, omega, B] (11 floats); None: the law takes the vector.
     worker_priority: SCHED_FIFO priority of the worker once its law is built (0: default
     scheduler); set it below the flight thread's, so the flight side still acts at its deadline.
+    explicit_fast_path: answer on the law's explicit path in this process where it holds (see the
+    module docstring); False sends every cycle to the worker (the benchmark's baseline).
     """
 
     factory: Callable
@@ -267,6 +269,7 @@ class WorkerLaw:
     worker_priority: int = 0
     unpack: Callable | None = None
     clock_ns: Callable[[], int] = time.monotonic_ns
+    explicit_fast_path: bool = True
     stats: WorkerStats = field(default_factory=WorkerStats)
 
     def __post_init__(self):
@@ -363,7 +366,7 @@ class WorkerLaw:
         self._cycles += 1
         stressed = self.stress is not None and self.stress.active and self.stress.config.is_stressed(cycle)
         # A stressed cycle stands for a slow solve: it goes to the worker, explicit region or not.
-        if w.path is not None and not stressed:
+        if self.explicit_fast_path and w.path is not None and not stressed:
             out = w.path.eval(x)
             if out is not None:
                 self.stats.explicit_cycles += 1
