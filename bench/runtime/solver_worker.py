@@ -111,10 +111,16 @@ def _worker_main(factory, shm_name, shape, request, response, stress=None, prior
             # reads and writes no solver state (warm start, last active set) on its explicit path,
             # so its later solves are the ones it would have made seeing every cycle.
             try:
-                path_conn.send(_offered_path(law, unpack))
-            except Exception:             # an unpicklable path: no fast path, the worker serves all
-                path_conn.send(None)
-            path_conn.close()
+                try:
+                    path_conn.send(_offered_path(law, unpack))
+                except OSError:
+                    raise
+                except Exception:         # no or an unpicklable path: the worker serves every cycle
+                    path_conn.send(None)
+            except OSError:               # the flight side closed its end: it is stopping us
+                pass
+            finally:
+                path_conn.close()
         if priority > 0:
             set_realtime_priority(priority)
         blk.ints[READY] = 1
@@ -226,6 +232,9 @@ class _Worker:
         return bool(self.blk.ints[READY])
 
     def stop(self, kill: bool = False) -> None:
+        if self.path_conn is not None:          # first: a worker blocked sending its path gets EPIPE
+            self.path_conn.close()
+            self.path_conn = None
         if self.process.is_alive():
             if kill:
                 self.process.kill()
@@ -236,9 +245,6 @@ class _Worker:
                 if self.process.is_alive():
                     self.process.kill()
         self.process.join(1.0)
-        if self.path_conn is not None:
-            self.path_conn.close()
-            self.path_conn = None
         self.blk.release()
         self.shm.close()
         self.shm.unlink()
