@@ -66,6 +66,93 @@ class CondensedQP:
     slacks: slice | None = None   # eps and t of soft constraints (zero when nothing is violated)
 
 
+@dataclass(frozen=True, eq=False)
+class ExplicitPath:
+    """The explicit law of a CondensedMPC as a small picklable object: y(x) = y_gain x + y_offset
+    on the nominal active set, valid where its KKT certificate `check x <= bound` holds.
+
+    `CondensedMPC.eval` answers its explicit cycles through this object, and the solver worker
+    (bench.runtime.solver_worker) sends it to the flight process, which answers the same cycles
+    without a round trip: one code path, so the two give bit-identical (u, info). Its evaluation
+    is a fixed handful of matrix-vector products (a few us): it cannot overrun a deadline.
+    `input_from` / `plan_from` also turn a solved QP's y into (u, plan), for every cycle.
+    """
+
+    y_gain: np.ndarray            # Ky, n x nx
+    y_offset: np.ndarray          # y0, n
+    check: np.ndarray             # certificate rows, m x nx
+    bound: np.ndarray             # m
+    H: np.ndarray                 # objective 1/2 y'Hy + (G x + g0)'y + x'W x
+    G: np.ndarray
+    g0: np.ndarray
+    W: np.ndarray
+    inputs: slice                 # u_0 .. u_{N-1} in y
+    horizon: int
+    nu: int
+    initial_state: slice | None = None     # tube MPC: where z_0 sits in y
+    feedback: np.ndarray | None = None     # tube MPC: K_tube of u = v_0 + K_tube (x - z_0)
+    state_H: np.ndarray | None = None      # the i = 0 state constraint checked before any solve
+    state_h: np.ndarray | None = None
+
+    def admits(self, x: np.ndarray) -> bool:
+        """True if `CondensedMPC.eval` would reach its explicit law for x (finite, right size,
+        i = 0 state constraint met); otherwise the full eval must run (it reports the failure)."""
+        if x.shape != (self.check.shape[1],) or not np.all(np.isfinite(x)):
+            return False
+        return self.state_H is None or not np.any(self.state_H @ x > self.state_h + INITIAL_STATE_TOL)
+
+    def certified_y(self, x: np.ndarray) -> np.ndarray | None:
+        """The QP's optimum y if the certificate holds at x (the nominal active set's solution is
+        feasible with multipliers of the right signs), else None."""
+        y = self.y_gain @ x + self.y_offset
+        return y if np.all(self.check @ x <= self.bound) else None
+
+    def input_from(self, y: np.ndarray, x: np.ndarray) -> np.ndarray:
+        u = y[self.inputs][:self.nu].copy()
+        if self.feedback is not None:
+            u = u + self.feedback @ (x - y[self.initial_state])
+        return u
+
+    def plan_from(self, y: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """The planned inputs u_0 .. u_{N-1} (N x nu): the deadline's shifted-plan fallback. Tube
+        MPC: the nominal v_0 .. v_{N-1} with u_0 in place of v_0 (the feedback needs states not
+        yet measured)."""
+        plan = y[self.inputs].reshape(self.horizon, self.nu)
+        if self.feedback is not None:
+            plan = plan.copy()
+            plan[0] = self.input_from(y, x)
+        return plan
+
+    def result(self, y, x, objective, iterations, status, path, start) -> tuple[np.ndarray, dict]:
+        """(u, info) of a solved cycle, explicit or iterative."""
+        u = self.input_from(y, x)
+        elapsed = time.perf_counter() - start
+        return u, {
+            "ctrl_feas": True,
+            "objective": objective + float(x @ self.W @ x),
+            "solve_time": elapsed,
+            "iterations": iterations,
+            "status": status,
+            "path": path,
+            PLAN_INFO_KEY: self.plan_from(y, x),
+        }
+
+    def eval_certified(self, x: np.ndarray, start: float) -> tuple[np.ndarray, dict] | None:
+        """(u, info) from the explicit law if its certificate holds at x, else None."""
+        y = self.certified_y(x)
+        if y is None:
+            return None
+        objective = float(0.5 * y @ self.H @ y + (self.G @ x + self.g0) @ y)
+        return self.result(y, x, objective, 0, "SOLVED", "explicit", start)
+
+    def eval(self, x) -> tuple[np.ndarray, dict] | None:
+        """What `CondensedMPC.eval(x)` returns when its explicit law answers, else None (the
+        flight process then sends x to the solver worker)."""
+        start = time.perf_counter()
+        x = np.asarray(x, dtype=float).reshape(-1)
+        return self.eval_certified(x, start) if self.admits(x) else None
+
+
 def two_sided(C: np.ndarray, c0: np.ndarray, D: np.ndarray):
     """Rows C y <= c0 + D x merged with their exact opposites into l <= C y <= u.
 
@@ -283,15 +370,18 @@ class CondensedMPC:
         self._splits = (n_g, n_g + n_eq, n_g + n_eq + d.l0.size)
         self._check_initial_state = d.initial_state is None and formulation.get("soft") is None
         self.last_solution: QPSolution | None = None
-        self.last_y: np.ndarray | None = None
         self._build_explicit_law()
 
     def safe_action(self, x: np.ndarray) -> np.ndarray:
         return np.clip(self.K_lqr @ x, self._u_lo, self._u_hi)
 
-    def _input_from(self, y: np.ndarray, x: np.ndarray) -> np.ndarray:
-        nu = self.model.nu
-        return y[self.qp_data.inputs][:nu].copy()
+    def _tube_feedback(self) -> np.ndarray | None:
+        """K_tube of u = v_0 + K_tube (x - z_0) (tube MPC); None: u = u_0."""
+        return None
+
+    def explicit_path(self) -> ExplicitPath:
+        """The explicit law as a picklable object (the solver worker sends it to the flight process)."""
+        return self._explicit
 
     def eval(self, x) -> tuple[np.ndarray, dict]:
         start = time.perf_counter()
@@ -302,37 +392,24 @@ class CondensedMPC:
             return self._failed(np.zeros(self.model.nu), "NON_FINITE_STATE", 0, start)
         if self._check_initial_state and np.any(self.model.H_x @ x > self.model.h_x + INITIAL_STATE_TOL):
             return self._failed(self.safe_action(x), "INITIAL_STATE_VIOLATES_CONSTRAINTS", 0, start)
-        d = self.qp_data
-        y = self._explicit_y @ x + self._explicit_y0
-        if np.all(self._explicit_check @ x <= self._explicit_bound):
-            # The nominal active set's solution (unconstrained, slacks at zero) is feasible with
-            # multipliers of the right signs: it is the optimum, no iterative solve needed.
-            objective = float(0.5 * y @ d.H @ y + (d.G @ x + d.g0) @ y)
-            iterations, status, path = 0, "SOLVED", "explicit"
-        else:
-            vectors = self._vector_map @ x + self._vector_offset
-            i_b, i_l, i_u = self._splits
-            sol = self.solver.solve(vectors[:i_b], vectors[i_b:i_l], vectors[i_l:i_u], vectors[i_u:])
-            self.last_solution = sol
-            if not sol.solved:
-                return self._failed(self.safe_action(x), sol.status, sol.iterations, start)
-            y, objective, iterations, status, path = sol.y, sol.objective, sol.iterations, sol.status, sol.path
-        self.last_y = y
-        u = self._input_from(y, x)
-        elapsed = time.perf_counter() - start
-        return u, {
-            "ctrl_feas": True,
-            "objective": objective + float(x @ d.W @ x),
-            "solve_time": elapsed,
-            "iterations": iterations,
-            "status": status,
-            "path": path,
-            PLAN_INFO_KEY: self._plan_from(y, x),
-        }
+        # The explicit law first; no solver state (warm start, last active set) is read or written
+        # on this path, so skipping it in the worker (the flight process answers) changes nothing.
+        out = self._explicit.eval_certified(x, start)
+        if out is not None:
+            return out
+        vectors = self._vector_map @ x + self._vector_offset
+        i_b, i_l, i_u = self._splits
+        sol = self.solver.solve(vectors[:i_b], vectors[i_b:i_l], vectors[i_l:i_u], vectors[i_u:])
+        self.last_solution = sol
+        if not sol.solved:
+            return self._failed(self.safe_action(x), sol.status, sol.iterations, start)
+        return self._explicit.result(sol.y, x, sol.objective, sol.iterations, sol.status, sol.path, start)
+
+    def _input_from(self, y: np.ndarray, x: np.ndarray) -> np.ndarray:
+        return self._explicit.input_from(y, x)
 
     def _plan_from(self, y: np.ndarray, x: np.ndarray) -> np.ndarray:
-        """The planned inputs u_0 .. u_{N-1} (N x nu), N: the deadline's shifted-plan fallback."""
-        return y[self.qp_data.inputs].reshape(self.horizon, self.model.nu)
+        return self._explicit.plan_from(y, x)
 
     def _nominal_active_set(self) -> ActiveSet:
         d = self.qp_data
@@ -362,12 +439,15 @@ class CondensedMPC:
 
         y0, r0 = terms(np.zeros(nx))
         cols = [terms(e) for e in np.eye(nx)]
-        self._explicit_y0 = y0
-        self._explicit_y = np.column_stack([c[0] - y0 for c in cols])
         finite = np.isfinite(r0)                # rows against an infinite bound never bind
         check = np.column_stack([c[1][finite] - r0[finite] for c in cols])
-        self._explicit_check = check
-        self._explicit_bound = -r0[finite] + PRIMAL_TOL * (1.0 + np.abs(r0[finite]))
+        self._explicit = ExplicitPath(
+            y_gain=np.column_stack([c[0] - y0 for c in cols]), y_offset=y0,
+            check=check, bound=-r0[finite] + PRIMAL_TOL * (1.0 + np.abs(r0[finite])),
+            H=d.H, G=d.G, g0=d.g0, W=d.W, inputs=d.inputs, horizon=self.horizon, nu=self.model.nu,
+            initial_state=d.initial_state, feedback=self._tube_feedback(),
+            state_H=self.model.H_x if self._check_initial_state else None,
+            state_h=self.model.h_x if self._check_initial_state else None)
 
     def _failed(self, u, status, iterations, start) -> tuple[np.ndarray, dict]:
         return u, {

@@ -92,18 +92,10 @@ class MPC_TUBE(CondensedMPC):
     def safe_action(self, x: np.ndarray) -> np.ndarray:
         return np.clip(self.K_tube @ x, *self._u_safe)
 
-    def _plan_from(self, y: np.ndarray, x: np.ndarray) -> np.ndarray:
-        """The nominal inputs v_0 .. v_{N-1}: the tube feedback needs states not yet measured, so
-        a replayed plan is the nominal one (with u_0 = v_0 + K_tube (x - z_0) in place of v_0)."""
-        plan = super()._plan_from(y, x).copy()
-        plan[0] = self._input_from(y, x)
-        return plan
-
-    def _input_from(self, y: np.ndarray, x: np.ndarray) -> np.ndarray:
-        z0 = y[self.qp_data.initial_state]
-        v0 = y[self.qp_data.inputs][:self.model.nu]
-        return v0 + self.K_tube @ (x - z0)
-
+    def _tube_feedback(self) -> np.ndarray:
+        """u = v_0 + K_tube (x - z_0), eq. (24); the plan is the nominal v_0 .. v_{N-1} with u_0 in
+        place of v_0 (ExplicitPath.plan_from)."""
+        return self.K_tube
 
 def design_tube_mpc(q_z_diag, r_z: float, horizon: int, poles, model_z) -> MPC_TUBE:
     """The seed's MPC_TUBE_script (task 31): K_tube, E, tightening, terminal set, controller."""

@@ -19,6 +19,14 @@ its budget (sem_timedwait releases the GIL). Then:
 keeps serving, and takes over once it is ready (used when the mean-motion estimate moves: the
 terminal set's LPs, seconds on this machine, never run in a control cycle).
 
+Fast path: a law that offers `explicit_path()` (CondensedMPC: its explicit law and KKT
+certificate, bench.gnc.mpc.ExplicitPath) has it sent once to the flight process when the worker has
+built the law. A cycle with no request outstanding and no stress tries it first in the flight
+process: where its certificate holds, it is the answer (bit-identical to the worker's, the same
+object computes both), a fixed few matrix-vector products with no round trip (counted as
+`explicit_cycles`); elsewhere the state goes to the worker as above. The path belongs to its
+worker: after `replace()` or a restart, the new worker's path serves, never the old law's.
+
 Any object with `eval(x) -> (u, info)` can be served: the MPC family, LQR, attitude laws, the
 MILQR tracker. The factory must be picklable (a module-level function or functools.partial).
 
@@ -83,12 +91,36 @@ class _SharedBlock:
             setattr(self, name, None)
 
 
+def _offered_path(law, unpack):
+    """The law's explicit path for the flight process, or None (laws on a packed record: no)."""
+    offer = getattr(law, "explicit_path", None)
+    if unpack is not None or not callable(offer):
+        return None
+    return offer()
+
+
 def _worker_main(factory, shm_name, shape, request, response, stress=None, priority=0, unpack=None,
-                 parent_pid=None) -> None:
+                 parent_pid=None, path_conn=None) -> None:
     shm = shared_memory.SharedMemory(name=shm_name)
     blk = _SharedBlock(shm.buf, *shape)
     try:
         law = factory()
+        if path_conn is not None:
+            # Before READY: the flight side takes the worker as ready only with its path in hand.
+            # The worker's law skips the cycles the flight process answers on this path; the MPC
+            # reads and writes no solver state (warm start, last active set) on its explicit path,
+            # so its later solves are the ones it would have made seeing every cycle.
+            try:
+                try:
+                    path_conn.send(_offered_path(law, unpack))
+                except OSError:
+                    raise
+                except Exception:         # no or an unpicklable path: the worker serves every cycle
+                    path_conn.send(None)
+            except OSError:               # the flight side closed its end: it is stopping us
+                pass
+            finally:
+                path_conn.close()
         if priority > 0:
             set_realtime_priority(priority)
         blk.ints[READY] = 1
@@ -170,6 +202,7 @@ class WorkerStats:
     replacements: int = 0          # laws swapped by replace()
     errors: int = 0                # the law raised inside the worker
     stress_injected: int = 0       # requests the stress made slow on purpose (StressInjector)
+    explicit_cycles: int = 0       # cycles answered in the flight process on the law's explicit path
 
     def summary(self) -> dict:
         return dict(self.__dict__)
@@ -182,11 +215,26 @@ class _Worker:
     blk: _SharedBlock
     request: object
     response: object
+    path_conn: object = None       # receives the law's explicit path (or None) once, at start-up
+    path: object = None            # that path, e.g. bench.gnc.mpc.ExplicitPath
 
     def ready(self) -> bool:
+        """The law is built and its explicit path (if any) received."""
+        if self.path_conn is not None:
+            if not self.path_conn.poll():
+                return False
+            try:
+                self.path = self.path_conn.recv()
+            except (EOFError, OSError):     # the worker died while starting: READY stays 0
+                self.path = None
+            self.path_conn.close()
+            self.path_conn = None
         return bool(self.blk.ints[READY])
 
     def stop(self, kill: bool = False) -> None:
+        if self.path_conn is not None:          # first: a worker blocked sending its path gets EPIPE
+            self.path_conn.close()
+            self.path_conn = None
         if self.process.is_alive():
             if kill:
                 self.process.kill()
@@ -214,6 +262,8 @@ class WorkerLaw:
     [t, q_wxyz, omega, B] (11 floats); None: the law takes the vector.
     worker_priority: SCHED_FIFO priority of the worker once its law is built (0: default
     scheduler); set it below the flight thread's, so the flight side still acts at its deadline.
+    explicit_fast_path: answer on the law's explicit path in this process where it holds (see the
+    module docstring); False sends every cycle to the worker (the benchmark's baseline).
     """
 
     factory: Callable
@@ -225,12 +275,14 @@ class WorkerLaw:
     worker_priority: int = 0
     unpack: Callable | None = None
     clock_ns: Callable[[], int] = time.monotonic_ns
+    explicit_fast_path: bool = True
     stats: WorkerStats = field(default_factory=WorkerStats)
 
     def __post_init__(self):
         self._ctx = mp.get_context("spawn")       # the flight process has Zenoh threads: no fork
         self._shape = (self.nx, self.nu, self.plan_rows)
         self._seq = 0
+        self._cycles = 0                 # cycles served, explicit or by the worker (default cycle index)
         self.last_wake_late_s = 0.0
         self._outstanding: tuple[int, int] | None = None     # (seq, sent_ns)
         self._worker = self._start(self.factory)
@@ -243,11 +295,13 @@ class WorkerLaw:
         blk = _SharedBlock(shm.buf, *self._shape)
         blk.ints[:] = 0
         request, response = self._ctx.Semaphore(0), self._ctx.Semaphore(0)
+        path_recv, path_send = self._ctx.Pipe(duplex=False)
         proc = self._ctx.Process(target=_worker_main, daemon=True, name="solver-worker",
                                  args=(factory, shm.name, self._shape, request, response, self.stress,
-                                       self.worker_priority, self.unpack, os.getpid()))
+                                       self.worker_priority, self.unpack, os.getpid(), path_send))
         proc.start()
-        return _Worker(proc, shm, blk, request, response)
+        path_send.close()          # the worker holds its own copy: a dead worker reads as EOF here
+        return _Worker(proc, shm, blk, request, response, path_recv)
 
     def wait_ready(self, timeout_s: float = 60.0) -> bool:
         """Block until the current worker has built its law (start-up, before the loop runs)."""
@@ -314,12 +368,20 @@ class WorkerLaw:
                 self._restart()
             self.stats.starting_cycles += 1
             return None
+        cycle = self._cycles if cycle_index is None else int(cycle_index)
+        self._cycles += 1
+        stressed = self.stress is not None and self.stress.active and self.stress.config.is_stressed(cycle)
+        # A stressed cycle stands for a slow solve: it goes to the worker, explicit region or not.
+        if self.explicit_fast_path and w.path is not None and not stressed:
+            out = w.path.eval(x)
+            if out is not None:
+                self.stats.explicit_cycles += 1
+                return out
         self._seq += 1
         blk = w.blk
         blk.x[:] = x
-        cycle = self._seq - 1 if cycle_index is None else int(cycle_index)
         blk.ints[CYCLE] = cycle
-        if self.stress is not None and self.stress.active and self.stress.config.is_stressed(cycle):
+        if stressed:
             self.stats.stress_injected += 1
         blk.ints[REQ_SEQ] = self._seq
         self._outstanding = (self._seq, self.clock_ns())
