@@ -43,6 +43,8 @@ EXIT_TIMEOUT_S = 10.0
 # flood works through thousands of queued frames first (5 s was not enough with both cores busy).
 # A hang bound: the wait normally ends within milliseconds.
 DRAIN_TIMEOUT_S = 20.0
+# A drain longer than this found the last command still on its way to the board.
+LATE_LAST_COMMAND_S = 0.05
 
 
 @dataclass
@@ -173,8 +175,14 @@ class CanBench:
         """Board first (so its last frames reach the bus model), then the bus model; the board
         only once it has the last command, so no frame on the wire is lost to the shutdown."""
         try:
-            events = list(self.events)   # what happens while the nodes shut down is not the run's
             self._await_last_command_at_board()
+            if self.board_drain_s is not None and self.board_drain_s > LATE_LAST_COMMAND_S:
+                # The last command reached the board only now (a backlog): give the board the
+                # silence after it that the run gave the driver, so its command timeout, the
+                # safe state the run checks, happens within the run (seen in UML: 0.66 s late).
+                board = self.config.board
+                self.drive(board.command_timeout_s + 3 * board.telemetry_period_s + 0.2, commanding=False)
+            events = list(self.events)   # what happens while the nodes shut down is not the run's
             self._terminate("mtq")
             self.drive(0.2, commanding=False)
             self._terminate("canbus")
