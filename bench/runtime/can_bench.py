@@ -43,8 +43,6 @@ EXIT_TIMEOUT_S = 10.0
 # flood works through thousands of queued frames first (5 s was not enough with both cores busy).
 # A hang bound: the wait normally ends within milliseconds.
 DRAIN_TIMEOUT_S = 20.0
-# A drain longer than this found the last command still on its way to the board.
-LATE_LAST_COMMAND_S = 0.05
 
 
 @dataclass
@@ -110,9 +108,14 @@ class CanBench:
         self.hub = loopback_endpoint(free_loopback_port())
         self.session = open_session(SessionOptions(listen=(self.hub,)))
         self.mtq_applied: list[MtqApplied] = []   # what the board published for the plant
-        self._subscriber = self.session.declare_subscriber(
-            keys.key(self.run_id, keys.ACTUATOR_MTQ),
-            lambda sample: self.mtq_applied.append(decode(sample.payload.to_bytes(), MtqApplied)))
+        self._mtq_applied_seen_s: list[float] = []  # when each arrived here (monotonic)
+
+        def on_applied(sample) -> None:
+            message = decode(sample.payload.to_bytes(), MtqApplied)
+            self._mtq_applied_seen_s.append(time.monotonic())    # first: mtq_applied[i] has its time
+            self.mtq_applied.append(message)
+
+        self._subscriber = self.session.declare_subscriber(keys.key(self.run_id, keys.ACTUATOR_MTQ), on_applied)
 
     # --- processes ------------------------------------------------------------------------
     def _spawn(self, name: str) -> None:
@@ -175,13 +178,15 @@ class CanBench:
         """Board first (so its last frames reach the bus model), then the bus model; the board
         only once it has the last command, so no frame on the wire is lost to the shutdown."""
         try:
-            self._await_last_command_at_board()
-            if self.board_drain_s is not None and self.board_drain_s > LATE_LAST_COMMAND_S:
-                # The last command reached the board only now (a backlog): give the board the
-                # silence after it that the run gave the driver, so its command timeout, the
-                # safe state the run checks, happens within the run (seen in UML: 0.66 s late).
+            applied_s = self._await_last_command_at_board()
+            if applied_s is not None:
+                # A backlog can bring the last command to the board late (seen in UML: 0.37 s
+                # and 0.66 s after the run's silence began): give the board, after it, the
+                # silence in which its command timeout (the safe state the run checks) is seen.
                 board = self.config.board
-                self.drive(board.command_timeout_s + 3 * board.telemetry_period_s + 0.2, commanding=False)
+                quiet_until_s = applied_s + board.command_timeout_s + 3 * board.telemetry_period_s + 0.2
+                if quiet_until_s > time.monotonic():
+                    self.drive(quiet_until_s - time.monotonic(), commanding=False)
             events = list(self.events)   # what happens while the nodes shut down is not the run's
             self._terminate("mtq")
             self.drive(0.2, commanding=False)
@@ -192,21 +197,24 @@ class CanBench:
         finally:
             self.close()
 
-    def _await_last_command_at_board(self) -> None:
+    def _await_last_command_at_board(self) -> float | None:
         """Poll (silent) until the board applied the last command sent, at most DRAIN_TIMEOUT_S:
         a bus model the host held up delivers its backlog late, and a board stopped before
         that would leave commands on the wire it never received. A last command a fault
-        rejected is never applied: that costs the timeout, no more."""
+        rejected is never applied: that costs the timeout, no more. Returns when (monotonic s)
+        the board's report of applying it arrived here; None if it never did."""
         if not self.sent:
-            return
+            return None
         last_counter = self.sent[-1][0]
         started = time.monotonic()
         while time.monotonic() < started + DRAIN_TIMEOUT_S:
-            applied = self.mtq_applied[self._applied_before_last_command:]
-            if any(m.alive_counter == last_counter for m in applied):
-                self.board_drain_s = time.monotonic() - started
-                return
+            first = self._applied_before_last_command
+            for i, message in enumerate(self.mtq_applied[first:], start=first):
+                if message.alive_counter == last_counter:
+                    self.board_drain_s = time.monotonic() - started
+                    return self._mtq_applied_seen_s[i]
             self.driver.poll(timeout_s=0.05)
+        return None
 
     def _terminate(self, name: str) -> None:
         proc = self.procs.get(name)
