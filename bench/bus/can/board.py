@@ -36,8 +36,8 @@ import numpy as np
 from bench.bus.can import protocol as p
 from bench.bus.can import secoc
 from bench.bus.can.config import BoardConfig, SecurityConfig
+from bench.bus.can.host_lateness import HostLateLog
 
-LATE_RECORD_LIMIT = 1000
 log = logging.getLogger(__name__)
 
 ERROR_REGISTER_GENERIC = 0x01
@@ -106,10 +106,8 @@ class MagnetorquerBoard:
         self.rejected: Counter = Counter()     # by E2E status name or "wrong_length"
         self.accepted = 0
         self.lost_commands = 0
-        self.host_overruns = 0                 # periodic frames sent more than half a period late
-        # (when noticed on the board's clock in s, how late in s) of each overrun, the first
-        # LATE_RECORD_LIMIT: the flight side's tests excuse a board-side detection only this much.
-        self.host_late_s: list[tuple[float, float]] = []
+        # Periodic frames sent more than half a period late, on the board's clock.
+        self.host_lateness = HostLateLog()
         self.sent: Counter = Counter()
         self.received: Counter = Counter()     # every frame heard, by name (frame accounting)
         self._tx_counter: Counter = Counter()  # alive counters of the board's own protected frames
@@ -327,9 +325,7 @@ class MagnetorquerBoard:
         """A periodic frame more than half its period late: this process was not scheduled in
         time (a host overrun, which the flight side would otherwise take for a bus fault)."""
         if late_s > 0.5 * period_s:
-            self.host_overruns += 1
-            if len(self.host_late_s) < LATE_RECORD_LIMIT:
-                self.host_late_s.append((self.clock(), late_s))
+            self.host_lateness.note(round(self.clock() * 1e9), late_s)
 
     def _enter_safe_state(self, now_s: float) -> None:
         self.state.safe_state = self.state.command_timeout = True

@@ -28,6 +28,7 @@ import can
 
 from bench.bus.can import bittiming, errors
 from bench.bus.can import protocol as p
+from bench.bus.can.host_lateness import HostLateLog
 from bench.bus.can.injector import SOURCE_INJECTOR, FaultInjector, Flood, Transmission
 
 FLIGHT = "flight"
@@ -431,15 +432,13 @@ class RealTimeBridge:
     # much after it should: this process was not scheduled in time (a host overrun). Recorded so
     # the flight side's fault checks can tell a starved bridge from a bus fault; 10x granularity.
     HOST_LATE_S = 0.005
-    HOST_LATE_RECORD_LIMIT = 1000
 
     def __init__(self, model: BusModel, buses: dict[str, can.BusABC], granularity_s: float = 0.0005):
         self.model = model
         self.buses = buses
         self.granularity_s = granularity_s
         self.send_failures = 0
-        self.host_overruns = 0
-        self.host_late_ns_s: list[tuple[int, float]] = []      # (monotonic ns, seconds late)
+        self.host_lateness = HostLateLog()                     # on the monotonic clock
         self._wall_minus_monotonic_ns = time.time_ns() - time.monotonic_ns()
         # queue.Queue, not SimpleQueue: on CPython 3.11 a SimpleQueue.get(timeout) that a signal
         # interrupts (SIGTERM: stop) was seen never to return, so the node could not stop.
@@ -485,14 +484,11 @@ class RealTimeBridge:
 
     def _count_late(self, late_s: float) -> None:
         if late_s > self.HOST_LATE_S:
-            self.host_overruns += 1
-            if len(self.host_late_ns_s) < self.HOST_LATE_RECORD_LIMIT:
-                self.host_late_ns_s.append((time.monotonic_ns(), late_s))
+            self.host_lateness.note(time.monotonic_ns(), late_s)
 
     def report(self) -> dict:
         """The bridge's own figures, for the bus model's report beside the model's."""
-        return {"send_failures": self.send_failures, "host_overruns": self.host_overruns,
-                "host_late_ns_s": [list(x) for x in self.host_late_ns_s]}
+        return {"send_failures": self.send_failures, **self.host_lateness.report()}
 
     def _deliver(self, deliveries: list[Delivery]) -> None:
         if deliveries:

@@ -14,6 +14,26 @@ from dataclasses import dataclass
 from pathlib import Path
 
 
+class HostLateLog:
+    """A node's record of its own lateness: how often it ran late (`host_overruns`) and, for the
+    first RECORD_LIMIT times, when it noticed (ns on its clock) and by how much (s). The flight
+    side's checks excuse a detection no more than these records say."""
+    RECORD_LIMIT = 1000
+
+    def __init__(self):
+        self.host_overruns = 0
+        self.host_late_ns_s: list[tuple[int, float]] = []
+
+    def note(self, t_ns: int, late_s: float) -> None:
+        self.host_overruns += 1
+        if len(self.host_late_ns_s) < self.RECORD_LIMIT:
+            self.host_late_ns_s.append((int(t_ns), float(late_s)))
+
+    def report(self) -> dict:
+        """The fields a node's report carries (read back by `host_late_records`)."""
+        return {"host_overruns": self.host_overruns, "host_late_ns_s": [list(x) for x in self.host_late_ns_s]}
+
+
 @dataclass(frozen=True)
 class HostLate:
     node: str           # "driver", "board" or "bus_model"

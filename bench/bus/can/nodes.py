@@ -92,9 +92,7 @@ def run_board(ctx) -> int:
         summary = {"sent": dict(board.sent), "received": dict(board.received), "accepted": board.accepted,
                    "rejected": dict(board.rejected), "bad_frames": dict(board.protocol.bad.counts),
                    "ignored": dict(board.ignored), "lost_commands": board.lost_commands, "nmt_state": board.nmt_state,
-                   "host_overruns": board.host_overruns,
-                   "host_late_ns_s": [[round(t_s * 1e9), late_s] for t_s, late_s in board.host_late_s],
-                   "applied": applied}
+                   **board.host_lateness.report(), "applied": applied}
         (can_dir(ctx.run_dir) / BOARD_NAME).write_text(json.dumps(summary))
         ctx.log.info("board: sent %s, accepted %d, rejected %s", dict(board.sent), board.accepted, dict(board.rejected))
         bus.shutdown()
