@@ -238,8 +238,19 @@ class DetumbleSequence:
         return dipole, {**info, "phase": "bdot" if law is self.bdot else "rate_damping"}
 
 
+class LawWrapper:
+    """Base of the wrappers below: a law around a law (`self.law`), whose own interface (set_plan,
+    torque_nm, ...) stays reachable through the wrapper."""
+
+    def __getattr__(self, name):
+        # Dunder names and `law` itself are not forwarded (unpickling asks before `law` exists).
+        if name == "law" or name.startswith("__"):
+            raise AttributeError(name)
+        return getattr(self.law, name)
+
+
 @dataclass
-class ResidualDipoleCompensation:
+class ResidualDipoleCompensation(LawWrapper):
     """The law's dipole minus the spacecraft's believed (calibrated) residual dipole, re-saturated.
 
     The residual dipole m_r (harness currents, magnetised parts) adds m_r x B to every torque. On
@@ -260,16 +271,9 @@ class ResidualDipoleCompensation:
         compensated, saturated = saturate_dipole(dipole - self.residual_dipole_am2, self.dipole_limit_am2)
         return compensated, {**info, "saturated": bool(info.get("saturated")) or saturated}
 
-    def __getattr__(self, name):
-        # The wrapped law's own interface (set_plan, torque_nm, ...) stays reachable. Dunder names
-        # and `law` itself are not forwarded (unpickling asks before `law` exists).
-        if name == "law" or name.startswith("__"):
-            raise AttributeError(name)
-        return getattr(self.law, name)
-
 
 @dataclass
-class QuantisationErrorFeedback:
+class QuantisationErrorFeedback(LawWrapper):
     """The law's dipole rounded to the board's step here, with each cycle's rounding error carried
     to the next (first-order sigma-delta), so that the coils' dipole *averaged over a few cycles* is
     the law's, not the law's rounded.
@@ -298,8 +302,3 @@ class QuantisationErrorFeedback:
         rounded, saturated = saturate_dipole(unclipped, self.dipole_limit_am2)
         self._carried_am2 = np.where(rounded == unclipped, wanted - rounded, 0.0)
         return rounded, {**info, "saturated": bool(info.get("saturated")) or saturated}
-
-    def __getattr__(self, name):
-        if name == "law" or name.startswith("__"):
-            raise AttributeError(name)
-        return getattr(self.law, name)
