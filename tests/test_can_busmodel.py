@@ -237,3 +237,20 @@ def test_frames_during_recovery_count_once_each_and_a_lone_transmitter_stops_at_
     # ACK errors raise an error-passive transmitter's TEC no further (ISO 11898-1 rule 3, exception 1).
     assert bus.stats.tec_max["board"] == 128 and not bus.counters["board"].bus_off
     assert bus.stats.bus_errors["ack"] == 128          # then the flight side ACKs again
+
+
+def test_a_copy_that_starts_with_the_next_command_collides_and_only_the_command_is_retried():
+    """A starved driver sends its next command while the last one is still on the wire. The
+    duplicate fault's copy (injected once the original is sent) and that command then start
+    together: equal identifiers, different data, a bit error. The driver's controller retransmits
+    its command; the injector has no controller, so its copy is destroyed, recorded as such, and
+    never reaches the board (the fault tests count it out: test_can_faults.injected_frames_on_the_wire)."""
+    bus = model(FaultSpec("duplicate", start_s=0.0, count=1))
+    first, second = PROTO.command([0.1, 0, 0], counter=0), PROTO.command([0.1, 0, 0], counter=1)
+    bus.submit(FLIGHT, first, T0)
+    bus.submit(FLIGHT, second, T0 + 10_000)          # 10 us on: the first is still on the wire
+    deliveries = bus.run_until(T0 + 5 * MS)
+    to_board = [bytes(d.msg.data) for d in deliveries if BOARD in d.destinations and not d.msg.is_error_frame]
+    assert to_board == [bytes(first.data), bytes(second.data)]
+    assert [r.action for r in bus.injector.records] == ["injected", "destroyed"]
+    assert bus.stats.bus_errors and sum(bus.stats.bus_errors.values()) == 1
