@@ -243,14 +243,18 @@ def test_a_copy_that_starts_with_the_next_command_collides_and_only_the_command_
     """A starved driver sends its next command while the last one is still on the wire. The
     duplicate fault's copy (injected once the original is sent) and that command then start
     together: equal identifiers, different data, a bit error. The driver's controller retransmits
-    its command; the injector has no controller, so its copy is destroyed, recorded as such, and
+    its command; the injector has no controller, so its copy is destroyed, recorded as collided, and
     never reaches the board (the fault tests count it out: test_can_faults.injected_frames_on_the_wire)."""
-    bus = model(FaultSpec("duplicate", start_s=0.0, count=1))
+    captured = []
+    bus = model(FaultSpec("duplicate", start_s=0.0, count=1), capture=captured.append)
     first, second = PROTO.command([0.1, 0, 0], counter=0), PROTO.command([0.1, 0, 0], counter=1)
     bus.submit(FLIGHT, first, T0)
     bus.submit(FLIGHT, second, T0 + 10_000)          # 10 us on: the first is still on the wire
     deliveries = bus.run_until(T0 + 5 * MS)
     to_board = [bytes(d.msg.data) for d in deliveries if BOARD in d.destinations and not d.msg.is_error_frame]
     assert to_board == [bytes(first.data), bytes(second.data)]
-    assert [r.action for r in bus.injector.records] == ["injected", "destroyed"]
+    assert [r.action for r in bus.injector.records] == ["injected", "collided"]
     assert bus.stats.bus_errors and sum(bus.stats.bus_errors.values()) == 1
+    # What the fault suite's accounting counts as on the wire: the two commands, not the copy.
+    on_the_wire = [m for m in captured if m.channel == "bus" and not m.is_error_frame]
+    assert [bytes(m.data) for m in on_the_wire] == [bytes(first.data), bytes(second.data)]

@@ -312,7 +312,7 @@ class BusModel:
             if tx.source not in self.queues:
                 # The injector's frame in a collision: it gives up (no controller to retry it).
                 self._dequeue(tx)
-                self.injector.record(flight.end_ns, tx.fault or SOURCE_INJECTOR, "destroyed", tx.msg)
+                self.injector.record(flight.end_ns, tx.fault or SOURCE_INJECTOR, "collided", tx.msg)
                 continue
             deliveries += self._count(tx.source, flight.end_ns, transmit=True, ok=False, error=error)
             if self.counters[tx.source].bus_off:

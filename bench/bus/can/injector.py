@@ -36,7 +36,9 @@ class Transmission:
 class InjectionRecord:
     t_ns: int
     fault: str                   # "<index>:<name>" of the fault in the scenario
-    action: str                  # dropped, delayed, injected, replaced, destroyed
+    # dropped, delayed, injected, replaced, destroyed (a genuine frame, by an error frame: its
+    # controller retries it), collided (an injected frame in a collision: nobody retries it)
+    action: str
     frame_id: int
     data: str                    # hex of the frame as it now is (the original for "dropped")
     original: str = ""           # hex of the original for "replaced"
