@@ -23,10 +23,12 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from conftest import run_bench_cli  # noqa: E402
 
+from bench.bus.can.host_lateness import load_host_late_records, longest_host_late_s  # noqa: E402
 from bench.bus.can.transport import interface_exists, kernel_has_can  # noqa: E402
 from bench.plant.mtq_acceptance import board_dipole_without_bus  # noqa: E402
 from bench.report.attitude_metrics import applied_is_commanded_or_zero  # noqa: E402
 from bench.report.rundata import load_run  # noqa: E402
+from bench.scenario import load_scenario  # noqa: E402
 
 pytestmark = pytest.mark.skipif(not (kernel_has_can() and interface_exists("vcan1")),
                                 reason="runs inside user-mode Linux (tests/test_kernel_can_uml.py)")
@@ -69,6 +71,18 @@ def body_rate(run) -> np.ndarray:
     return np.linalg.norm(run.trajectory["att_omega_radps"], axis=1)
 
 
+def assert_closed_through_can_unless_the_host_stalled(run) -> None:
+    """Some step's command came back from the board in time, or a CAN node measured the host
+    holding it up by a whole step or more (CI, quiet host, UML beside another test worker: none of
+    120 steps closed in time): then no step could close, and that is the host, not the bus."""
+    if closed_through_can(run).any():
+        return
+    step_s = load_scenario(SCENARIO).step_s
+    stall_s = longest_host_late_s(load_host_late_records(Path(run.run_dir) / "can"), 0, 2**63)
+    assert stall_s >= step_s, (f"no step's command came back from the board over vcan0/vcan1, and no CAN "
+                               f"node measured a host stall of a step (longest {stall_s:.3f} s)")
+
+
 def closed_through_can(run) -> np.ndarray:
     """Per step: the command went out on the kernel's vcan0 and the board's report of it came
     back in time for the step."""
@@ -82,8 +96,7 @@ def test_attitude_detumble_over_kernel_socketcan(tmp_path):
     # UML's one CPU under a loaded host misses most 100 ms steps in real time (measured at host
     # load average ~9: 20 of 120 steps closed in time, the board counted 240 of its own late
     # periods): the loop must close through the kernel's CAN, not on every step.
-    closed = closed_through_can(run)
-    assert closed.any(), "no step's command came back from the board over vcan0/vcan1"
+    assert_closed_through_can_unless_the_host_stalled(run)
     check_only_commanded_applied(run)
     assert any(np.any(a) for a in t["att_dipole_applied_am2"]), "the coils never moved"
     rate = body_rate(run)
@@ -99,7 +112,7 @@ def test_attitude_detumble_with_dropped_commands_over_kernel_socketcan(tmp_path)
     run = bench_run(tmp_path, str(path), "socketcan-drop")
     # No dropped (or any other) frame made the coils do what the law did not command.
     check_only_commanded_applied(run)
-    assert closed_through_can(run).any()
+    assert_closed_through_can_unless_the_host_stalled(run)
     assert body_rate(run)[-1] < body_rate(run)[0]
     injections = [json.loads(x) for x in (run.run_dir / "can" / "injections.jsonl").read_text().splitlines() if x]
     drops = [r["t_ns"] for r in injections if r["action"] == "dropped"]
