@@ -23,7 +23,7 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from conftest import run_bench_cli  # noqa: E402
 
-from bench.bus.can.host_lateness import load_host_late_records, longest_host_late_s  # noqa: E402
+from bench.bus.can.host_lateness import host_late_s, load_host_late_records, longest_host_late_s  # noqa: E402
 from bench.bus.can.transport import interface_exists, kernel_has_can  # noqa: E402
 from bench.plant.mtq_acceptance import board_dipole_without_bus  # noqa: E402
 from bench.report.attitude_metrics import applied_is_commanded_or_zero  # noqa: E402
@@ -119,11 +119,17 @@ def test_attitude_detumble_with_dropped_commands_over_kernel_socketcan(tmp_path)
     assert len(drops) == DROP_COUNT
     # The board timed out while the commands were dropped, and the driver heard it. In UML the
     # host's own lateness causes command timeouts as well (the driver says "cause host_overrun"
-    # for those), so this is looked for only from the first drop to a second after the last.
+    # for those), so this is looked for only from the first drop to a second after the last, and
+    # later by as long as the CAN nodes measured the host holding them up in that window (a quiet
+    # host's CI and a slow guest: 88 host overruns, the timeout reported after the window).
     driver = json.loads((run.run_dir / "can" / "driver.json").read_text())
+    window_end_ns = drops[-1] + 1_000_000_000
+    held_s = host_late_s(load_host_late_records(Path(run.run_dir) / "can"), drops[0], window_end_ns)
+    window_end_ns += round(held_s * 1e9)
     timeouts = [e for e in driver["events"] if e["kind"] == "board_command_timeout"
-                and drops[0] <= e["detected_ns"] <= drops[-1] + 1_000_000_000]
-    assert timeouts, f"no board_command_timeout during the drops; driver events {driver['health']['events']}"
+                and drops[0] <= e["detected_ns"] <= window_end_ns]
+    assert timeouts, (f"no board_command_timeout during the drops (window excused {held_s:.3f} s of host "
+                      f"lateness); driver events {driver['health']['events']}")
     # And the board applied the law's commands again after the fault (same monotonic clock).
     board = json.loads((run.run_dir / "can" / "board.json").read_text())
     assert any(a["applied_ns"] > drops[-1] and any(a["dipole_am2"]) for a in board["applied"]), "no recovery"
