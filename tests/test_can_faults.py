@@ -418,5 +418,6 @@ def test_on_the_secoc_profile_replays_and_a_data_id_aware_spoofer_never_reach_th
     assert late_genuine <= 0.1 * r.driver_sent or held_s >= margin_s, \
         f"{late_genuine} genuine commands refused as stale, host held the nodes up {held_s:.3f} s only: {diagnosis(r)}"
     check_only_commanded_applied(r)
-    assert max(a["age_s"] for a in r.board["applied"]) <= COMMAND_PERIOD_S + 0.02
+    # nothing older than the board's freshness bound (command period + margin) reached the coils
+    assert max(a["age_s"] for a in r.board["applied"]) <= COMMAND_PERIOD_S + margin_s
     check_safe_when_commands_stop(r)

@@ -185,8 +185,9 @@ class CanBench:
                 # silence in which its command timeout (the safe state the run checks) is seen.
                 board = self.config.board
                 quiet_until_s = applied_s + board.command_timeout_s + 3 * board.telemetry_period_s + 0.2
-                if quiet_until_s > time.monotonic():
-                    self.drive(quiet_until_s - time.monotonic(), commanding=False)
+                quiet_left_s = quiet_until_s - time.monotonic()
+                if quiet_left_s > 0:
+                    self.drive(quiet_left_s, commanding=False)
             events = list(self.events)   # what happens while the nodes shut down is not the run's
             self._terminate("mtq")
             self.drive(0.2, commanding=False)
