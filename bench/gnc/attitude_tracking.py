@@ -40,7 +40,8 @@ class AttitudePlan:
     gains: np.ndarray            # (N, 3, 6) u = u_bar - K dx, dx = [Rodrigues phi; d_omega]
     plan_id: int = 0
     # The last hold_steps steps hold the target at rest after the arrival (zero feed-forward, TVLQR
-    # gains designed along the field of those steps): the manoeuvre arrives at arrival_time_s.
+    # gains designed along the field of those steps): the manoeuvre arrives at arrival_time_s. All
+    # of them: a plan that only holds (bench.planner.plan.hold_plan), arrived at its start.
     hold_steps: int = 0
 
     def __post_init__(self):
@@ -52,8 +53,8 @@ class AttitudePlan:
         for name, a in (("states", states), ("dipoles_am2", dipoles), ("gains", gains)):
             if not np.all(np.isfinite(a)):
                 raise ValueError(f"plan {name} contains non-finite values")
-        if not 0 <= self.hold_steps < N:
-            raise ValueError(f"plan hold_steps must be 0..{N - 1} (fewer than its {N} steps), got {self.hold_steps}")
+        if not 0 <= self.hold_steps <= N:
+            raise ValueError(f"plan hold_steps must be 0..{N} (at most its {N} steps), got {self.hold_steps}")
         if not (np.isfinite(self.dt_s) and self.dt_s > 0 and np.isfinite(self.start_time_s)):
             raise ValueError(f"plan time base must be finite with dt_s > 0, got start {self.start_time_s}, dt {self.dt_s}")
         object.__setattr__(self, "states", states)

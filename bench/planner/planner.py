@@ -72,9 +72,11 @@ class AttitudePlanner:
     def due(self, time_s: float, valid: bool, q_wxyz) -> str | None:
         return replan_reason(time_s, valid, q_wxyz, self.plan, self.settings)
 
-    def horizon_steps(self, time_s: float) -> int | None:
+    def horizon_steps(self, time_s: float, reason: str = "schedule") -> int | None:
         """Steps of a replan: to the current plan's arrival time while it lies ahead, however little
-        of it is left; None (a fresh Gramian horizon) for the first plan and in the hold after it.
+        of it is left; once arrived, 0 (only the hold, `bench.planner.plan.hold_plan`) for a
+        scheduled replan and None (a fresh Gramian horizon) for one the tracking error asked for;
+        None for the first plan.
 
         A fresh Gramian horizon from every replan keeps postponing the arrival (measured on
         attitude_slew_milqr with truth feedback: a scheduled replan at 900 s moved it from 1580 s to
@@ -86,19 +88,20 @@ class AttitudePlanner:
         TVLQR tracker, saturated, kept going) 178 deg; a 300 s minimum horizon 18 deg (a second
         replan); keeping the arrival (5 steps, cond(W) 435) 2.2 deg. MILQR's box-constrained plan
         over the few steps left need not arrive exactly; the hold after it (TVLQR along the hold's
-        field) takes it from there. A replan during the hold re-plans the manoeuvre from scratch."""
+        field) takes it from there. Once arrived, the schedule only renews the hold; a body 10 deg
+        off the hold (the tracking-error bound) re-plans the manoeuvre from scratch."""
         if self.plan is None:
             return None
         left_s = self.plan.arrival_time_s - time_s
         if left_s <= 0:
-            return None
+            return 0 if reason == "schedule" and self.config.hold_after_arrival_s > 0 else None
         # To the nearest plan step (plans have a uniform step): the arrival moves by at most half a
         # step per replan, either way; rounding up moved it later at every replan.
         return max(1, int(np.floor(left_s / self.config.dt_s + 0.5)))
 
     def plan_now(self, seq: int, time_s: float, q_wxyz, omega_radps, reason: str) -> tuple[AttitudePlan, dict]:
         plan, info = plan_from_estimate(time_s, q_wxyz, omega_radps, self.target_wxyz, self.orbit, self.field,
-                                        self.config, plan_id=len(self.records), horizon_steps=self.horizon_steps(time_s))
+                                        self.config, plan_id=len(self.records), horizon_steps=self.horizon_steps(time_s, reason))
         self.plan = plan
         info = {k: v for k, v in info.items() if k not in ("cost_history", "iteration_times_s")} | {
             "reason": reason, "steps": plan.steps,
