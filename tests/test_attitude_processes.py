@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from bench.report.attitude_metrics import (
-    applied_is_commanded_or_zero, attitude_metrics, continuous_rotation_angle_deg, fault_effect, host_held_steps,
+    applied_is_commanded_or_zero, continuous_rotation_angle_deg, fault_effect, host_held_steps,
     loop_recovery_s, pointing_error_deg, whole_steps,
 )
 from bench.sim import simulate_attitude_in_process

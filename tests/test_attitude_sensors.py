@@ -10,7 +10,6 @@ import tomllib
 from collections import Counter
 from importlib import resources
 
-import msgspec
 import numpy as np
 import pytest
 from scipy import stats

@@ -108,7 +108,6 @@ def test_coil_current_follows_with_the_coil_time_constant(rig):
 def test_board_goes_to_safe_state_when_commands_stop_and_driver_hears_it(rig):
     rig.run(0.3)
     rig.run(0.3, commanding=False)
-    timeout_s = rig.board_config.command_timeout_s
     assert rig.board.state.safe_state
     assert np.allclose(rig.board.applied_dipole_am2, 0.0, atol=1e-6)
     assert rig.kinds().count("board_command_timeout") == 1

@@ -296,7 +296,7 @@ def test_nees_after_an_injected_failure_within_the_same_bounds():
 
 def _run_with_outlier(config: TranslationSmootherConfig, outlier_m: float, steps: int = 40, at: int = 20):
     """Estimates of a smoother fed fixes with one outlier of `outlier_m` (along x) at step `at`."""
-    smoother, (a, b) = TranslationSmoother(config, PARAMS), PARAMS.discrete_si()
+    smoother, (a, _) = TranslationSmoother(config, PARAMS), PARAMS.discrete_si()
     rng = np.random.default_rng(21)
     x, results, truth = PARAMS.initial_state_m_mps("A"), [], []
     for k in range(steps):

@@ -15,7 +15,7 @@ from bench.controller.plan_tracking import PlanInbox, PlanTrackingLaw
 from bench.gnc.attitude_law import AttitudeControlInput
 from bench.gnc.attitude_tracking import AttitudePlan, TvlqrAttitudeTracker
 from bench.launcher import nodes_for
-from bench.bus.plan_message import AttitudePlanMessage, to_message
+from bench.bus.plan_message import to_message
 from bench.controller.plan_tracking import replan_reason
 from bench.report.attitude_metrics import pointing_error_deg
 from bench.report.rundata import load_run

@@ -5,7 +5,6 @@ import json
 import threading
 import time
 
-import pytest
 from mcap.reader import make_reader
 
 from bench.bus import keys

@@ -10,7 +10,6 @@ import pytest
 from mcap.reader import make_reader
 
 from bench.bus import keys
-from bench.bus.schemas import STAGES
 from bench.controller.config import StressConfig
 from conftest import run_bench_cli
 

@@ -14,7 +14,6 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import test_can_faults as suite  # noqa: E402
 
-from bench.bus.can import protocol as p  # noqa: E402
 from bench.bus.can.transport import kernel_has_can  # noqa: E402
 
 pytestmark = pytest.mark.skipif(not kernel_has_can(), reason="runs inside user-mode Linux (tests/uml.py)")
