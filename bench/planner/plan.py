@@ -87,7 +87,7 @@ def hold_plan(time_s: float, target_wxyz, orbit, geomagnetic, config: PlannerCon
     Re-planning the manoeuvre there (MILQR over a fresh Gramian horizon from a state a degree or two
     off the target) starts another slew: on attitude_slew_milqr the schedule's replan at 1830 s
     planned one arriving at 3990 s, and at 2170 s 4 of seeds 0-10 (seed 4 has no such replan) were
-    2.05-2.63 deg off, against 0.17-1.64 deg with the hold renewed. A one-step MILQR manoeuvre into
+    2.05-2.63 deg off, against 0.17-1.63 deg with the hold renewed. A one-step MILQR manoeuvre into
     the hold instead (a saturated step with the final weight's pull) moved the body: the largest
     error in the last 300 s was 1.56-1.66 deg on seeds 6, 17 and 18, against 0.61-0.89 deg here."""
     hold_steps = _hold_steps(config)
@@ -99,8 +99,10 @@ def hold_plan(time_s: float, target_wxyz, orbit, geomagnetic, config: PlannerCon
     dipoles = np.zeros((hold_steps, 3))
     plan = AttitudePlan(time_s, config.dt_s, states, dipoles, _tracking_gains(config, field, states, dipoles),
                         plan_id, hold_steps)
+    # The keys of a MILQR plan's info (the planner node logs them, the message carries some).
     info = {"stop_reason": "hold", "converged": True, "iterations": 0, "cost": 0.0, "wall_time_s": 0.0,
-            "cost_history": [], "iteration_times_s": [], "regularisation": 0.0, "line_search_failures": 0, "horizon_s": 0.0, "horizon_reached": None, "horizon_given": True,
+            "cost_history": [], "iteration_times_s": [], "regularisation": 0.0, "line_search_failures": 0,
+            "horizon_s": 0.0, "horizon_reached": None, "horizon_given": True,
             # cond(W) over the hold's field, for the record (no horizon was searched)
             "gramian_condition_number": gramian_horizon(field, config.dt_s, 1.0 + 1e-12).condition_number}
     return plan, info
