@@ -15,9 +15,11 @@ import numpy as np
 import pytest
 
 from bench.report.attitude_metrics import (
-    applied_is_commanded_or_zero, continuous_rotation_angle_deg, fault_effect, host_held_steps,
+    applied_is_commanded_or_zero, continuous_rotation_angle_deg, fault_effect, host_held_steps, late_before_the_bus,
     loop_recovery_s, pointing_error_deg, whole_steps,
 )
+from bench.bus.can.host_lateness import load_host_late_records, longest_host_late_s
+from bench.bus.schemas import STAGES
 from bench.sim import simulate_attitude_in_process
 from bench.report.attitude import fault_windows_sim_s
 from bench.report.rundata import load_run
@@ -170,6 +172,21 @@ def test_no_faulted_command_was_applied(fault_runs):
     assert board["rejected"].get("WRONG_CRC", 0) >= 1      # corrupted frames reached the board and were refused
 
 
+def broken_steps_after(part: dict, run, end_s: float, excused: np.ndarray) -> str:
+    """Where each broken, unexcused step after end_s lost its time: per stage of the stamp chain
+    (ms), and the longest lateness a CAN node measured within 0.5 s of it."""
+    records = load_host_late_records(run.run_dir / "can")
+    broken = np.nonzero((part["att_time_s"] >= end_s) & ~whole_steps(part, run.scenario.can) & ~excused)[0]
+    lines = []
+    for k in broken[:12]:
+        stamps = [int(part.get(f"stamp_{stage}_ns", np.zeros(k + 1))[k]) for stage in STAGES]
+        gaps = [f"{stage}:{(sb - sa) / 1e6:.0f}" if sa and sb else f"{stage}:-"
+                for stage, sa, sb in zip(STAGES[1:], stamps, stamps[1:])]
+        near = longest_host_late_s(records, stamps[0] - 500_000_000, stamps[0] + 500_000_000) if stamps[0] else float("nan")
+        lines.append(f"t {part['att_time_s'][k]:.1f} s: {' '.join(gaps)} ms; CAN node late {near:.3f} s")
+    return f"{len(broken)} broken steps after {end_s:.1f} s:\n" + "\n".join(lines)
+
+
 @pytest.mark.parametrize("fault", ["board_death", "drop", "corrupt", "stuck_actuator", "flood"])
 def test_each_fault_was_seen_and_the_loop_recovers_after_it(fault_runs, fault):
     run = fault_runs[1]
@@ -181,16 +198,18 @@ def test_each_fault_was_seen_and_the_loop_recovers_after_it(fault_runs, fault):
     t = run.trajectory["att_time_s"]
     upto = min([s for s, _ in windows.values() if s > end] + [t[-1] + 1.0])
     part = {k: v[t < upto] for k, v in run.trajectory.items() if isinstance(v, np.ndarray) and v.ndim and len(v) == len(t)}
-    # A step the host held up (a CAN node stalled half a step or more around it) is not the
-    # fault's and is excused; but the loop must be seen whole on its own for a second after the
+    # A step the host held up is not the fault's and is excused: a CAN node stalled half a step or
+    # more around it, or its command left the controller half a step or more after the plant
+    # sensed (no bus in that path; CI with both cores busy: recovery 2.28 s after stuck_actuator,
+    # no CAN node stall found). But the loop must be seen whole on its own for a second after the
     # window, or a loop that never recovers on a busy machine would pass.
     step_s = float(np.median(np.diff(t)))
-    held = host_held_steps(part, run.run_dir, min_late_s=0.5 * step_s)
+    held = host_held_steps(part, run.run_dir, min_late_s=0.5 * step_s) | late_before_the_bus(part, 0.5 * step_s)
     after = part["att_time_s"] >= end
     seen_whole = whole_steps(part, run.scenario.can) & ~held & after
     assert seen_whole.sum() * step_s >= 1.0, f"whole {seen_whole.sum()}, host-held {held[after].sum()} of {after.sum()} steps"
     recovery = loop_recovery_s(part, run.scenario.can, end, excused=held)
-    assert recovery is not None and recovery < 2.0
+    assert recovery is not None and recovery < 2.0, broken_steps_after(part, run, end, held)
     driver = json.loads((run.run_dir / "can" / "driver.json").read_text())
     kinds = {e["kind"] for e in driver["events"]}
     expected = {"board_death": {"heartbeat_timeout"}, "drop": {"board_command_timeout"},

@@ -198,6 +198,19 @@ def host_held_steps(trajectory: dict, run_dir: Path, min_late_s: float, window_s
                      for s in stamps])
 
 
+def late_before_the_bus(trajectory: dict, min_late_s: float) -> np.ndarray:
+    """Per step, whether its command left the controller min_late_s or more after the plant sensed
+    (stamps "sensed" -> "commanded": plant, estimator and controller over Zenoh, no CAN frame yet).
+    No bus fault can delay that part of the loop; on a busy host the scheduler can, and a step whose
+    command is that late cannot close through the board in time. Steps without both stamps: False."""
+    sensed = np.asarray(trajectory.get("stamp_sensed_ns", []), dtype=np.int64)
+    commanded = np.asarray(trajectory.get("stamp_commanded_ns", []), dtype=np.int64)
+    if len(sensed) == 0 or len(commanded) != len(sensed):
+        return np.zeros(len(trajectory["att_time_s"]), bool)
+    both = (sensed > 0) & (commanded > 0)
+    return both & ((commanded - sensed) >= int(min_late_s * 1e9))
+
+
 def fault_effect(clean: dict, faulted: dict, scenario: Scenario, fault_end_sim_s: float) -> dict:
     """The mission effect of a fault: the excess of the pointing error (or of the body rate, for
     laws without a target) over the clean run of the same scenario, step by step, and how long
