@@ -188,14 +188,25 @@ def host_held_steps(trajectory: dict, run_dir: Path, min_late_s: float, window_s
     """Per step, whether a CAN node measured itself held up by the host for min_late_s or more at
     once within window_s of the step's sensing stamp (real time only; bench.bus.can.host_lateness): a
     broken step there may be the busy machine's doing, not the bus's. A few ms late is common on
-    a busy machine and breaks nothing; min_late_s near a plant step is what can."""
+    a busy machine and breaks nothing; min_late_s near a plant step is what can.
+
+    A step whose command never reached the plant has no stamps (-1); its sensing time is
+    interpolated from the steps around it (real time: the plant ticks at fixed intervals). A CI run
+    with both cores busy lost a whole step so, 2 s after the babbling-node fault, amid the driver's
+    host overruns, and it was not excused for want of a stamp."""
     stamps = trajectory.get("stamp_sensed_ns")
     records = load_host_late_records(Path(run_dir) / "can")
     if stamps is None or not records:
         return np.zeros(len(trajectory["att_time_s"]), bool)
+    stamps = np.asarray(stamps, dtype=np.int64)
+    stamped = stamps > 0
+    if stamped.sum() < 2:
+        return np.zeros(len(stamps), bool)
+    steps = np.arange(len(stamps))
+    sensed_ns = np.interp(steps, steps[stamped], stamps[stamped]).astype(np.int64)
     window_ns = int(window_s * 1e9)
-    return np.array([s > 0 and longest_host_late_s(records, int(s) - window_ns, int(s) + window_ns) >= min_late_s
-                     for s in stamps])
+    return np.array([longest_host_late_s(records, int(s) - window_ns, int(s) + window_ns) >= min_late_s
+                     for s in sensed_ns])
 
 
 def late_before_the_bus(trajectory: dict, min_late_s: float) -> np.ndarray:
