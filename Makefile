@@ -5,13 +5,23 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: run test benchmarks clean
+.PHONY: run test benchmarks clean lock
 
-$(STAMP): pyproject.toml
+# The environment is installed from requirements.lock (every version pinned, with hashes), so a fresh
+# clone runs what was tested; pyproject.toml keeps the open ranges for those who install the package
+# as a library. `make lock` refreshes the lock from pyproject.toml.
+$(STAMP): pyproject.toml requirements.lock
 	$(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -e '.[test]'
+	$(PY) -m pip install -q --require-hashes -r requirements.lock
+	$(PY) -m pip install -q --no-deps -e .
+	$(PY) tools/check_lock.py
 	touch $(STAMP)
+
+lock:
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q uv
+	$(VENV)/bin/uv pip compile pyproject.toml --extra test --extra cluster --generate-hashes --upgrade \
+		--python-version 3.11 --python-platform x86_64-unknown-linux-gnu -o requirements.lock
 
 # `make run` shows the whole card: the rendezvous as processes with the gtsam smoother and MPC on
 # proxsuite (rendezvous_card), then the attitude loop with the magnetorquer board on the CAN bus
@@ -27,6 +37,7 @@ endif
 
 test: $(STAMP)
 	bash tools/install-system-deps.sh
+	$(PY) tools/check_lock.py
 	$(PY) -m pytest
 
 benchmarks: $(STAMP)

@@ -58,17 +58,27 @@ def test_slew_converges_within_the_gramian_horizon(slew):
 def test_ipopt_on_the_same_discretised_problem_reaches_the_same_cost(slew, limit_am2):
     """At the board's 0.2 A m^2 no dipole saturates; at 0.03 A m^2 about a fifth of the samples sit on
     the box, so the box-QP path is compared too."""
-    from tests.milqr_reference import solve_with_ipopt
+    from tests.milqr_reference import projected_gradient_fd, solve_with_ipopt
     _, model, result = slew
     cost = slew_cost()
     if limit_am2 != LIMIT_AM2:
         result = milqr(model, cost, X0, np.zeros((model.horizon_steps, 3)), -limit_am2, limit_am2)
         assert result.info["converged"] and np.mean(np.isclose(np.abs(result.dipoles_am2), limit_am2)) > 0.1
     objective, dipoles, _, status, _ = solve_with_ipopt(model, cost, X0, limit_am2, max_iter=3000, max_cpu_time_s=240.0)
-    assert status == "Solve_Succeeded", status
-    # IPOPT's dipoles replayed through the planning model give IPOPT's objective: same problem
-    assert cost.total(model.rollout(X0, dipoles), dipoles) == pytest.approx(objective, rel=1e-8)
-    assert abs(objective - result.cost) <= 0.01 * result.cost
+    # IPOPT's own status is not the judge: releases differ on whether the same point is "succeeded" or
+    # "solved to acceptable level" (casadi 3.8.2 says the latter here). Its answer is checked instead:
+    # feasible on the box, the same objective when replayed through the planning model (same
+    # problem), and stationary by finite differences on that model, the same test MILQR's answer passes.
+    assert np.all(np.abs(dipoles) <= limit_am2 + 1e-8), status
+    assert cost.total(model.rollout(X0, dipoles), dipoles) == pytest.approx(objective, rel=1e-8), status
+    # stationary: the projected gradient six orders below the one at the zero-dipole start (2.7e4;
+    # measured 5e-5 at 0.2 A m^2 and 1.9e-3 at 0.03 A m^2, where IPOPT's barrier keeps its dipoles
+    # a few 1e-8 inside the box)
+    start = np.max(np.abs(projected_gradient_fd(model, cost, X0, np.zeros_like(dipoles), limit_am2)))
+    for name, U in (("IPOPT", dipoles), ("MILQR", result.dipoles_am2)):
+        stationarity = np.max(np.abs(projected_gradient_fd(model, cost, X0, U, limit_am2)))
+        assert stationarity <= 1e-6 * start, f"{name} ({status=}): projected gradient {stationarity:.2e}"
+    assert abs(objective - result.cost) <= 0.01 * result.cost, status
 
 
 def test_caps_return_the_best_iterate_and_say_why():
