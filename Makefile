@@ -9,7 +9,8 @@ STAMP := $(VENV)/.installed
 
 # The environment is installed from requirements.lock (every version pinned, with hashes), so a fresh
 # clone runs what was tested; pyproject.toml keeps the open ranges for those who install the package
-# as a library. `make lock` refreshes the lock from pyproject.toml.
+# as a library. `make lock` recompiles the lock after a change to pyproject.toml, keeping every pin it
+# can; `make lock UPGRADE=--upgrade` moves every package to its newest allowed version.
 $(STAMP): pyproject.toml requirements.lock
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --require-hashes -r requirements.lock
@@ -27,6 +28,7 @@ lock:
 # proxsuite (rendezvous_card), then the attitude loop with the magnetorquer board on the CAN bus
 # (attitude_quick). `make run SCENARIO=NAME` runs one scenario (`bench scenarios` lists them).
 SCENARIO ?=
+UPGRADE ?=
 run: $(STAMP)
 ifeq ($(SCENARIO),)
 	$(VENV)/bin/bench run rendezvous_card
