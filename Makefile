@@ -21,7 +21,7 @@ $(STAMP): pyproject.toml requirements.lock
 lock:
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q uv
-	$(VENV)/bin/uv pip compile pyproject.toml --extra test --extra cluster --generate-hashes --upgrade \
+	$(VENV)/bin/uv pip compile pyproject.toml --extra test --extra cluster --generate-hashes $(UPGRADE) \
 		--python-version 3.11 --python-platform x86_64-unknown-linux-gnu -o requirements.lock
 
 # `make run` shows the whole card: the rendezvous as processes with the gtsam smoother and MPC on
