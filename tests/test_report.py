@@ -188,14 +188,19 @@ def test_report_of_a_directory_that_is_not_a_run_is_a_clear_error(tmp_path, caps
     assert "not a run directory" in capsys.readouterr().err
 
 
-def test_can_bus_load_and_fault_timeline(tmp_path):
-    """100 frames 10 ms apart at 1 Mbit/s: each 100 ms window holds 10 frames' bits."""
+def test_can_bus_load_and_fault_timeline_on_simulated_time(tmp_path):
+    """100 frames 10 ms apart at 1 Mbit/s: each 100 ms window holds 10 frames' bits. The run is real
+    time at 6000x (600 s steps every 100 ms, sensed at 1000 s + k * 0.1 s on the monotonic clock),
+    so every time of the CAN section lands on simulated time: the injector armed at step 1, a fault
+    0.2 s after that for 0.3 s is 1800-3600 s, a fault limited by a count ends at its last frame."""
     import can
 
     from bench.bus.can.bittiming import frame_bits
 
     run_dir = make_run(tmp_path / "run")
-    data = parse_scenario({**scenario_dict(), "can": {"faults": [{"name": "drop", "start_s": 0.2, "duration_s": 0.3}]}})
+    data = parse_scenario({**scenario_dict(), "can": {"faults": [
+        {"name": "drop", "start_s": 0.2, "duration_s": 0.3},
+        {"name": "corrupt", "start_s": 0.5, "count": 2}]}})
     (run_dir / "scenario.json").write_bytes(msgspec.json.encode(data))
     frame = can.Message(arbitration_id=0x101, data=bytes(range(8)), is_extended_id=False)
     writer = can.Logger(str(run_dir / "can.log"))
@@ -204,19 +209,26 @@ def test_can_bus_load_and_fault_timeline(tmp_path):
                                                data=bytes(range(8)), is_extended_id=False, channel="bus"))
     writer.stop()
     (run_dir / "can").mkdir()
-    (run_dir / "can" / "busmodel.json").write_text(json.dumps({"t0_ns": 5_000_000_000}))
+    armed_ns = 10**12 + 100_000_000
+    (run_dir / "can" / "busmodel.json").write_text(json.dumps({
+        "t0_ns": 10**12 - 3 * 10**9, "faults_t0_ns": armed_ns, "wall_offset_s": 0.0,
+        "faults": [{"fault": "0:drop", "affected": 3, "first_ns": armed_ns + 210_000_000, "last_ns": armed_ns + 490_000_000},
+                   {"fault": "1:corrupt", "affected": 2, "first_ns": armed_ns + 500_000_000,
+                    "last_ns": armed_ns + 650_000_000}]}))
     (run_dir / "can" / "injections.jsonl").write_text("\n".join(
-        json.dumps({"t_ns": 5_000_000_000 + t_ms * 1_000_000, "fault": "0:drop", "action": "dropped",
+        json.dumps({"t_ns": armed_ns + t_ms * 1_000_000, "fault": "0:drop", "action": "dropped",
                     "frame_id": 0x101, "data": "00"}) for t_ms in (210, 250, 490)))
     write_report(run_dir)
     bus = json.loads((run_dir / "metrics.json").read_text())["can_bus"]
     assert bus["frames"] == 100
     assert bus["mean_load"] == pytest.approx(10 * frame_bits(frame) / (1e6 * 0.1))
     assert bus["peak_load"] == pytest.approx(bus["mean_load"])      # every window alike
-    assert bus["faults"] == [{"name": "drop", "start_s": 0.2, "end_s": 0.5}]
+    assert bus["faults"] == [{"name": "drop", "start_sim_s": pytest.approx(1800.0), "end_sim_s": pytest.approx(3600.0)},
+                             {"name": "corrupt", "start_sim_s": pytest.approx(3600.0), "end_sim_s": pytest.approx(4500.0)}]
     assert bus["injections"] == {"0:drop dropped": 3}
     assert (run_dir / "plots" / "bus_load.png").stat().st_size > 10_000
-    assert "## CAN bus" in (run_dir / "report.md").read_text()
+    report = (run_dir / "report.md").read_text()
+    assert "## CAN bus" in report and "inf" not in report.split("## CAN bus")[1].split("##")[0]
 
 
 def test_a_recording_cut_short_is_read_up_to_its_last_whole_chunk(tmp_path):

@@ -8,7 +8,8 @@ writes: sense/mag        (MagnetometerSample, every magnetometer_period_s, or on
         sense/star       (StarTrackerSample, every star_tracker_period_s; no fix in an outage),
         sense/gyro       (GyroSample, every step, the gyro rate being the step rate; published after
                          the tick's other sensors: it closes the tick), truth/attitude (AttitudeTruth),
-        command/applied  (DipoleCommand as applied, with the full stamp chain), status/step,
+        command/applied  (DipoleCommand as applied, with its stamp chain joined across the bus to the
+                         board's report of the frame that carried it: bench/plant/mtq_chain.py), status/step,
         event/deadline   (real-time: step k's command not in before step k+1)
 
 lock-step: publish step k, wait for command k, then for the board's report of a command frame at
@@ -27,7 +28,6 @@ from __future__ import annotations
 import threading
 import time
 
-import msgspec
 import numpy as np
 
 from bench.bus import keys
@@ -40,10 +40,9 @@ from bench.plant.attitude import AttitudeSample
 from bench.plant.attitude_plant import AttitudePlant
 from bench.plant.mtq_acceptance import DipoleAcceptance, board_dipole_without_bus
 from bench.plant.acceptance import ActuatorEnvelope, CommandGate
-from bench.plant.stepping import LoopBroken, RealTimeClock, StampLog, wait_command_lockstep
+from bench.plant.mtq_chain import COUNTER_MODULO, COUNTER_WINDOW, CommandChains
+from bench.plant.stepping import LoopBroken, RealTimeClock, wait_command_lockstep
 
-COUNTER_MODULO = 16
-COUNTER_WINDOW = 8        # reports of frames c .. c+7 answer command c (later frames, same dipole)
 EXACT_REPORT_WAIT_S = 0.5  # lock-step: far longer than a fault-free bus round trip (~5 ms)
 REPORT_WAIT_S = 1.0
 
@@ -62,6 +61,11 @@ class BoardReports:
             self._reports.append(self.latest)
             del self._reports[:-64]
             self._cond.notify_all()
+
+    def received(self) -> list[tuple[int, MtqApplied]]:
+        """The last reports as (plant received ns, report), oldest first."""
+        with self._cond:
+            return list(self._reports)
 
     def wait_for_report(self, counter: int, expected_am2: np.ndarray, since_ns: int) -> MtqApplied | None:
         """The board's report of the frame with alive counter `counter` carrying the expected
@@ -144,6 +148,7 @@ class AppliedLog:
         self.refused = np.zeros(n_steps, dtype=bool)
         self.safe_state = np.zeros(n_steps, dtype=bool)
         self.board_applied_ns = np.full(n_steps, -1, dtype=np.int64)   # board set its coils (sense-to-torque)
+        self.command_received_ns = np.full(n_steps, -1, dtype=np.int64)  # step k's command in (on time in real time)
 
 
 def run(ctx: NodeContext) -> int:
@@ -172,7 +177,8 @@ def run(ctx: NodeContext) -> int:
                  plant.dt_s, scenario.run.mode)
     realtime = scenario.run.mode == "real-time"
     clock = RealTimeClock(plant.dt_s / scenario.run.time_factor) if realtime else None
-    stamps = StampLog(n_steps)
+    # a command frame's report can be told from another's until the alive counter wraps
+    chains = CommandChains(n_steps, COUNTER_MODULO * scenario.can.driver.command_period_s if scenario.can else 1.0)
     log = AppliedLog(n_steps)
     last_command: DipoleCommand | None = None
     step_started_ns = time.monotonic_ns()
@@ -205,12 +211,17 @@ def run(ctx: NodeContext) -> int:
                 dipole, report = _lockstep_dipole(scenario, acceptance, reports, command, step_started_ns, log, k)
             if report is not None:
                 log.board_applied_ns[k] = report.header.stamps_ns.get("applied", -1)
+            applied_ns = time.monotonic_ns()
+            completed = []
             if command is not None:
-                hdr = command.header.stamped("plant_received", time.monotonic_ns())
-                if report is not None and "board_received" in report.header.stamps_ns:
-                    hdr = hdr.stamped("board_received", report.header.stamps_ns["board_received"])
-                applied = msgspec.structs.replace(command, header=hdr.stamped("applied", time.monotonic_ns()))
-                stamps.record(k, applied.header.stamps_ns)
+                log.command_received_ns[k] = applied_ns
+                if scenario.can is None:
+                    completed.append(chains.record_direct(k, command, applied_ns, applied_ns))
+                else:
+                    chains.open(k, command, board_dipole_without_bus(command.dipole_am2, scenario.can))
+            if scenario.can is not None:
+                completed += chains.close(reports.received(), applied_ns) + chains.expire(applied_ns)
+            for _, applied in completed:
                 ctx.publish(keys.COMMAND_APPLIED, applied)
             step_started_ns = time.monotonic_ns()
             plant.apply(dipole)
@@ -219,7 +230,9 @@ def run(ctx: NodeContext) -> int:
         ctx.log.error("%s", exc)
         return 1
     finally:
-        _write_trajectory(ctx, plant, stamps, clock, log, acceptance)
+        for _, applied in chains.expire():
+            ctx.publish(keys.COMMAND_APPLIED, applied)
+        _write_trajectory(ctx, plant, chains, clock, log, acceptance)
     return 0
 
 
@@ -273,15 +286,16 @@ def _realtime_dipole(scenario, acceptance, reports, command, log, k):
     return dipole, report
 
 
-def _write_trajectory(ctx, plant, stamps, clock, log: AppliedLog, acceptance: DipoleAcceptance) -> None:
+def _write_trajectory(ctx, plant, chains: CommandChains, clock, log: AppliedLog, acceptance: DipoleAcceptance) -> None:
     n = len(plant.log.time_s)
     arrays = plant.trajectory()
     arrays.update({
         "att_dipole_commanded_am2": log.commanded[:n], "att_board_report_am2": log.reported[:n],
         "att_alive_counter": log.counter[:n], "att_refused": log.refused[:n], "att_safe_state": log.safe_state[:n],
-        "att_board_applied_ns": log.board_applied_ns[:n],
+        "att_board_applied_ns": log.board_applied_ns[:n], "att_command_received_ns": log.command_received_ns[:n],
+        "att_board_report_counter": chains.board_counter[:n],
     })
-    arrays.update({f"stamp_{stage}_ns": v[:n] for stage, v in stamps.stamps.items()})
+    arrays.update({f"stamp_{stage}_ns": v[:n] for stage, v in chains.stamps.stamps.items()})
     arrays["plant_late_commands"] = np.array(clock.late_commands if clock else 0)
     arrays["plant_missed_steps"] = np.array(clock.deadline.counter.misses if clock else 0)
     arrays["plant_refused_reports"] = np.array(sum(acceptance.rejected.values()))

@@ -1,12 +1,11 @@
 """The attitude card of a run's report: pointing error and body rate with the CAN fault windows
 shaded, the dipole per axis against the limit (commanded and applied), the field along the orbit.
 
-Fault windows are wall-clock times since the bus model started (can/busmodel.json t0_ns); the
-plant stamps each step's sensing on the same monotonic clock, which maps them to simulated time.
+Fault windows are on the run's simulated time, as every other time of the report
+(bench.report.timebase, bench.report.canbus).
 """
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import matplotlib
@@ -16,43 +15,16 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from bench.report.attitude_metrics import attitude_metrics, pointing_error_deg, summary_rows  # noqa: E402
+from bench.report import canbus  # noqa: E402
 from bench.report.document import Figure, Section, Table  # noqa: E402
+from bench.report.timebase import RunClock  # noqa: E402
 
 PLOTS_DIR = "plots"
 
 
 def fault_windows_sim_s(run_dir: Path, scenario, trajectory: dict) -> list[tuple[str, float, float]]:
-    """[(fault name, start, end)] in simulated seconds. The injector arms at the driver's first
-    command frame (can/busmodel.json faults_t0_ns); a fault limited by a frame count ends at its
-    last injection (can/injections.jsonl)."""
-    if scenario.can is None or not scenario.can.faults:
-        return []
-    report = Path(run_dir) / "can" / "busmodel.json"
-    sensed = trajectory.get("stamp_sensed_ns")
-    if not report.exists() or sensed is None or not np.any(sensed > 0):
-        return []
-    bus = json.loads(report.read_text())
-    t0_ns = bus.get("faults_t0_ns") or bus.get("t0_ns")
-    if t0_ns is None:
-        return []
-    last_injection: dict[int, int] = {}
-    injections = Path(run_dir) / "can" / "injections.jsonl"
-    if injections.exists():
-        for line in injections.read_text().splitlines():
-            record = json.loads(line)
-            index = int(str(record.get("fault", "-1:")).split(":")[0])
-            last_injection[index] = max(last_injection.get(index, 0), record["t_ns"])
-    ok = sensed > 0
-    times, stamps = trajectory["att_time_s"][ok], sensed[ok].astype(float)
-    windows = []
-    for i, fault in enumerate(scenario.can.faults):
-        start_ns = t0_ns + fault.start_s * 1e9
-        if fault.duration_s is not None:
-            end_ns = start_ns + fault.duration_s * 1e9
-        else:
-            end_ns = last_injection.get(i, start_ns)
-        windows.append((fault.name, float(np.interp(start_ns, stamps, times)), float(np.interp(end_ns, stamps, times))))
-    return windows
+    """[(fault name, start, end)] in simulated seconds (bench.report.canbus)."""
+    return canbus.fault_windows_sim_s(run_dir, scenario.can, RunClock.from_run(trajectory, scenario))
 
 
 def _shade(ax, windows) -> None:

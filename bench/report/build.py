@@ -119,6 +119,12 @@ def deadline_section(result: DeadlineResult, plot_dir: Path) -> Section:
         ["host late to wake the controller after a worker timeout, max [ms]", ms(m["host_wake_late_max_s"])],
         ["controller cycle p99 less that lateness [ms]", ms(m["cycle_time_less_host_p99_s"])],
     ]
+    if "planner" in m:
+        planner = m["planner"]
+        rows += [["planner: plans", fmt(planner["plans"])],
+                 ["planner: wall time p50 / worst [s]", f"{fmt(planner['wall_time_p50_s'])} / {fmt(planner['worst_wall_time_s'])}"],
+                 ["planner: wall-time cap [s] (real time only)", fmt(planner["budget_s"])],
+                 ["planner: plans over the cap", fmt(planner["over_budget"])]]
     section = Section("Deadlines", [
         "A controller miss is a cycle (estimate received to command ready) over the budget; the fallback "
         "replaced its late result. A plant-side miss is a real-time step integrated before its command arrived."
@@ -127,6 +133,10 @@ def deadline_section(result: DeadlineResult, plot_dir: Path) -> Section:
         cycle = plots.cycle_times(result.cycle_seq, result.cycle_time_s, result.budget_s,
                                   result.controller_miss_seq, result.plant_miss_seq, plot_dir / "cycle_time.png")
         section.figures.append(Figure(Path(PLOTS_DIR) / cycle.name, "Cycle time per step and deadline misses"))
+    if result.plan_wall_s.size:
+        planning = plots.planning_times(result.plan_time_s, result.plan_wall_s, result.plan_budget_s,
+                                        plot_dir / "planning_time.png")
+        section.figures.append(Figure(Path(PLOTS_DIR) / planning.name, "Planner: wall time of each plan"))
     if result.solve_time_s.size:
         solve = plots.solve_times({"solver": result.solve_time_s}, plot_dir / "solve_time.png")
         section.figures.append(Figure(Path(PLOTS_DIR) / solve.name, "Solve-time distribution (on-time cycles)"))
@@ -173,7 +183,8 @@ def can_section(run: RunData, plot_dir: Path) -> tuple[Section | None, dict | No
     m = load.to_metrics()
     rows = [["frames", fmt(m["frames"])], ["bitrate [bit/s]", fmt(m["bitrate_bps"])],
             ["mean load [%]", fmt(m["mean_load"] * 100)], ["peak load [%]", fmt(m["peak_load"] * 100)]]
-    rows += [[f"fault {f['name']}", f"{fmt(f['start_s'])} s to {fmt(f['end_s'])} s"] for f in m["faults"]]
+    rows += [[f"fault {f['name']} (simulated time)", f"{fmt(f['start_sim_s'])} s to {fmt(f['end_sim_s'])} s"]
+             for f in m["faults"]]
     rows += [[f"injected {what}", fmt(n)] for what, n in sorted(m["injections"].items())]
     section = Section("CAN bus", ["From can.log (candump format)."], [Table(["bus", "value"], rows)])
     driver_table, driver_metrics = driver_events_table(run.run_dir / "can" / "driver.json")
@@ -184,7 +195,8 @@ def can_section(run: RunData, plot_dir: Path) -> tuple[Section | None, dict | No
         m["driver"] = driver_metrics
     if load.load.size:
         path = plots.bus_load(load.window_start_s, load.load, load.fault_windows, load.injections,
-                              plot_dir / "bus_load.png")
+                              plot_dir / "bus_load.png",
+                              "simulated time [s]" if load.on_sim_time else "time since the first frame [s]")
         section.figures.append(Figure(Path(PLOTS_DIR) / path.name, "Bus load and fault timeline"))
     return section, m
 

@@ -1,9 +1,12 @@
-"""CAN bus load from the candump capture (can.log) and the fault timeline of the run.
+"""CAN bus load from the candump capture (can.log) and the fault timeline of the run, both on the
+run's simulated time (bench.report.timebase).
 
 vcan has no bit timing, so the load is computed the way the bus model charges it: each frame's
-bits with stuffing (bench.bus.can.bittiming) at the configured bitrate, summed per window. The
-fault timeline is the scenario's fault windows and the injector's log (can/injections.jsonl), both
-in seconds since the bus model started; the load's time axis starts at the first captured frame.
+bits with stuffing (bench.bus.can.bittiming) at the configured bitrate, summed per 0.1 s of wall
+time (the bus is busy in wall time), each window placed at the simulated time it began. A fault
+window starts at the injector's arming time (the driver's first command frame, busmodel.json
+`faults_t0_ns`) plus the scenario's `start_s`, and ends after its `duration_s` or, for a fault
+limited by a frame count, at the last frame it affected; a window is clipped to the run.
 """
 from __future__ import annotations
 
@@ -15,6 +18,7 @@ import can
 import numpy as np
 
 from bench.bus.can.bittiming import DEFAULT_BITRATE_BPS, frame_bits
+from bench.report.timebase import RunClock, wall_to_mono_ns
 from bench.report.rundata import RunData
 
 WINDOW_S = 0.1
@@ -24,12 +28,13 @@ BUSMODEL_FILE = Path("can") / "busmodel.json"
 
 @dataclass
 class BusLoad:
-    window_start_s: np.ndarray      # since the first frame of the capture
+    window_start_s: np.ndarray      # simulated time at which each 0.1 s (wall) load window began
     load: np.ndarray                # fraction of the bus time busy per window
     frames: int
     bitrate_bps: int
-    fault_windows: list[tuple[str, float, float]] = field(default_factory=list)   # (name, start_s, end_s)
-    injections: list[tuple[float, str, str]] = field(default_factory=list)        # (t_s, fault, action)
+    fault_windows: list[tuple[str, float, float]] = field(default_factory=list)   # (name, start, end) simulated s
+    injections: list[tuple[float, str, str]] = field(default_factory=list)        # (simulated s, fault, action)
+    on_sim_time: bool = True        # False only for a run without the plant's stamps (then: s since the first frame)
 
     def to_metrics(self) -> dict:
         actions: dict[str, int] = {}
@@ -40,7 +45,7 @@ class BusLoad:
             "bitrate_bps": self.bitrate_bps,
             "mean_load": float(self.load.mean()) if self.load.size else 0.0,
             "peak_load": float(self.load.max()) if self.load.size else 0.0,
-            "faults": [{"name": n, "start_s": a, "end_s": b} for n, a, b in self.fault_windows],
+            "faults": [{"name": n, "start_sim_s": a, "end_sim_s": b} for n, a, b in self.fault_windows],
             "injections": actions,
         }
 
@@ -55,33 +60,62 @@ def bus_load(run: RunData) -> BusLoad | None:
     frames = read_capture(run.can_log)
     can_cfg = getattr(run.scenario, "can", None)
     bitrate = int(getattr(can_cfg, "bitrate_bps", DEFAULT_BITRATE_BPS))
-    result = BusLoad(np.zeros(0), np.zeros(0), len(frames), bitrate, _fault_windows(can_cfg), _injections(run.run_dir))
+    model = _bus_model_report(run.run_dir)
+    clock = RunClock.from_run(run.trajectory, run.scenario)
+    result = BusLoad(np.zeros(0), np.zeros(0), len(frames), bitrate, fault_windows_sim_s(run.run_dir, can_cfg, clock),
+                     _injections(run.run_dir, clock), on_sim_time=clock is not None and "wall_offset_s" in model)
     if frames:
-        t_s = np.asarray([f.timestamp - frames[0].timestamp for f in frames])
+        wall_s = np.asarray([f.timestamp for f in frames])
+        t_s = wall_s - wall_s[0]
         bits = np.asarray([frame_bits(f) for f in frames], dtype=float)
         # Rounded first: candump's microsecond timestamps put 0.3 s at 2.9999... windows otherwise.
         window = np.floor(np.round(t_s / WINDOW_S, 6)).astype(int)
         busy_bits = np.bincount(window, weights=bits, minlength=int(window.max()) + 1)
-        n_windows = busy_bits.size
-        result.window_start_s = np.arange(n_windows) * WINDOW_S
+        window_start_wall_s = wall_s[0] + np.arange(busy_bits.size) * WINDOW_S
+        if result.on_sim_time:
+            result.window_start_s = clock.sim_s(wall_to_mono_ns(window_start_wall_s, model["wall_offset_s"]))
+        else:
+            result.window_start_s = window_start_wall_s - wall_s[0]
         result.load = busy_bits / (bitrate * WINDOW_S)
     return result
 
 
-def _fault_windows(can_cfg) -> list[tuple[str, float, float]]:
-    """Configured faults as (name, start_s, end_s), times since the bus model started."""
+def _bus_model_report(run_dir: Path) -> dict:
+    path = Path(run_dir) / BUSMODEL_FILE
+    try:
+        return json.loads(path.read_text()) if path.is_file() else {}
+    except (OSError, ValueError):
+        return {}
+
+
+def fault_windows_sim_s(run_dir: Path, can_cfg, clock: RunClock | None) -> list[tuple[str, float, float]]:
+    """Configured faults as (name, start, end) in simulated seconds, clipped to the run; empty
+    without the bus model's arming time or the plant's stamps (nothing to place them by)."""
+    faults = list(getattr(can_cfg, "faults", None) or [])
+    model = _bus_model_report(run_dir)
+    t0_ns = model.get("faults_t0_ns")
+    if not faults or t0_ns is None or clock is None:
+        return []
+    affected = {i: record for i, record in enumerate(model.get("faults", []))}
     windows = []
-    for fault in getattr(can_cfg, "faults", None) or []:
-        start = float(fault.start_s)
-        windows.append((str(fault.name), start, start + fault.duration_s if fault.duration_s else float("inf")))
+    for i, fault in enumerate(faults):
+        start_ns = t0_ns + float(fault.start_s) * 1e9
+        if fault.duration_s is not None:
+            end_ns = start_ns + float(fault.duration_s) * 1e9
+        else:   # limited by a count: it ends with the last frame it affected (or where it began)
+            end_ns = (affected.get(i) or {}).get("last_ns") or start_ns
+        start, end = (min(max(clock.sim_s(t), clock.start_sim_s), clock.end_sim_s) for t in (start_ns, end_ns))
+        windows.append((str(fault.name), start, end))
     return windows
 
 
-def _injections(run_dir: Path) -> list[tuple[float, str, str]]:
-    """What the injector did and when (s since the bus model's t0), if it logged anything."""
-    path, model = run_dir / INJECTIONS_FILE, run_dir / BUSMODEL_FILE
-    if not (path.is_file() and model.is_file()):
+def _injections(run_dir: Path, clock: RunClock | None) -> list[tuple[float, str, str]]:
+    """What the injector did and when (simulated s), if it logged anything."""
+    path = Path(run_dir) / INJECTIONS_FILE
+    if not path.is_file() or clock is None:
         return []
-    t0_ns = json.loads(model.read_text()).get("t0_ns", 0)
     records = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
-    return [((r["t_ns"] - t0_ns) / 1e9, r["fault"], r["action"]) for r in records]
+    if not records:
+        return []
+    times = clock.sim_s(np.asarray([r["t_ns"] for r in records], dtype=float))
+    return [(float(t), r["fault"], r["action"]) for t, r in zip(np.atleast_1d(times), records)]

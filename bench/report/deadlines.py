@@ -1,12 +1,15 @@
 """Deadline misses, cycle times and solve times of a run, from the recording and the plant.
 
-Two views of the same deadline:
+Two views of the same deadline, in both loops:
 - the controller's: DeadlineEvents on `event/deadline` (process "controller"), one per miss,
-  and its cycle time per step = commanded - controller_received of the command's header;
+  and its cycle time per step = commanded - controller_received of the command's header (the
+  loop's command topic: command/thrust or command/dipole);
 - the plant's (real-time mode): a step whose command was not in when the step was integrated has
   no `plant_received` stamp in trajectory.npz.
 A plant-side miss in a step the controller met its budget was lost to transport (or to the
 estimator), not to the controller: the report counts both kinds separately.
+The attitude loop's planner (planner.json) plans outside the control deadline: each plan's wall
+time is set against its own cap (real time: max_planning_wall_s; lock-step has none).
 """
 from __future__ import annotations
 
@@ -33,6 +36,10 @@ class DeadlineResult:
     # worker timeout, the host's share of an overrun that the recording cannot show
     host_wake_late_max_s: float | None = None
     cycle_time_less_host_p99_s: float | None = None
+    # the attitude planner: per plan, the simulated time it started from and its wall time
+    plan_time_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    plan_wall_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    plan_budget_s: float | None = None
 
     @property
     def plant_misses_controller_slow(self) -> int:
@@ -57,6 +64,12 @@ class DeadlineResult:
             "solve_time_p99_ms": _p(self.solve_time_s, 99),
             "host_wake_late_max_s": self.host_wake_late_max_s,
             "cycle_time_less_host_p99_s": self.cycle_time_less_host_p99_s,
+            **({"planner": {"plans": int(self.plan_wall_s.size), "budget_s": self.plan_budget_s,
+                            "wall_time_p50_s": float(np.median(self.plan_wall_s)),
+                            "worst_wall_time_s": float(self.plan_wall_s.max()),
+                            "over_budget": int(np.sum(self.plan_wall_s > self.plan_budget_s))
+                            if self.plan_budget_s is not None else 0}}
+               if self.plan_wall_s.size else {}),
         }
 
 
@@ -65,10 +78,13 @@ def _p(values_s: np.ndarray, q: float) -> float | None:
 
 
 def plant_missed_steps(run: RunData) -> list[int]:
-    """Real-time steps that ran on a held command (no plant_received stamp for the step)."""
+    """Real-time steps that ran on a held command: step k's command was not in when the plant
+    integrated it. The attitude plant records that time itself (its plant_received stamp is the
+    board's report of the command's frame, which may come a step later); the translation plant's
+    plant_received is the command's arrival."""
     if run.scenario is None or run.scenario.run.mode != "real-time":
         return []
-    received = run.trajectory.get("stamp_plant_received_ns")
+    received = run.trajectory.get("att_command_received_ns", run.trajectory.get("stamp_plant_received_ns"))
     return [] if received is None else [int(k) for k in np.flatnonzero(np.asarray(received) < 0)]
 
 
@@ -79,19 +95,22 @@ def deadlines(run: RunData) -> DeadlineResult:
         events_by_process[e["process"]] = events_by_process.get(e["process"], 0) + 1
     controller_misses = sorted({e["header"]["seq"] for e in events if e["process"] == "controller" and e["missed"]})
 
+    attitude = run.scenario is not None and run.scenario.kind == "attitude"
     seqs, cycle_s, solve_s, fallbacks = [], [], [], {}
-    for m in run.on(keys.COMMAND_THRUST):
+    for m in run.on(keys.COMMAND_DIPOLE if attitude else keys.COMMAND_THRUST):
         stamps, body = m.stamps_ns, m.body
         if "controller_received" in stamps and "commanded" in stamps:
             seqs.append(m.seq)
             cycle_s.append((stamps["commanded"] - stamps["controller_received"]) / 1e9)
         if body.get("fallback"):
             fallbacks[body["fallback"]] = fallbacks.get(body["fallback"], 0) + 1
-        else:
+        elif "solve_time_s" in body:
             solve_s.append(float(body["solve_time_s"]))   # a fallback's solve time is not a solve
-    budget = run.scenario.controller.deadline.budget_s if run.scenario is not None else None
-    summary_path = run.run_dir / "deadline_controller.json"
-    summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
+    summary = _json_dict(run.run_dir / "deadline_controller.json")
+    budget = summary.get("budget_s")
+    if budget is None and run.scenario is not None:
+        budget = run.scenario.controller.deadline.budget_s
+    plan_time_s, plan_wall_s, plan_budget_s = _planner(run)
     return DeadlineResult(
         budget_s=budget,
         cycle_seq=np.asarray(seqs, dtype=int),
@@ -103,4 +122,24 @@ def deadlines(run: RunData) -> DeadlineResult:
         events_by_process=events_by_process,
         host_wake_late_max_s=summary.get("host_wake_late_max_s"),
         cycle_time_less_host_p99_s=summary.get("cycle_time_less_host_p99_s"),
+        plan_time_s=plan_time_s, plan_wall_s=plan_wall_s, plan_budget_s=plan_budget_s,
     )
+
+
+def _json_dict(path) -> dict:
+    try:
+        value = json.loads(path.read_text()) if path.is_file() else {}
+    except (OSError, ValueError):
+        return {}
+    return value if isinstance(value, dict) else {}
+
+
+def _planner(run: RunData) -> tuple[np.ndarray, np.ndarray, float | None]:
+    """(start time of each plan [simulated s], its planning wall time [s], the wall-time cap)."""
+    plans = [p for p in _json_dict(run.run_dir / "planner.json").get("plans", [])
+             if isinstance(p, dict) and "wall_time_s" in p and "time_s" in p]
+    budget = None
+    if run.scenario is not None and run.scenario.kind == "attitude" and run.scenario.run.mode == "real-time":
+        budget = float(run.scenario.attitude_control.planner.max_planning_wall_s)
+    return (np.asarray([p["time_s"] for p in plans], float), np.asarray([p["wall_time_s"] for p in plans], float),
+            budget)

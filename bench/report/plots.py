@@ -125,6 +125,21 @@ def cycle_times(seq: np.ndarray, cycle_time_s: np.ndarray, budget_s: float | Non
     return _save(fig, path)
 
 
+def planning_times(plan_time_s: np.ndarray, wall_s: np.ndarray, budget_s: float | None, path: Path) -> Path:
+    """Each plan's planning wall time at the simulated time it started from, against its cap."""
+    fig, ax = plt.subplots(figsize=(11, 3.5))
+    ax.plot(plan_time_s, wall_s, "o", label="planning wall time")
+    if budget_s is not None:
+        ax.axhline(budget_s, color="tab:red", linestyle="--", label=f"cap {budget_s:g} s")
+    ax.set_yscale("log")
+    ax.set_xlabel("simulated time [s]")
+    ax.set_ylabel("wall time [s]")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize="small")
+    ax.set_title("Planner: wall time per plan")
+    return _save(fig, path)
+
+
 def solve_times(series_s: dict[str, np.ndarray], path: Path) -> Path:
     """Distribution of solver times (histogram and CDF), one series per run or controller."""
     fig, (hist_ax, cdf_ax) = plt.subplots(1, 2, figsize=(12, 4))
@@ -184,7 +199,7 @@ def nis(sim_time_s: np.ndarray, nis_values: np.ndarray, dof: int, rejected: np.n
 
 
 def bus_load(window_start_s: np.ndarray, load: np.ndarray, fault_windows: list[tuple[str, float, float]],
-             injections: list[tuple[float, str, str]], path: Path) -> Path:
+             injections: list[tuple[float, str, str]], path: Path, xlabel: str = "simulated time [s]") -> Path:
     """CAN bus load per window, the scenario's fault windows shaded, the injector's actions marked."""
     fig, ax = plt.subplots(figsize=(11, 4))
     ax.step(window_start_s, np.asarray(load) * 100, where="post", label="bus load")
@@ -194,7 +209,7 @@ def bus_load(window_start_s: np.ndarray, load: np.ndarray, fault_windows: list[t
     for i, action in enumerate(sorted({a for _, _, a in injections})):
         t_s = [t for t, _, a in injections if a == action]
         ax.plot(t_s, np.zeros(len(t_s)), "|", color=f"C{i + 5}", markersize=14, label=f"injected: {action} ({len(t_s)})")
-    ax.set_xlabel("time [s] (load: since first frame; faults: since bus model start)")
+    ax.set_xlabel(xlabel)
     ax.set_ylabel("bus load [%]")
     ax.grid(True, alpha=0.3)
     ax.legend(fontsize="small")

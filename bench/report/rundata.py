@@ -24,7 +24,7 @@ from mcap.reader import NonSeekingReader
 from bench.bus import keys
 from bench.bus.can.zenoh_interface import CAN_TOPIC
 from bench.bus.schemas import (
-    DeadlineEvent, GyroSample, MagnetometerSample, Message, MtqApplied, ProcessStats, RelativePosition,
+    DeadlineEvent, DipoleCommand, GyroSample, MagnetometerSample, Message, MtqApplied, ProcessStats, RelativePosition,
     StarTrackerSample, StepDone, ThrustCommand, TranslationEstimate, TruthState,
 )
 from bench.recorder import COUNTS_FILE, MALFORMED_PREFIX, OFFSETS_FILE, RECORDING_FILE, classify_any
@@ -32,13 +32,16 @@ from bench.scenario import Scenario, ScenarioError, load_scenario
 
 CAN_LOG_FILE = "can.log"
 
-# The message type each topic of the loop carries; a topic not listed takes any bench message.
-EXPECTED_TYPES: dict[str, type[Message]] = {
+# The message type(s) each topic of the loop carries; a topic not listed takes any bench message.
+# command/applied is the plant's record of what it applied: thrust in the translation loop, the
+# dipole in the attitude loop.
+EXPECTED_TYPES: dict[str, type[Message] | tuple[type[Message], ...]] = {
     keys.SENSE_RELPOS: RelativePosition,
     keys.TRUTH: TruthState,
     keys.ESTIMATE_TRANSLATION: TranslationEstimate,
     keys.COMMAND_THRUST: ThrustCommand,
-    keys.COMMAND_APPLIED: ThrustCommand,
+    keys.COMMAND_APPLIED: (ThrustCommand, DipoleCommand),
+    keys.COMMAND_DIPOLE: DipoleCommand,
     keys.ACTUATOR_MTQ: MtqApplied,
     keys.EVENT_DEADLINE: DeadlineEvent,
     keys.STATUS_STEP: StepDone,
@@ -48,7 +51,7 @@ EXPECTED_TYPES: dict[str, type[Message]] = {
 }
 
 
-def expected_type(topic: str) -> type[Message] | None:
+def expected_type(topic: str) -> type[Message] | tuple[type[Message], ...] | None:
     if topic.startswith(keys.STATUS_STATS + "/"):
         return ProcessStats
     return EXPECTED_TYPES.get(topic)

@@ -140,6 +140,7 @@ def run_bus_model(ctx) -> int:
         report = model.report()
         report.update(bridge.report())
         report["t0_ns"] = t0_ns
+        report["wall_offset_s"] = wall_offset_s   # can.log's wall timestamps = monotonic + this
         (out / REPORT_NAME).write_text(json.dumps(report, indent=1))
         with open(out / INJECTIONS_NAME, "w") as f:
             for record in injector.records:
