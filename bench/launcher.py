@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import dataclasses
 import fcntl
-import json
 import os
 import queue
 import secrets
@@ -27,10 +26,7 @@ from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
 
-import zipfile
-
 import msgspec
-import numpy as np
 import zenoh
 
 from bench.bus import acl, keys
@@ -39,10 +35,7 @@ from bench.bus.certs import CertificateError, identity_files, write_deployment_c
 from bench.bus.deployment import LAUNCHER, Deployment, DeploymentError, load_deployment
 from bench.bus.session import SessionConfigError, SessionOptions, free_loopback_port, loopback_endpoint, open_session
 from bench.controller.config import PLANNED_LAWS
-from bench.plant.acceptance import ACCEPTANCE_FILE
 from bench.plant.divergence import EXIT_DIVERGED, read_divergence
-from bench.report.jsonout import write_json
-from bench.report.run_metrics import trajectory_metrics
 from bench.runtime.node import NODES
 from bench.runtime.ownership import CpuProgress, child_environment, kill_group, process_state
 from bench.runtime.process import start_node
@@ -254,121 +247,10 @@ def _apply_overrides(scenario: Scenario, args) -> Scenario:
     return parse_scenario(msgspec.to_builtins(msgspec.structs.replace(scenario, run=run)), "command line")
 
 
-def _latency_percentiles_ms(trajectory: dict) -> dict:
-    """End-to-end sense-to-actuation latency from the plant's stamps, in ms."""
-    sensed, received = trajectory["stamp_sensed_ns"], trajectory["stamp_plant_received_ns"]
-    ok = (sensed >= 0) & (received >= 0)
-    if not ok.any():
-        return {"samples": 0}
-    latency_ms = (received[ok] - sensed[ok]) / 1e6
-    return {
-        "samples": int(ok.sum()),
-        "p50_ms": float(np.percentile(latency_ms, 50)),
-        "p90_ms": float(np.percentile(latency_ms, 90)),
-        "p99_ms": float(np.percentile(latency_ms, 99)),
-        "max_ms": float(latency_ms.max()),
-    }
-
-
-def write_metrics(run_dir: Path, scenario: Scenario, children: list[Child], stats: dict, wall_s: float,
-                  ending: "RunEnding | None" = None, remote: dict[str, str] | None = None) -> dict:
-    """metrics.json from whatever the run left: a partial run is marked with the reason it ended."""
-    metrics: dict = {}
-    trajectory = _load_trajectory(run_dir, scenario)
-    if trajectory is not None:
-        if scenario.kind == "attitude":
-            from bench.report.attitude_metrics import attitude_metrics
-
-            metrics = attitude_metrics(trajectory, scenario)
-        else:
-            metrics = trajectory_metrics(trajectory["state_m_mps"], trajectory["thrust_n"], scenario.params())
-    metrics.update({
-        "scenario": scenario.name,
-        "mode": scenario.run.mode,
-        "wall_time_s": wall_s,
-        "processes": {c.name: {"pid": c.process.pid, "exit_code": c.process.returncode} for c in children},
-        "process_stats": stats,
-    })
-    if trajectory is not None:
-        metrics.update({
-            "end_to_end_latency": _latency_percentiles_ms(trajectory),
-            "plant_missed_steps": int(trajectory.get("plant_missed_steps", 0)),
-            "plant_late_commands": int(trajectory.get("plant_late_commands", 0)),
-        })
-    for name, host in (remote or {}).items():   # started on their own hosts: no pid of ours
-        metrics["processes"][name] = {"host": host, "pid": None, "exit_code": None}
-    acceptance = _read_json(run_dir / ACCEPTANCE_FILE)
-    if acceptance is not None:
-        metrics["command_acceptance"] = acceptance
-    ending = ending or RunEnding(0, None)
-    metrics["exit_code"] = ending.code
-    metrics["partial"] = ending.reason is not None
-    if ending.reason is not None:
-        metrics["end_reason"] = ending.reason
-    write_json(run_dir / "metrics.json", metrics)
-    return metrics
-
-
-def _load_trajectory(run_dir: Path, scenario: Scenario) -> dict | None:
-    """The run's trajectory, or None where it is missing, broken or holds no step."""
-    try:
-        with np.load(run_dir / "trajectory.npz") as data:
-            trajectory = {k: data[k] for k in data.files}
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile):
-        return None
-    needed = ("att_time_s", "att_q_wxyz") if scenario.kind == "attitude" else ("state_m_mps", "thrust_n")
-    if any(k not in trajectory for k in needed) or len(trajectory[needed[-1]]) == 0:
-        return None
-    return trajectory
-
-
-def _read_json(path: Path):
-    try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError):
-        return None
-
-
 @dataclass
 class RunEnding:
     code: int
     reason: str | None      # None: the run finished; else why it ended early (first line)
-
-
-def _print_summary(metrics: dict, run_dir: Path) -> None:
-    from rich.console import Console
-    from rich.table import Table
-
-    table = Table(title=f"{metrics['scenario']} ({metrics['mode']}, {metrics['steps']} steps)")
-    table.add_column("metric")
-    table.add_column("value", justify="right")
-    latency = metrics["end_to_end_latency"]
-    if metrics.get("kind") == "attitude":
-        from bench.report.attitude_metrics import summary_rows
-
-        rows = summary_rows(metrics) + [("plant-side missed steps", str(metrics["plant_missed_steps"])),
-                                        ("wall time", f"{metrics['wall_time_s']:.1f} s")]
-    else:
-        rows = _rendezvous_rows(metrics, latency)
-    for name, value in rows:
-        table.add_row(name, value)
-    console = Console(stderr=False)
-    console.print(table)
-    console.print(f"run directory: {run_dir}")
-
-
-def _rendezvous_rows(metrics: dict, latency: dict) -> list[tuple[str, str]]:
-    return [
-        ("final position error", f"{metrics['final_position_error_m']:.1f} m"),
-        ("final velocity error", f"{metrics['final_velocity_error_mps']:.3f} m/s"),
-        ("input cost J_u", f"{metrics['input_cost']:.3f} N^2"),
-        ("fuel (L2)", f"{metrics['fuel_l2']:.1f} N s"),
-        ("max |thrust|", f"{metrics['max_abs_thrust_N']:.3f} N"),
-        ("constraints satisfied", "yes" if metrics["constraints_satisfied"] else "NO"),
-        ("latency p50 / p99", f"{latency.get('p50_ms', float('nan')):.2f} / {latency.get('p99_ms', float('nan')):.2f} ms"),
-        ("plant-side missed steps", str(metrics["plant_missed_steps"])),
-        ("wall time", f"{metrics['wall_time_s']:.1f} s"),
-    ]
 
 
 def _follow_run(session, run_id: str, children: list[Child], n_steps: int, show_progress: bool,
@@ -518,18 +400,23 @@ class StatsCollector:
 
 
 def _wait_alive(session, run_id: str, children: list[Child], timeout_s: float = STARTUP_TIMEOUT_S,
-                remote: dict[str, str] | None = None) -> None:
+                remote: dict[str, str] | None = None, show: bool = False) -> None:
     """Until every node's alive token is there. Past timeout_s, a node still starting is given up
-    to three times that while its CPU time advances (slow on a busy machine), not while it idles."""
+    to three times that while its CPU time advances (slow on a busy machine), not while it idles.
+    show: say on stderr when each node comes up (the terminal is never blank while they start)."""
     names = {c.name for c in children} | set(remote or {})
     started = time.monotonic()
     progress = {c.name: CpuProgress(c.process.pid) for c in children}
+    announced: set[str] = set()
     while True:
         _check_children(children, allowed_done=set())
         alive = set()
         for reply in session.liveliness().get(keys.key(run_id, f"{keys.ALIVE}/*"), timeout=0.5):
             if reply.ok is not None:
                 alive.add(str(reply.ok.key_expr).rsplit("/", 1)[-1])
+        for name in sorted((alive & names) - announced) if show else ():
+            print(f"bench: {name} up after {time.monotonic() - started:.1f} s", file=sys.stderr)
+            announced.add(name)
         if names <= alive:
             return
         now = time.monotonic()
@@ -684,6 +571,9 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
     with guard:
         try:
             try:
+                if show_progress:
+                    print(f"bench: run {run_id}: starting {', '.join(n for n in names if n not in remote)}",
+                          file=sys.stderr)
                 loop_peers = [n for n in names if n != "plant"]
                 for name in names:
                     if name in remote:
@@ -691,7 +581,8 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
                     peers = loop_peers if name == "plant" else []
                     children.append(_spawn(name, run_id, scenario_path, hub, run_dir, peers, zenoh_config, group,
                                            placement.node_args))
-                _wait_alive(session, run_id, children, scenario.run.liveliness.startup_timeout_s, remote)
+                _wait_alive(session, run_id, children, scenario.run.liveliness.startup_timeout_s, remote,
+                            show=show_progress)
                 _follow_run(session, run_id, children, scenario.n_steps, show_progress, scenario.run.liveliness, run_dir,
                             on_finished=collector.accept, remote=remote)
                 collector.accept()
@@ -736,25 +627,34 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
 
 def _finish(run_dir: Path, scenario: Scenario, children: list[Child], stats: dict, wall_s: float,
             ending: RunEnding, write_report: bool, remote: dict[str, str] | None = None) -> None:
-    """metrics.json and the report from whatever the run left; neither may turn an ending into a crash."""
+    """metrics.json, the report and the summary from whatever the run left (bench.report.summary);
+    none of them may turn an ending into a crash."""
+    from bench.report import summary
+
+    processes = {c.name: {"pid": c.process.pid, "exit_code": c.process.returncode} for c in children}
+    for name, host in (remote or {}).items():   # started on their own hosts: no pid of ours
+        processes[name] = {"host": host, "pid": None, "exit_code": None}
     try:
-        metrics = write_metrics(run_dir, scenario, children, stats, wall_s, ending, remote)
+        metrics = summary.run_metrics(run_dir, scenario, processes, stats, wall_s, ending.code, ending.reason)
     except Exception as exc:     # noqa: BLE001 - a broken file must not hide how the run ended
         print(f"bench: could not write metrics.json: {exc}", file=sys.stderr)
         return
+    html = None
+    if write_report:
+        print("bench: building the report", file=sys.stderr)
+        try:
+            from bench.report.build import write_report as build_report
+
+            _, html = build_report(run_dir)
+            metrics = summary.read_metrics(run_dir) or metrics
+        except Exception as exc:     # noqa: BLE001
+            print(f"bench: could not build the report ({exc}); `bench report {run_dir}` retries", file=sys.stderr)
     if ending.reason is None:
-        _print_summary(metrics, run_dir)
+        summary.print_summary(metrics, run_dir, summary.command_wall_time_s())
     else:
         print(f"bench: partial run ({ending.reason}); metrics: {run_dir / 'metrics.json'}", file=sys.stderr)
-    if not write_report:
-        return
-    try:
-        from bench.report.build import write_report as build_report
-
-        _, html = build_report(run_dir)
+    if html is not None:
         print(f"report: {html}")
-    except Exception as exc:     # noqa: BLE001
-        print(f"bench: could not build the report ({exc}); `bench report {run_dir}` retries", file=sys.stderr)
 
 
 def campaign_case(scenario: Scenario) -> dict:

@@ -20,6 +20,7 @@ from typing import Annotated, Literal
 import msgspec
 
 from bench.bus.can.config import CanConfig
+from bench.criteria import Criteria
 from bench.controller.config import ATTITUDE_LAWS, AttitudeControlConfig, ControllerConfig
 from bench.estimator.config import EstimatorConfig
 from bench.gnc.cwh import RendezvousParams
@@ -112,6 +113,8 @@ class Scenario(msgspec.Struct, forbid_unknown_fields=True):
     can: CanConfig | None = None
     attitude: AttitudePlantConfig = msgspec.field(default_factory=AttitudePlantConfig)
     attitude_control: AttitudeControlConfig = msgspec.field(default_factory=AttitudeControlConfig)
+    # What a run of this scenario is judged on ([[criteria]]: bench/criteria.py)
+    criteria: Criteria = msgspec.field(default_factory=list)
 
     def params(self) -> RendezvousParams:
         """The seed's params struct for this scenario (reference numbers, scenario overrides)."""

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.report import canbus, plots
+from bench.report import canbus, plots, summary
 from bench.report.attitude import attitude_section
 from bench.report.deadlines import DeadlineResult, deadlines
 from bench.report.jsonout import write_json
@@ -53,17 +53,29 @@ def latency_table(summary: dict[str, dict]) -> Table:
 
 
 # --- sections ---------------------------------------------------------------------------------
-def summary_section(run: RunData, mission: dict) -> Section:
+def summary_section(run: RunData, mission: dict, judged: dict) -> Section:
     s = run.scenario
     controller = s.attitude_control.law if s.kind == "attitude" else s.controller.type
     text = (f"Scenario {s.name!r}, {s.run.mode}, controller {controller}, estimator {s.estimator.mode}, "
             f"{s.n_steps} steps of {s.step_s:g} s.")
-    rows = [[name, fmt(mission.get(key))] for name, key in MISSION_ROWS if key in mission]
+    if s.kind == "attitude":
+        rows = [[name, value] for name, value in summary.summary_rows(mission)]
+    else:
+        rows = [[name, fmt(mission.get(key))] for name, key in MISSION_ROWS if key in mission]
     paragraphs = [text]
     if run.metrics.get("partial"):
         paragraphs.insert(0, f"Partial run: {run.metrics.get('end_reason', 'it did not finish')}. "
                              "The numbers cover the steps it ran.")
-    return Section("Summary", paragraphs, [Table(["metric", "value"], rows)])
+    tables = [Table(["metric", "value"], rows)]
+    if judged.get("passed") is None:
+        paragraphs.append("Verdict: not judged (the scenario declares no criteria).")
+    else:
+        paragraphs.append(f"Verdict: **{'PASS' if judged['passed'] else 'FAIL'}** against the scenario's criteria"
+                          + (" (a partial run fails whatever its figures)." if judged.get("partial_run") else "."))
+        tables.append(Table(["criterion", "bound", "value", "holds", "why"],
+                            [[c["metric"], c["bound"], fmt(c["value"]) if not isinstance(c["value"], str) else c["value"],
+                              "yes" if c["passed"] else "NO", c["why"]] for c in judged["criteria"]]))
+    return Section("Summary", paragraphs, tables)
 
 
 def trajectory_section(run: RunData, plot_dir: Path) -> Section | None:
@@ -266,12 +278,7 @@ def write_report(run_dir: str | Path) -> tuple[Path, Path]:
     est_section, est_metrics = estimation_section(run, plot_dir)
     can_sec, can_metrics = can_section(run, plot_dir)
     rec_section, rec_metrics = recording_section(run)
-    att_section, att_metrics = attitude_section(run, plot_dir)
-    sections = [summary_section(run, mission), att_section, trajectory_section(run, plot_dir),
-                latency_section(run, lat, plot_dir),
-                deadline_section(dl, plot_dir), est_section, can_sec, acceptance_section(run), rec_section]
-    doc = Document(f"Run {run.run_id}", [s for s in sections if s is not None])
-    paths = write(doc, run.run_dir, "report")
+    att_section, _ = attitude_section(run, plot_dir)
     metrics = {**mission, **run.metrics}
     metrics.update({
         "latency_ms": lat.to_metrics(),
@@ -281,7 +288,11 @@ def write_report(run_dir: str | Path) -> tuple[Path, Path]:
         "estimator_error": est_metrics,
         "can_bus": can_metrics,
     })
-    if att_metrics is not None:
-        metrics["attitude"] = att_metrics
+    metrics["verdict"] = summary.verdict(run.scenario, metrics)
+    sections = [summary_section(run, metrics, metrics["verdict"]), att_section, trajectory_section(run, plot_dir),
+                latency_section(run, lat, plot_dir),
+                deadline_section(dl, plot_dir), est_section, can_sec, acceptance_section(run), rec_section]
+    doc = Document(f"Run {run.run_id}", [s for s in sections if s is not None])
+    paths = write(doc, run.run_dir, "report")
     write_json(run.run_dir / "metrics.json", metrics)
     return paths
