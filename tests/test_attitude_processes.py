@@ -225,7 +225,8 @@ def test_fault_effect_and_compare_report(fault_runs, runs):
     effect = fault_effect(clean.trajectory, faulted.trajectory, faulted.scenario, max(end for _, _, end in windows))
     assert effect["quantity"] == "body rate [deg/s]"
     assert effect["max_excess"] > 0.0          # coils off in the command faults: the body turns faster than clean
-    result = run_bench_cli("compare", str(clean.run_dir), str(faulted.run_dir), "--out", str(runs / "cmp"), timeout_s=300)
+    result = run_bench_cli("compare", str(faulted.run_dir), "--reference", str(clean.run_dir), "--out", str(runs / "cmp"),
+                           timeout_s=300)
     assert result.returncode == 0, result.stderr
     assert "Attitude: effect of the faults" in (runs / "cmp" / "compare.md").read_text()
 

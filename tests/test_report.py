@@ -25,7 +25,7 @@ from bench.report.build import write_report
 from bench.report.compare import write_comparison
 from bench.report.latency import END_TO_END, correct_clock_offsets, latency, percentiles_ms
 from bench.report.rundata import load_run
-from bench.scenario import parse_scenario
+from bench.scenario import load_scenario, parse_scenario
 
 RUN_ID = "synthetic"
 N = 40
@@ -181,6 +181,19 @@ def test_compare_puts_runs_side_by_side(tmp_path):
     assert "| estimator | smoother | truth |" in text
     for name in ("trajectories", "latency_cdf", "solve_time"):
         assert (tmp_path / "cmp" / "plots" / f"{name}.png").stat().st_size > 10_000
+
+
+def test_compare_refuses_runs_of_different_loops_and_a_reference_not_compared(tmp_path, capsys):
+    a = make_run(tmp_path / "a")
+    attitude = tmp_path / "att"
+    attitude.mkdir()
+    (attitude / "scenario.json").write_bytes(msgspec.json.encode(load_scenario("attitude_quick")))
+    assert bench_main(["compare", str(a), str(attitude), "--out", str(tmp_path / "cmp")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "different loops" in err[0] and "attitude" in err[0] and "rendezvous" in err[0]
+    b = make_run(tmp_path / "b")
+    assert bench_main(["compare", str(a), str(b), "--reference", str(tmp_path / "nope"), "--out", str(tmp_path / "c2")]) == 2
+    assert "not a run directory" in capsys.readouterr().err
 
 
 def test_report_of_a_directory_that_is_not_a_run_is_a_clear_error(tmp_path, capsys):

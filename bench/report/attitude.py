@@ -104,9 +104,10 @@ def attitude_section(run, plot_dir: Path) -> tuple[Section | None, dict | None]:
     return section, metrics
 
 
-def comparison_section(runs: list, plot_dir: Path) -> Section:
-    """Attitude runs side by side; every run after the first is compared with the first (the clean
-    reference): the excess of its pointing error (or body rate) and its loop recovery after faults."""
+def comparison_section(runs: list, plot_dir: Path, with_reference: bool = True) -> Section:
+    """Attitude runs side by side. with_reference: the first run is the clean reference and every
+    other is compared with it: the excess of its pointing error (or body rate) and its loop
+    recovery after faults."""
     from bench.report.attitude_metrics import fault_effect
 
     reference = runs[0]
@@ -116,7 +117,7 @@ def comparison_section(runs: list, plot_dir: Path) -> Section:
         metrics = attitude_metrics(run.trajectory, run.scenario)
         windows = fault_windows_sim_s(run.run_dir, run.scenario, run.trajectory)
         effect = {}
-        if i > 0:
+        if with_reference and i > 0:
             fault_end = max((end for _, _, end in windows), default=0.0)
             effect = fault_effect(reference.trajectory, run.trajectory, run.scenario, fault_end)
         error = pointing_error_deg(run.trajectory, run.scenario)
@@ -135,10 +136,11 @@ def comparison_section(runs: list, plot_dir: Path) -> Section:
     path = plot_dir / "attitude_compare.png"
     fig.savefig(path, dpi=90)
     plt.close(fig)
-    return Section("Attitude: effect of the faults", [
-        f"Reference (clean) run: {reference.run_id}. Excess = this run minus the reference, step by step "
-        "(same seed; real-time runs differ slightly in timing even without faults). Loop recovery: simulated "
-        "time after the last fault window until every step applies what the law commanded."],
+    note = (f"Reference (clean) run: {reference.run_id}. Excess = this run minus the reference, step by step "
+            "(same seed; real-time runs differ slightly in timing even without faults). Loop recovery: simulated "
+            "time after the last fault window until every step applies what the law commanded."
+            if with_reference else "No reference run given (--reference RUN): no fault effect computed.")
+    return Section("Attitude: effect of the faults", [note],
         [Table(["run", "scenario", "final error [deg] or rate [deg/s]", "saturated", "refused reports",
                 "max excess", "loop recovery [s]"], rows)],
         [Figure(Path(PLOTS_DIR) / path.name, "Pointing error or body rate per run, fault windows shaded")])

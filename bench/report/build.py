@@ -184,7 +184,9 @@ def driver_events_table(path: Path) -> tuple[Table | None, dict | None]:
         by_kind.setdefault(event["kind"], []).append(event["latency_s"])
     rows = [[kind, fmt(len(lat)), fmt(lat[0] * 1e3), fmt(max(lat) * 1e3)] for kind, lat in sorted(by_kind.items())]
     rows.append(["board healthy at the end", "yes" if report["health"]["ok"] else "NO", "", ""])
-    metrics = {"events": {k: len(v) for k, v in by_kind.items()}, "board_ok_at_end": report["health"]["ok"]}
+    metrics = {"events": {k: len(v) for k, v in by_kind.items()},
+               "worst_latency_s": {k: max(v) for k, v in by_kind.items()},
+               "board_ok_at_end": report["health"]["ok"]}
     return Table(["driver event", "count", "first latency [ms]", "worst latency [ms]"], rows), metrics
 
 

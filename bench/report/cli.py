@@ -21,11 +21,11 @@ def cmd_report(args) -> int:
 
 
 def cmd_compare(args) -> int:
-    from bench.report.compare import write_comparison
+    from bench.report.compare import CompareError, write_comparison
 
     try:
-        md, page = write_comparison(args.run_dirs, args.out)
-    except RunDirError as exc:
+        md, page = write_comparison(args.run_dirs, args.out, args.reference)
+    except (RunDirError, CompareError) as exc:
         print(f"bench compare: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
     print(f"wrote {page} and {md}")
@@ -40,4 +40,6 @@ def add_commands(subparsers) -> None:
     compare = subparsers.add_parser("compare", help="put runs side by side in one table and one set of plots")
     compare.add_argument("run_dirs", nargs="+", help="run directories to compare")
     compare.add_argument("--out", help="output directory (default: runs/compare-<time>)")
+    compare.add_argument("--reference", help="the clean run the others' fault effects are measured against "
+                                             "(attitude; added to the runs if not among them)")
     compare.set_defaults(func=cmd_compare)

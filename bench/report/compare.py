@@ -3,6 +3,11 @@
 Seed 001's question is the first user: LQR, LQT and MPC, with full state knowledge and with noisy
 sensing, compared on fuel, accuracy, compute cost and success. Each run keeps its own report; this
 one reads the same analyses (mission metrics, latency, deadlines) and lays them next to each other.
+
+Runs of one loop only: a rendezvous run and an attitude run share no figure worth a column, so a
+mix is refused. The rows follow the loop (controller and plant dynamics for the rendezvous; law,
+estimator and bus faults for the attitude loop). `--reference RUN` names the clean run the others'
+fault effects are measured against (attitude); without it no effect is computed.
 """
 from __future__ import annotations
 
@@ -27,19 +32,37 @@ class RunSummary:
     deadlines: DeadlineResult
 
 
+class CompareError(ValueError):
+    """Runs that cannot be compared (different loops, a reference that is not among them)."""
+
+
 def summarise(run_dir: Path) -> RunSummary:
     run = load_run(run_dir)
     s = run.scenario
-    label = f"{run.run_id} ({s.controller.type}, {s.estimator.mode})"
+    label = f"{run.run_id} ({controller_of(s)}, {s.estimator.mode})"
     return RunSummary(label, run, mission_metrics(run), latency(run), deadlines(run))
+
+
+def controller_of(scenario) -> str:
+    return scenario.attitude_control.law if scenario.kind == "attitude" else scenario.controller.type
+
+
+def faults_of(scenario) -> str:
+    faults = getattr(scenario.can, "faults", None) or []
+    return ", ".join(f.name for f in faults) or "none"
 
 
 def _lat(summary: RunSummary, hop: str, key: str):
     return summary.latency.summary.get(hop, {}).get(key)
 
 
-# One row per quantity: (name, function of a RunSummary).
-ROWS = (
+def _verdict(summary: RunSummary) -> str:
+    passed = summary.run.metrics.get("verdict", {}).get("passed")
+    return "not judged" if passed is None else ("PASS" if passed else "FAIL")
+
+
+# One row per quantity: (name, function of a RunSummary), the ones of each loop, then the common ones.
+RENDEZVOUS_ROWS = (
     ("scenario", lambda r: r.run.scenario.name),
     ("mode", lambda r: r.run.scenario.run.mode),
     ("controller", lambda r: r.run.scenario.controller.type),
@@ -52,6 +75,21 @@ ROWS = (
     ("fuel (L2) [N s]", lambda r: r.mission.get("fuel_l2")),
     ("max |thrust| [N]", lambda r: r.mission.get("max_abs_thrust_N")),
     ("constraints satisfied", lambda r: r.mission.get("constraints_satisfied")),
+)
+ATTITUDE_ROWS = (
+    ("scenario", lambda r: r.run.scenario.name),
+    ("mode", lambda r: r.run.scenario.run.mode),
+    ("law", lambda r: r.run.scenario.attitude_control.law),
+    ("estimator", lambda r: r.run.scenario.estimator.mode),
+    ("bus faults", lambda r: faults_of(r.run.scenario)),
+    ("steps", lambda r: r.mission.get("steps")),
+    ("body rate final [deg/s]", lambda r: r.mission.get("final_rate_dps")),
+    ("time to detumble [s]", lambda r: r.mission.get("time_to_detumble_s")),
+    ("pointing error final [deg]", lambda r: r.mission.get("final_pointing_error_deg")),
+    ("saturation fraction", lambda r: r.mission.get("saturation_fraction")),
+)
+COMMON_ROWS = (
+    ("verdict", _verdict),
     ("end-to-end latency p50 [ms]", lambda r: _lat(r, END_TO_END.name, "p50_ms")),
     ("end-to-end latency p99 [ms]", lambda r: _lat(r, END_TO_END.name, "p99_ms")),
     ("controller compute p50 [ms]", lambda r: _lat(r, "controller compute", "p50_ms")),
@@ -63,8 +101,23 @@ ROWS = (
 
 
 def comparison_table(summaries: list[RunSummary]) -> Table:
+    loop_rows = ATTITUDE_ROWS if summaries[0].run.scenario.kind == "attitude" else RENDEZVOUS_ROWS
     return Table(["", *(s.run.run_id for s in summaries)],
-                 [[name, *(fmt(get(s)) for s in summaries)] for name, get in ROWS])
+                 [[name, *(fmt(get(s)) for s in summaries)] for name, get in (*loop_rows, *COMMON_ROWS)])
+
+
+def check_comparable(summaries: list[RunSummary], reference: Path | None) -> int | None:
+    """One loop only; the index of the reference run (None without one)."""
+    kinds = {s.run.scenario.kind for s in summaries}
+    if len(kinds) > 1:
+        which = ", ".join(f"{s.run.run_id}: {s.run.scenario.kind}" for s in summaries)
+        raise CompareError(f"runs of different loops cannot be compared ({which})")
+    if reference is None:
+        return None
+    for i, s in enumerate(summaries):
+        if Path(s.run.run_dir).resolve() == Path(reference).resolve():
+            return i
+    raise CompareError(f"--reference {reference} is not one of the runs compared")
 
 
 def default_out_dir(run_dirs: list[Path]) -> Path:
@@ -72,13 +125,18 @@ def default_out_dir(run_dirs: list[Path]) -> Path:
     return Path(run_dirs[0]).resolve().parent / f"compare-{stamp}"
 
 
-def write_comparison(run_dirs: list[str | Path], out_dir: str | Path | None = None) -> tuple[Path, Path]:
-    """compare.md, compare.html and plots/ in out_dir (default: runs/compare-<time>)."""
+def write_comparison(run_dirs: list[str | Path], out_dir: str | Path | None = None,
+                     reference: str | Path | None = None) -> tuple[Path, Path]:
+    """compare.md, compare.html and plots/ in out_dir (default: runs/compare-<time>). reference:
+    the clean run (added to the runs if it is not among them)."""
     run_dirs = [Path(d) for d in run_dirs]
+    if reference is not None and all(Path(d).resolve() != Path(reference).resolve() for d in run_dirs):
+        run_dirs.insert(0, Path(reference))
     out_dir = Path(out_dir) if out_dir else default_out_dir(run_dirs)
     plot_dir = out_dir / PLOTS_DIR
     plot_dir.mkdir(parents=True, exist_ok=True)
     summaries = [summarise(d) for d in run_dirs]
+    reference_index = check_comparable(summaries, Path(reference) if reference is not None else None)
 
     figures = []
     trajectories = [t for t in (trajectory_series(s.run, s.label) for s in summaries) if t is not None]
@@ -96,9 +154,12 @@ def write_comparison(run_dirs: list[str | Path], out_dir: str | Path | None = No
 
     runs_text = "Runs: " + "; ".join(f"{s.run.run_id} = {s.run.run_dir}" for s in summaries) + "."
     sections = [Section("Runs side by side", [runs_text], [comparison_table(summaries)], figures)]
-    if all(s.run.scenario.kind == "attitude" for s in summaries):
+    if summaries[0].run.scenario.kind == "attitude":
         from bench.report.attitude import comparison_section
 
-        sections.append(comparison_section([s.run for s in summaries], plot_dir))
+        runs = [s.run for s in summaries]
+        if reference_index is not None:
+            runs.insert(0, runs.pop(reference_index))
+        sections.append(comparison_section(runs, plot_dir, with_reference=reference_index is not None))
     doc = Document(f"Comparison of {len(summaries)} runs", sections)
     return write(doc, out_dir, "compare")

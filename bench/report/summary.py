@@ -165,10 +165,10 @@ def verdict_rows(result: dict) -> list[tuple[str, str]]:
     if result.get("passed") is None:
         return [("verdict", "not judged: the scenario declares no criteria")]
     rows = [("verdict", ("PASS" if result["passed"] else "FAIL") + (" (partial run)" if result.get("partial_run") else ""))]
-    for c in result["criteria"]:
+    for c in result["criteria"]:   # the reasons are in the report and metrics.json
         value = c["value"]
         shown = f"{value:.4g}" if isinstance(value, float) else str(value)
-        rows.append((f"  {'ok  ' if c['passed'] else 'FAIL'} {c['metric']} {c['bound']}", f"{shown}  ({c['why']})"))
+        rows.append((f"  {c['metric']} {c['bound']}", f"{shown} {'ok' if c['passed'] else 'FAIL'}"))
     return rows
 
 
