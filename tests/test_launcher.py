@@ -66,7 +66,7 @@ def test_multiprocess_run_reproduces_in_process_simulation(default_run):
 
 def test_summary_is_printed_and_the_report_written(default_run):
     run_dir, result = default_run
-    assert "final position error" in result.stdout and "run directory" in result.stdout
+    assert "position error at the last step" in result.stdout and "run directory" in result.stdout
     assert (run_dir / "report.html").is_file() and (run_dir / "report.md").is_file()
     assert (run_dir / "recording.mcap").stat().st_size > 0
 

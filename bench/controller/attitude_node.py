@@ -32,16 +32,17 @@ class DipoleSender:
     def __init__(self, link: MagnetorquerLink):
         self.link = link
         self._lock = threading.Lock()
-        self._pending: tuple[list[float], threading.Event, list] | None = None
+        self._pending: tuple[list[float], threading.Event, list, int] | None = None
         link.loop.on_command = self._on_command
 
     def send(self, dipole_am2: np.ndarray, timeout_s: float) -> tuple[int, int | None]:
         """(alive counter, can_sent ns) of the first frame with this dipole; (-1, None) on timeout."""
         dipole = [float(x) for x in dipole_am2]
         done, result = threading.Event(), []
+        requested_ns = time.monotonic_ns()
         self.link.loop.set_dipole(dipole)
         with self._lock:
-            self._pending = (dipole, done, result)
+            self._pending = (dipole, done, result, requested_ns)
         if not done.wait(timeout_s):
             with self._lock:
                 self._pending = None
@@ -51,9 +52,11 @@ class DipoleSender:
     def _on_command(self, counter: int, dipole: list[float], sent_ns: int) -> None:
         with self._lock:
             # A frame built from the previous dipole can be on its way when the new one is set:
-            # only a frame with the new values answers.
-            if self._pending is not None and list(dipole) == self._pending[0]:
-                _, done, result = self._pending
+            # only a frame with the new values, sent after the law asked for them, answers (an
+            # unchanged dipole is on every frame: one sent before the request carries the old
+            # command, and its stamp would put can_sent before commanded).
+            if self._pending is not None and list(dipole) == self._pending[0] and sent_ns >= self._pending[3]:
+                _, done, result, _ = self._pending
                 result.extend([counter, sent_ns])
                 self._pending = None
                 done.set()

@@ -111,6 +111,7 @@ def attitude_metrics(trajectory: dict, scenario: Scenario) -> dict:
         metrics.update({
             "initial_pointing_error_deg": float(error[0]),
             "final_pointing_error_deg": float(error[-1]),
+            "max_pointing_error_deg": float(error.max()),
             "settling_band_deg": SETTLING_BAND_DEG,
             "settling_time_s": settle,
             "max_error_after_settling_deg": float(error[times >= settle].max()) if settle is not None else None,

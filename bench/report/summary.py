@@ -139,8 +139,8 @@ def _rendezvous_rows(metrics: dict) -> list[tuple[str, str]]:
     if "final_position_error_m" not in metrics:
         return []
     return [
-        ("final position error", f"{metrics['final_position_error_m']:.1f} m"),
-        ("final velocity error", f"{metrics['final_velocity_error_mps']:.3f} m/s"),
+        ("position error at the last step", f"{metrics['final_position_error_m']:.1f} m"),
+        ("velocity error at the last step", f"{metrics['final_velocity_error_mps']:.3f} m/s"),
         ("input cost J_u", f"{metrics['input_cost']:.3f} N^2"),
         ("fuel (L2)", f"{metrics['fuel_l2']:.1f} N s"),
         ("max |thrust|", f"{metrics['max_abs_thrust_N']:.3f} N"),

@@ -1,0 +1,135 @@
+"""Every built-in scenario, in a short form, as processes: what a user reads is right.
+
+Each scenario runs as `bench run` does (its own mode: lock-step, or real time where it is real
+time), cut short: a few steps, and where it injects bus faults, the faults moved to the start of
+the run and shortened so that each one happens inside it. On the outputs:
+- every step's stamp chain runs forward (each stage's stamp at or after the one before), so no
+  latency anywhere is negative, in trajectory.npz and in metrics.json's per-hop table;
+- every fault window lies inside the run on simulated time, and overlaps the frames the fault
+  affected (the bus model's first and last, mapped by the run's own time base);
+- every report section of the run's loop is there and holds a table or a figure, the Deadlines
+  section counts the controller's cycles;
+- the summary, metrics.json and the report carry a pass/fail verdict.
+"""
+from __future__ import annotations
+
+import json
+import math
+import shutil
+from pathlib import Path
+
+import msgspec
+import numpy as np
+import pytest
+
+from bench.bus.schemas import STAGES
+from bench.report.timebase import RunClock
+from bench.report.rundata import load_run
+from bench.scenario import builtin_names, load_scenario
+from tests.conftest import run_bench_cli
+
+RUN_TIMEOUT_S = 240
+ATTITUDE_SHORT_S = 3.0          # real-time attitude runs: 3 s, the faults within it
+LOCKSTEP_ATTITUDE_STEPS = 25
+RENDEZVOUS_STEPS = 12
+SECTIONS = {"rendezvous": ("Summary", "Trajectory", "Latency", "Deadlines", "Recording"),
+            "attitude": ("Summary", "Attitude", "Latency", "Deadlines", "CAN bus", "Recording")}
+
+
+def short_form(name: str) -> dict:
+    """The scenario cut short, its faults (if any) moved inside the short run."""
+    data = msgspec.to_builtins(load_scenario(name))
+    if data.get("kind") == "attitude":
+        if data["run"]["mode"] == "real-time":
+            data["attitude"]["duration_s"] = ATTITUDE_SHORT_S
+            data["run"]["steps"] = None
+        else:
+            data["run"]["steps"] = LOCKSTEP_ATTITUDE_STEPS
+    else:   # real time: 10 steps a second, 3 s for the faults
+        data["run"]["steps"] = RENDEZVOUS_STEPS if data["run"]["mode"] == "lock-step" else 30
+    faults = (data.get("can") or {}).get("faults") or []
+    for i, fault in enumerate(faults):
+        # one after the other from 0.5 s, 0.3 s or 5 frames each: all inside a 3 s run
+        fault["start_s"] = 0.5 + 0.4 * i
+        if fault.get("duration_s") is not None:
+            fault["duration_s"] = 0.3
+        if fault.get("count") is not None:
+            fault["count"] = min(int(fault["count"]), 5)
+    return data
+
+
+def needs_kernel_can(name: str) -> bool:
+    can = load_scenario(name).can
+    return can is not None and can.transport == "socketcan"
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    directory = tmp_path_factory.mktemp("builtin-runs")
+    yield directory
+    shutil.rmtree(directory, ignore_errors=True)
+
+
+def chain_breaks(trajectory: dict) -> list[str]:
+    """Steps whose stamps (in loop order, absent ones skipped) go backwards."""
+    columns = [np.asarray(trajectory[f"stamp_{s}_ns"], np.int64) for s in STAGES if f"stamp_{s}_ns" in trajectory]
+    stamps = np.stack(columns, axis=1)
+    broken = []
+    for k, row in enumerate(stamps):
+        present = [(stage, v) for stage, v in zip(STAGES, row) if v > 0]
+        for (a, va), (b, vb) in zip(present, present[1:]):
+            if vb < va:
+                broken.append(f"step {k}: {b} {(vb - va) / 1e6:.2f} ms before {a}")
+    return broken
+
+
+@pytest.mark.parametrize("name", builtin_names())
+def test_a_short_run_of_every_builtin_scenario_reads_right(runs, name):
+    if needs_kernel_can(name) and not Path("/sys/class/net/vcan0").exists():
+        pytest.skip("needs the kernel's SocketCAN (vcan); its loop is run in user-mode Linux by tests/test_kernel_can_uml.py")
+    scenario_file = runs / f"{name}.json"
+    scenario_file.write_text(json.dumps(short_form(name)))
+    result = run_bench_cli("run", str(scenario_file), "--run-id", name, "--runs-dir", str(runs), "--no-progress",
+                           timeout_s=RUN_TIMEOUT_S)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "verdict" in result.stdout and ("PASS" in result.stdout or "FAIL" in result.stdout)
+    run = load_run(runs / name)
+    metrics = json.loads((runs / name / "metrics.json").read_text())
+
+    # stamp chains forward, no negative latency
+    assert chain_breaks(run.trajectory) == []
+    for hop, figures in metrics["latency_ms"].items():
+        if figures.get("n"):
+            assert figures["p50_ms"] >= 0 and figures["mean_ms"] >= 0, (hop, figures)
+    assert metrics["end_to_end_latency"]["samples"] > 0
+
+    # fault windows inside the run, on simulated time, over the frames they affected
+    clock = RunClock.from_run(run.trajectory, run.scenario)
+    faults = metrics["can_bus"]["faults"] if metrics.get("can_bus") else []
+    assert len(faults) == len(getattr(run.scenario.can, "faults", None) or [])
+    if faults:
+        model = json.loads((runs / name / "can" / "busmodel.json").read_text())
+        frame_s = run.scenario.can.driver.command_period_s
+        for window, affected in zip(faults, model["faults"]):
+            start, end = window["start_sim_s"], window["end_sim_s"]
+            assert clock.start_sim_s <= start <= end <= clock.end_sim_s, window
+            assert math.isfinite(end)
+            if affected["affected"] and affected["first_ns"] is not None:
+                first, last = clock.sim_s(affected["first_ns"]), clock.sim_s(affected["last_ns"])
+                assert start - frame_s <= first and last <= end + frame_s, (window, first, last)
+
+    # every section of the loop's report there and not empty
+    report = (runs / name / "report.md").read_text()
+    kind = run.scenario.kind
+    sections = {part.split("\n", 1)[0].strip(): part for part in report.split("\n## ")[1:]}
+    for section in SECTIONS[kind]:
+        if section == "CAN bus" and run.scenario.can is None:
+            continue
+        assert section in sections, f"no {section} section"
+        assert "| ---" in sections[section] or "![" in sections[section], f"{section} is empty"
+    assert metrics["deadlines"]["controller_cycles"] > 0
+    assert "left out of every analysis" not in report
+
+    # a verdict everywhere
+    assert isinstance(metrics["verdict"]["passed"], bool) and metrics["verdict"]["criteria"]
+    assert "Verdict: **PASS**" in report or "Verdict: **FAIL**" in report
