@@ -16,6 +16,19 @@ run of the bench never loses a sample to them.
 Zenoh delivers samples on its own threads; they are queued with their arrival time and written by
 the node's thread, because mcap's Writer is not thread-safe and a slow disk must not block Zenoh.
 
+Time (`SimTimeBase`): a message's MCAP log time is the run's simulated time, so a viewer's timeline
+is the mission's (a 48 h rendezvous spans 48 h): the sim_time_s of its header, counted from the
+run's t = 0. What has no simulated time of its own (a CAN frame, a malformed payload, the shutdown
+ProcessStats, the board's MtqApplied report, which carries 0.0) gets the simulated time of the
+newest step seen so far: it happened after that step's messages arrived. The publish time is the
+wall clock at which the recorder received the sample (time.time_ns), in arrival order.
+
+A CAN frame is recorded as JSON (schema CAN_FRAME_SCHEMA): identifier, data in hex, flags, the
+Zenoh channel and the DBC sender and receiver, the sender's timestamp, and the signals decoded
+with the run's DBC (bench/bus/can/mtq.dbc through protocol.Protocol), so Foxglove plots them.
+The scenario (its SecOC key left out) and, for a run placed by a deployment file, that file go
+into the file as MCAP metadata records.
+
 At the end it writes recorder_counts.json: per topic what it recorded, what was malformed, and
 what the publishers say they published (their ProcessStats), so a lost sample shows up as a
 difference. It also pings every process's clock (bench/bus/clock_sync.py) during the run and
@@ -24,7 +37,9 @@ writes clock_offsets.json.
 from __future__ import annotations
 
 import json
+import math
 import queue
+import sys
 import threading
 import time
 from collections import Counter
@@ -32,13 +47,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Union
 
+import can
 import msgspec
 from mcap.writer import Writer
 
 from bench.bus import clock_sync, keys
+from bench.bus.can import protocol as can_protocol
 from bench.bus.can import zenoh_wire
 from bench.bus.can.zenoh_interface import CAN_TOPIC
-from bench.bus.schemas import SCHEMA_VERSION, Message, ProcessStats, json_schema
+from bench.bus.schemas import SCHEMA_VERSION, Message, MtqApplied, ProcessStats, json_schema
 from bench.bus import plan_message as _plan_message   # noqa: F401  registers AttitudePlanMessage
 
 RECORDING_FILE = "recording.mcap"
@@ -53,7 +70,41 @@ CLOCK_SYNC_PERIOD_S = 0.5   # cheap (one query per round); catches short-lived r
 # on a small machine each wake-up of the recorder competes with the loop's processes for a core.
 DRAIN_PERIOD_S = 0.2
 
-CAN_FRAME_ENCODING = "application/x-bench-can-frame"    # bench/bus/can/zenoh_wire.py's layout
+# Messages whose header has no simulated time of the loop: the shutdown counts, and the board's
+# report (the board sees CAN frames, not steps; its header carries 0.0).
+UNSTEPPED_TYPES: tuple[type[Message], ...] = (ProcessStats, MtqApplied)
+MAX_LOG_TIME_NS = 2**63 - 1     # MCAP times are uint64; kept in int64 range for every reader
+METADATA_SCENARIO = "scenario"
+METADATA_DEPLOYMENT = "deployment"
+MAX_DEPLOYMENT_BYTES = 64 * 1024
+CAN_FRAME_SCHEMA_NAME = "bench.CanFrame"
+CAN_FRAME_SCHEMA = {
+    "title": CAN_FRAME_SCHEMA_NAME,
+    "description": "One CAN frame seen on a Zenoh CAN channel of the run, with its DBC-decoded signals",
+    "type": "object",
+    "properties": {
+        "sim_time_s": {"type": "number", "description": "the run's simulated time of the newest step seen [s]"},
+        "timestamp_s": {"type": "number", "description": "the sender's timestamp of the frame (wall clock) [s]"},
+        "channel": {"type": "string", "description": "the Zenoh CAN channel (flight or board side of the bus model)"},
+        "id": {"type": "integer", "description": "arbitration identifier"},
+        "id_hex": {"type": "string"},
+        "is_extended_id": {"type": "boolean"},
+        "is_fd": {"type": "boolean"},
+        "is_error_frame": {"type": "boolean"},
+        "is_remote_frame": {"type": "boolean"},
+        "dlc": {"type": "integer"},
+        "data": {"type": "string", "description": "data bytes in hex"},
+        "sender_id": {"type": "integer", "description": "the sending bus instance (zenoh_wire)"},
+        "sequence": {"type": "integer", "description": "the sender's frame sequence number"},
+        "name": {"type": ["string", "null"], "description": "DBC message name; null for an identifier not in the DBC"},
+        "direction": {"type": ["string", "null"], "description": "DBC sender -> receivers, e.g. OBC->MTQ"},
+        "decoded": {"type": "boolean", "description": "the frame is a valid frame of the DBC (signals filled)"},
+        "crc_ok": {"type": ["boolean", "null"], "description": "E2E CRC check; null for unprotected frames"},
+        "signals": {"type": "object", "additionalProperties": {"type": "number"},
+                    "description": "DBC signals in physical units"},
+    },
+    "required": ["sim_time_s", "timestamp_s", "channel", "id", "data", "name", "direction", "signals"],
+}
 
 # Budgets (see the module docstring). The default loop publishes ~1 300 samples/s per topic of
 # ~0.5 kB in lock-step (README, loop rate); a saturated 1 Mbit/s CAN bus is ~7 900 frames/s.
@@ -166,15 +217,105 @@ def topic_of(key_expr: str, run_id: str) -> str:
     return key_expr[len(prefix):] if key_expr.startswith(prefix) else key_expr
 
 
-class Recording:
-    """An MCAP file with one JSON channel per (topic, message type) and raw malformed channels."""
+class SimTimeBase:
+    """The MCAP log time of each recorded sample: the run's simulated time, in ns (see the module
+    docstring). A header time that is not a number of seconds in [0, MAX_LOG_TIME_NS] (anyone can
+    publish) is treated as having none."""
 
-    def __init__(self, path: Path, run_id: str):
+    def __init__(self):
+        self.newest_step_ns = 0
+
+    def of_message(self, message: Message) -> int:
+        if isinstance(message, UNSTEPPED_TYPES):
+            return self.newest_step_ns
+        sim_time_s = message.header.sim_time_s
+        if not (math.isfinite(sim_time_s) and 0.0 <= sim_time_s <= MAX_LOG_TIME_NS / 1e9):
+            return self.newest_step_ns
+        log_time_ns = min(int(round(sim_time_s * 1e9)), MAX_LOG_TIME_NS)
+        self.newest_step_ns = max(self.newest_step_ns, log_time_ns)
+        return log_time_ns
+
+    def of_unstepped(self) -> int:
+        return self.newest_step_ns
+
+
+def can_frame_signals(protocol: can_protocol.Protocol, msg: can.Message) -> dict:
+    """What the DBC says of a frame: name, direction (DBC sender -> receivers), whether it decodes
+    as a frame of the protocol, its E2E CRC verdict and its signals (physical units)."""
+    name = protocol.name_of(msg.arbitration_id) if not msg.is_extended_id else None
+    direction = None
+    if name is not None:
+        message = protocol.db.get_message_by_name(name)
+        receivers = sorted({r for signal in message.signals for r in signal.receivers})
+        direction = f"{','.join(message.senders)}->{','.join(receivers)}"
+    frame = protocol.decode(msg)
+    signals = {k: float(v) if isinstance(v, float) else int(v) for k, v in frame.signals.items()} if frame else {}
+    return {"name": name, "direction": direction, "decoded": frame is not None,
+            "crc_ok": None if frame is None else frame.crc_ok, "signals": signals}
+
+
+def can_frame_json(protocol: can_protocol.Protocol, msg: can.Message, channel: str, sender_id: int,
+                   sequence: int, sim_time_s: float) -> dict:
+    """One frame as CAN_FRAME_SCHEMA describes it."""
+    return {
+        "sim_time_s": sim_time_s, "timestamp_s": float(msg.timestamp), "channel": channel,
+        "id": int(msg.arbitration_id), "id_hex": f"0x{msg.arbitration_id:03X}",
+        "is_extended_id": bool(msg.is_extended_id), "is_fd": bool(msg.is_fd),
+        "is_error_frame": bool(msg.is_error_frame), "is_remote_frame": bool(msg.is_remote_frame),
+        "dlc": int(msg.dlc), "data": bytes(msg.data or b"").hex(), "sender_id": int(sender_id),
+        "sequence": int(sequence), **can_frame_signals(protocol, msg),
+    }
+
+
+def scenario_metadata(scenario) -> dict[str, str]:
+    """The scenario as it ran (scenario.json's content), its SecOC key left out: a recording is
+    shared with whoever looks at it, the key is the bus's secret."""
+    body = msgspec.to_builtins(scenario)
+    security = (body.get("can") or {}).get("security")
+    if isinstance(security, dict) and "key_hex" in security:
+        security["key_hex"] = "(left out)"
+    return {"name": str(getattr(scenario, "name", "")), "kind": str(getattr(scenario, "kind", "")),
+            "scenario_json": json.dumps(body, sort_keys=True)}
+
+
+def deployment_metadata(argv: list[str]) -> dict[str, str] | None:
+    """The deployment file this node was started with (`--deployment FILE --host NAME` on its
+    command line, as the launcher passes them), None for a run on one host."""
+    def value(option: str) -> str | None:
+        return argv[argv.index(option) + 1] if option in argv[:-1] else None
+
+    path = value("--deployment")
+    if path is None:
+        return None
+    try:
+        with open(path, "rb") as f:
+            text = f.read(MAX_DEPLOYMENT_BYTES + 1)
+    except OSError as exc:
+        return {"path": path, "host": value("--host") or "", "error": f"unreadable: {exc}"}
+    if len(text) > MAX_DEPLOYMENT_BYTES:
+        return {"path": path, "host": value("--host") or "", "error": f"over {MAX_DEPLOYMENT_BYTES} bytes, not copied"}
+    return {"path": path, "host": value("--host") or "", "toml": text.decode("utf-8", errors="replace")}
+
+
+class Recording:
+    """An MCAP file with one JSON channel per (topic, message type), CAN channels as JSON with their
+    decoded signals, raw malformed channels, and the scenario and deployment as metadata."""
+
+    def __init__(self, path: Path, run_id: str, scenario=None, deployment: dict[str, str] | None = None):
         self.run_id = run_id
         self._file = open(path, "wb")
         self._writer = Writer(self._file, chunk_size=CHUNK_SIZE_BYTES)
         self._writer.start(profile="", library="orbit-hil-bench recorder")
-        self._schemas: dict[type, int] = {}
+        if scenario is not None:
+            self._writer.add_metadata(METADATA_SCENARIO, scenario_metadata(scenario))
+        if deployment is not None:
+            self._writer.add_metadata(METADATA_DEPLOYMENT, deployment)
+        can_config = getattr(scenario, "can", None)
+        # No key: the recorder only reads frames (it cannot and need not check a MAC).
+        self._can_protocol = (can_protocol.Protocol(can_config.node_id, can_config.security.profile)
+                              if can_config is not None else can_protocol.Protocol())
+        self.sim_time = SimTimeBase()
+        self._schemas: dict[type | str, int] = {}
         self._channels: dict[str, int] = {}
         self._sequence = 0
         self.recorded: Counter = Counter()
@@ -182,45 +323,62 @@ class Recording:
         self.dropped: dict[str, dict[str, int]] = {}    # filled from the budget at the end
         self.published_by: dict[str, dict[str, int]] = {}
 
-    def write(self, topic: str, payload: bytes, log_time_ns: int) -> Message | None:
-        """Record one sample; returns the decoded message, None if it was malformed or a CAN frame."""
+    def write(self, topic: str, payload: bytes, received_ns: int) -> Message | None:
+        """Record one sample received at received_ns (wall clock): its log time is its simulated
+        time, its publish time received_ns. Returns the decoded message, None if it was malformed
+        or a CAN frame."""
         if topic.startswith(CAN_TOPIC + "/"):
-            return self._write_can_frame(topic, payload, log_time_ns)
+            return self._write_can_frame(topic, payload, received_ns)
         message = classify(payload, self.run_id)
         if message is None:
             self.malformed[topic] += 1
             channel_id = self._channel(MALFORMED_PREFIX + topic, None)
+            log_time_ns = self.sim_time.of_unstepped()
         else:
             self.recorded[topic] += 1
             channel_id = self._channel(topic, type(message))
+            log_time_ns = self.sim_time.of_message(message)
             if isinstance(message, ProcessStats):
                 self.published_by[message.process] = dict(message.published)
-        self._sequence += 1
-        self._writer.add_message(channel_id, log_time=log_time_ns, data=payload,
-                                 publish_time=log_time_ns, sequence=self._sequence)
+        self._add(channel_id, log_time_ns, payload, received_ns)
         return message
 
-    def _write_can_frame(self, topic: str, payload: bytes, log_time_ns: int) -> None:
+    def _add(self, channel_id: int, log_time_ns: int, data: bytes, received_ns: int) -> None:
+        self._sequence += 1
+        self._writer.add_message(channel_id, log_time=log_time_ns, data=data, publish_time=max(0, received_ns),
+                                 sequence=self._sequence)
+
+    def _write_can_frame(self, topic: str, payload: bytes, received_ns: int) -> None:
+        log_time_ns = self.sim_time.of_unstepped()
+        channel = topic.rpartition("/")[2]
         try:
-            zenoh_wire.decode(payload, topic.rpartition("/")[2])
+            msg, sender_id, sequence = zenoh_wire.decode(payload, channel)
         except zenoh_wire.MalformedFrame:
             self.malformed[topic] += 1
-            channel_id = self._channel(MALFORMED_PREFIX + topic, None)
-        else:
-            self.recorded[topic] += 1
-            channel_id = self._channel(topic, None, CAN_FRAME_ENCODING)
-        self._sequence += 1
-        self._writer.add_message(channel_id, log_time=log_time_ns, data=payload, publish_time=log_time_ns,
-                                 sequence=self._sequence)
+            self._add(self._channel(MALFORMED_PREFIX + topic, None), log_time_ns, payload, received_ns)
+            return None
+        self.recorded[topic] += 1
+        body = can_frame_json(self._can_protocol, msg, channel, sender_id, sequence, log_time_ns / 1e9)
+        self._add(self._can_channel(topic), log_time_ns, json.dumps(body).encode(), received_ns)
         return None
 
-    def _channel(self, topic: str, kind: type[Message] | None, encoding: str = "application/octet-stream") -> int:
+    def _can_channel(self, topic: str) -> int:
+        channel_id = self._channels.get(topic)
+        if channel_id is None:
+            if CAN_FRAME_SCHEMA_NAME not in self._schemas:
+                self._schemas[CAN_FRAME_SCHEMA_NAME] = self._writer.register_schema(
+                    CAN_FRAME_SCHEMA_NAME, "jsonschema", json.dumps(CAN_FRAME_SCHEMA).encode())
+            channel_id = self._writer.register_channel(topic, "json", self._schemas[CAN_FRAME_SCHEMA_NAME])
+            self._channels[topic] = channel_id
+        return channel_id
+
+    def _channel(self, topic: str, kind: type[Message] | None) -> int:
         name = topic if kind is None else f"{topic}#{kind.__name__}"
         channel_id = self._channels.get(name)
         if channel_id is None:
             if kind is None:
                 # Schemaless and not JSON: the bytes as they came, for whoever debugs the sender.
-                channel_id = self._writer.register_channel(topic, encoding, 0)
+                channel_id = self._writer.register_channel(topic, "application/octet-stream", 0)
             else:
                 channel_id = self._writer.register_channel(topic, "json", self._schema(kind))
             self._channels[name] = channel_id
@@ -287,7 +445,8 @@ class Recorder:
 
     def __init__(self, ctx):
         self.ctx = ctx
-        self.recording = Recording(ctx.run_dir / RECORDING_FILE, ctx.run_id)
+        self.recording = Recording(ctx.run_dir / RECORDING_FILE, ctx.run_id, ctx.scenario,
+                                   deployment_metadata(sys.argv))
         self.samples: queue.SimpleQueue = queue.SimpleQueue()
         self.budget = RecordingBudget()
         self.arrived = 0     # samples handed over by Zenoh so far, kept or dropped (tests wait on it)
@@ -307,8 +466,8 @@ class Recorder:
         except queue.Empty:
             return
         while True:
-            key_expr, payload, log_time_ns = item
-            self.recording.write(topic_of(key_expr, self.ctx.run_id), payload, log_time_ns)
+            key_expr, payload, received_ns = item
+            self.recording.write(topic_of(key_expr, self.ctx.run_id), payload, received_ns)
             try:
                 item = self.samples.get_nowait()
             except queue.Empty:

@@ -9,7 +9,7 @@ from mcap.reader import make_reader
 
 from bench.bus import keys
 from bench.bus.clock_sync import declare_clock_responder
-from bench.bus.schemas import RelativePosition, ThrustCommand, TruthState, encode, header
+from bench.bus.schemas import RelativePosition, StepDone, ThrustCommand, TruthState, encode, header
 from bench.recorder import COUNTS_FILE, OFFSETS_FILE, RECORDING_FILE, Recorder, run
 from recording_helpers import node_context, session_pair
 
@@ -122,3 +122,65 @@ def test_recorder_node_declares_ready_measures_clock_offsets_and_stops(tmp_path)
     assert abs(plant["offset_ns"]) <= plant["uncertainty_ns"]
     assert read_back(tmp_path / RECORDING_FILE) == []
     assert json.loads((tmp_path / COUNTS_FILE).read_text())["topics"] == {}
+
+
+# --- time base, CAN frames, metadata (issue 22) --------------------------------------------------
+def test_log_time_is_simulated_time_and_publish_time_the_arrival(tmp_path):
+    """Header messages at their sim_time_s; what has none (CAN frame, stats, board report,
+    malformed, a forged non-finite time) at the newest step seen; publish time = receive time."""
+    import math
+
+    from bench.bus.can import protocol as p
+    from bench.bus.can import zenoh_wire
+    from bench.bus.schemas import MtqApplied, ProcessStats
+    from bench.recorder import Recording
+
+    recording = Recording(tmp_path / RECORDING_FILE, RUN_ID)
+    frame = p.Protocol().command([0.25, -0.5, 0.0], counter=3)
+    wire = zenoh_wire.encode(frame, timestamp_s=12.5, sender_id=7, sequence=41)
+    samples = [
+        (keys.TRUTH, encode(TruthState(header(RUN_ID, 0, 0.0), [0.0] * 6, [0.0] * 3))),
+        (keys.TRUTH, encode(TruthState(header(RUN_ID, 1, 600.0), [1.0] * 6, [0.0] * 3))),
+        ("can/flight", wire),
+        (keys.ACTUATOR_MTQ, encode(MtqApplied(header(RUN_ID, 9, 0.0), [0.0] * 3, [0.0] * 3, False))),
+        (keys.TRUTH, encode(TruthState(header(RUN_ID, 2, math.nan), [2.0] * 6, [0.0] * 3))),
+        (keys.TRUTH, encode(TruthState(header(RUN_ID, 3, -5.0), [3.0] * 6, [0.0] * 3))),
+        ("can/flight", b"not a frame"),
+        (keys.STATUS_STEP, encode(StepDone(header(RUN_ID, 1, 1200.0), 2))),
+        (keys.STATUS_STATS + "/plant", encode(ProcessStats(header(RUN_ID, 0, 0.0), "plant", {}, {}))),
+    ]
+    for i, (topic, payload) in enumerate(samples):
+        recording.write(topic, payload, 1_700_000_000_000_000_000 + i)
+    recording.close()
+    rows = sorted(read_back(tmp_path / RECORDING_FILE), key=lambda row: row[2].publish_time)
+    assert [m.publish_time - 1_700_000_000_000_000_000 for _, _, m in rows] == list(range(len(samples)))
+    assert [m.log_time / 1e9 for _, _, m in rows] == [0.0, 600.0, 600.0, 600.0, 600.0, 600.0, 600.0, 1200.0, 1200.0]
+    schema, channel, message = rows[2]
+    assert channel.topic == "can/flight" and channel.message_encoding == "json" and schema.encoding == "jsonschema"
+    body = json.loads(message.data)
+    assert body["name"] == "MTQ_CMD" and body["direction"] == "OBC->MTQ" and body["crc_ok"] is True
+    assert body["id"] == frame.arbitration_id and body["data"] == bytes(frame.data).hex()
+    assert (body["timestamp_s"], body["sender_id"], body["sequence"], body["sim_time_s"]) == (12.5, 7, 41, 600.0)
+    assert body["signals"]["DipoleX"] == 0.25 and body["signals"]["DipoleY"] == -0.5 and body["signals"]["AliveCounter"] == 3
+    assert set(body) <= set(json.loads(schema.data)["properties"])
+    assert rows[6][1].topic == "malformed/can/flight" and rows[6][2].data == b"not a frame"
+
+
+def test_scenario_and_deployment_are_metadata_records(tmp_path):
+    from bench.recorder import Recording, deployment_metadata
+    from bench.scenario import load_scenario
+
+    deployment = tmp_path / "lab.toml"
+    deployment.write_text('name = "lab"\n[hosts.sim]\nnodes = ["plant", "recorder"]\n')
+    scenario = load_scenario("attitude_quick")
+    argv = ["bench", "node", "recorder", "--deployment", str(deployment), "--host", "sim"]
+    assert deployment_metadata(["bench", "node", "recorder"]) is None
+    recording = Recording(tmp_path / RECORDING_FILE, RUN_ID, scenario, deployment_metadata(argv))
+    recording.close()
+    with open(tmp_path / RECORDING_FILE, "rb") as f:
+        metadata = {m.name: m.metadata for m in make_reader(f).iter_metadata()}
+    assert metadata["deployment"] == {"path": str(deployment), "host": "sim", "toml": deployment.read_text()}
+    assert metadata["scenario"]["name"] == "attitude_quick" and metadata["scenario"]["kind"] == "attitude"
+    body = json.loads(metadata["scenario"]["scenario_json"])
+    assert body["attitude"]["duration_s"] == scenario.attitude.duration_s
+    assert body["can"]["security"]["key_hex"] == "(left out)"

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.report import canbus, plots, summary
+from bench.report import canbus, plots, summary, tables
 from bench.report.attitude import attitude_section
 from bench.report.deadlines import DeadlineResult, deadlines
 from bench.report.jsonout import write_json
@@ -272,6 +272,7 @@ def acceptance_section(run: RunData) -> Section | None:
 def write_report(run_dir: str | Path) -> tuple[Path, Path]:
     """Write report.md, report.html, plots/ and the report's numbers into metrics.json."""
     run = load_run(run_dir)
+    tables.write_tables(run.run_dir)    # steps.parquet, can_frames.parquet
     plot_dir = run.run_dir / PLOTS_DIR
     plot_dir.mkdir(exist_ok=True)
     mission = mission_metrics(run)

@@ -59,10 +59,11 @@ def expected_type(topic: str) -> type[Message] | tuple[type[Message], ...] | Non
 
 @dataclass(frozen=True)
 class Recorded:
-    """One valid message of the recording: its topic, arrival time and JSON body."""
+    """One valid message of the recording: its topic, arrival time (the recorder's wall clock, the
+    MCAP publish time; the log time is the simulated time) and JSON body."""
 
     topic: str
-    log_time_ns: int
+    received_ns: int
     body: dict
 
     @property
@@ -124,10 +125,10 @@ def read_recording(path: Path, wrong_type: dict[str, int] | None = None) -> tupl
                 if kind is not None and not isinstance(decoded, kind):
                     wrong_type[topic] = wrong_type.get(topic, 0) + 1
                     continue
-                messages.append(Recorded(topic, message.log_time, msgspec.to_builtins(decoded)))
+                messages.append(Recorded(topic, message.publish_time, msgspec.to_builtins(decoded)))
         except (McapError, struct.error, EOFError, ValueError):
             truncated = True
-    messages.sort(key=lambda m: m.log_time_ns)
+    messages.sort(key=lambda m: m.received_ns)
     return messages, malformed, truncated
 
 
