@@ -58,19 +58,60 @@ def loop_figure(trajectory: dict, scenario, windows, path: Path) -> Path:
     return path
 
 
-def dipole_figure(trajectory: dict, limit_am2: float, windows, path: Path) -> Path:
+def board_telemetry_am2(run) -> tuple[np.ndarray, np.ndarray] | None:
+    """The board's applied-dipole telemetry as the flight side reads it on the bus (MTQ_TLM_DIPOLE
+    frames of can.log, after whatever the fault injector did to them): (simulated s, (n, 3) A m²)."""
+    from bench.bus.can import protocol as can_protocol
+    from bench.report.timebase import wall_to_mono_ns
+
+    if run.can_log is None or run.scenario.can is None:
+        return None
+    clock = RunClock.from_run(run.trajectory, run.scenario)
+    wall_offset_s = canbus._bus_model_report(run.run_dir).get("wall_offset_s")
+    if clock is None or wall_offset_s is None:
+        return None
+    protocol = can_protocol.Protocol(run.scenario.can.node_id, run.scenario.can.security.profile)
+    times, dipoles = [], []
+    for msg in canbus.read_capture(run.can_log):
+        frame = protocol.decode(msg)
+        if frame is not None and frame.name == can_protocol.TLM_DIPOLE:
+            times.append(msg.timestamp)
+            dipoles.append([frame.signals[f"AppliedDipole{axis}"] for axis in "XYZ"])
+    if not times:
+        return None
+    sim_s = np.atleast_1d(clock.sim_s(wall_to_mono_ns(times, wall_offset_s)))
+    inside = (sim_s >= clock.start_sim_s) & (sim_s <= clock.end_sim_s)
+    return sim_s[inside], np.asarray(dipoles, float)[inside]
+
+
+def dipole_figure(trajectory: dict, limit_am2: float, windows, path: Path, telemetry=None) -> Path:
+    """Per axis: the law's dipole, the board's telemetry as the flight side reads it on the bus
+    (where a stuck-telemetry fault shows), and the dipole the plant applied (the board's coils);
+    steps with the coils in their safe state and real-time steps the plant ran without their
+    command are marked."""
     t = trajectory["att_time_s"]
+    safe = np.asarray(trajectory.get("att_safe_state", np.zeros(len(t), bool)), bool)
+    received = trajectory.get("att_command_received_ns")
+    missed = np.zeros(len(t), bool) if received is None else np.asarray(received)[: len(t)] < 0
     fig, axes = plt.subplots(4, 1, figsize=(11, 9), sharex=True)
     for i, axis in enumerate("xyz"):
         ax = axes[i]
         ax.plot(t, trajectory["att_dipole_commanded_am2"][:, i], label="commanded (law)", lw=1)
-        ax.plot(t, trajectory["att_dipole_applied_am2"][:, i], "--", label="applied (board report)", lw=1)
+        if telemetry is not None:
+            ax.step(telemetry[0], telemetry[1][:, i], where="post", lw=0.8, alpha=0.8,
+                    label="board telemetry on the bus (what the driver reads)")
+        ax.plot(t, trajectory["att_dipole_applied_am2"][:, i], "--", label="applied (coils, the plant's torque)", lw=1)
         ax.axhline(limit_am2, color="r", lw=0.8)
         ax.axhline(-limit_am2, color="r", lw=0.8)
         _shade(ax, windows)
+        if safe.any():
+            ax.plot(t[safe], np.zeros(safe.sum()), "k|", markersize=10, label=f"coils in safe state ({safe.sum()} steps)")
+        if missed.any():
+            ax.plot(t[missed], np.zeros(missed.sum()), "rx", markersize=6,
+                    label=f"plant step without its command ({missed.sum()})")
         ax.set_ylabel(f"m_{axis} [A m²]")
         ax.grid(True, alpha=0.3)
-    axes[0].legend(fontsize="small")
+    axes[0].legend(fontsize="small", ncol=2)
     field = trajectory["att_field_inertial_t"] * 1e9
     axes[3].plot(t, field, lw=1, label=["Bx", "By", "Bz"])
     axes[3].plot(t, np.linalg.norm(field, axis=1), "k", lw=1, label="|B|")
@@ -94,13 +135,15 @@ def attitude_section(run, plot_dir: Path) -> tuple[Section | None, dict | None]:
     windows = fault_windows_sim_s(run.run_dir, scenario, trajectory)
     metrics["fault_windows_sim_s"] = windows
     loop = loop_figure(trajectory, scenario, windows, plot_dir / "attitude.png")
-    dipole = dipole_figure(trajectory, dipole_limit_am2(scenario), windows, plot_dir / "dipole.png")
+    dipole = dipole_figure(trajectory, dipole_limit_am2(scenario), windows, plot_dir / "dipole.png",
+                           board_telemetry_am2(run))
     section = Section("Attitude", [
         f"Law {scenario.attitude_control.law}, estimator {scenario.estimator.mode}, "
         f"{metrics['steps']} steps of {scenario.step_s:g} s; fault windows (simulated time) shaded."],
         [Table(["metric", "value"], [list(r) for r in summary_rows(metrics)])],
         [Figure(Path(PLOTS_DIR) / loop.name, "Pointing error and body rate"),
-         Figure(Path(PLOTS_DIR) / dipole.name, "Dipole per axis against the limit, and the field along the orbit")])
+         Figure(Path(PLOTS_DIR) / dipole.name, "Dipole per axis against the limit (commanded, the board's telemetry "
+                "on the bus, applied), and the field along the orbit")])
     return section, metrics
 
 

@@ -66,16 +66,16 @@ def summary_section(run: RunData, mission: dict, judged: dict) -> Section:
     if run.metrics.get("partial"):
         paragraphs.insert(0, f"Partial run: {run.metrics.get('end_reason', 'it did not finish')}. "
                              "The numbers cover the steps it ran.")
-    tables = [Table(["metric", "value"], rows)]
+    section_tables = [Table(["metric", "value"], rows)]
     if judged.get("passed") is None:
         paragraphs.append("Verdict: not judged (the scenario declares no criteria).")
     else:
         paragraphs.append(f"Verdict: **{'PASS' if judged['passed'] else 'FAIL'}** against the scenario's criteria"
                           + (" (a partial run fails whatever its figures)." if judged.get("partial_run") else "."))
-        tables.append(Table(["criterion", "bound", "value", "holds", "why"],
+        section_tables.append(Table(["criterion", "bound", "value", "holds", "why"],
                             [[c["metric"], c["bound"], fmt(c["value"]) if not isinstance(c["value"], str) else c["value"],
                               "yes" if c["passed"] else "NO", c["why"]] for c in judged["criteria"]]))
-    return Section("Summary", paragraphs, tables)
+    return Section("Summary", paragraphs, section_tables)
 
 
 def trajectory_section(run: RunData, plot_dir: Path) -> Section | None:

@@ -72,11 +72,15 @@ def bus_load(run: RunData) -> BusLoad | None:
         window = np.floor(np.round(t_s / WINDOW_S, 6)).astype(int)
         busy_bits = np.bincount(window, weights=bits, minlength=int(window.max()) + 1)
         window_start_wall_s = wall_s[0] + np.arange(busy_bits.size) * WINDOW_S
+        load = busy_bits / (bitrate * WINDOW_S)
         if result.on_sim_time:
-            result.window_start_s = clock.sim_s(wall_to_mono_ns(window_start_wall_s, model["wall_offset_s"]))
+            # the windows of the run: before its first step the nodes start, after its last they stop
+            start_s = clock.sim_s(wall_to_mono_ns(window_start_wall_s, model["wall_offset_s"]))
+            inside = (start_s >= clock.start_sim_s - WINDOW_S * (clock.sim_s_per_wall_s or 1.0)) & (start_s <= clock.end_sim_s)
+            result.window_start_s, load = start_s[inside], load[inside]
         else:
             result.window_start_s = window_start_wall_s - wall_s[0]
-        result.load = busy_bits / (bitrate * WINDOW_S)
+        result.load = load
     return result
 
 

@@ -161,15 +161,16 @@ def _bus_rows(bus: dict | None) -> list[tuple[str, str]]:
     return rows
 
 
-def verdict_rows(result: dict) -> list[tuple[str, str]]:
+def verdict_lines(result: dict) -> list[str]:
+    """The verdict and one line per criterion (the reasons are in the report and metrics.json)."""
     if result.get("passed") is None:
-        return [("verdict", "not judged: the scenario declares no criteria")]
-    rows = [("verdict", ("PASS" if result["passed"] else "FAIL") + (" (partial run)" if result.get("partial_run") else ""))]
-    for c in result["criteria"]:   # the reasons are in the report and metrics.json
+        return ["verdict: not judged (the scenario declares no criteria)"]
+    lines = [f"verdict: {'PASS' if result['passed'] else 'FAIL'}" + (" (partial run)" if result.get("partial_run") else "")]
+    for c in result["criteria"]:
         value = c["value"]
         shown = f"{value:.4g}" if isinstance(value, float) else str(value)
-        rows.append((f"  {c['metric']} {c['bound']}", f"{shown} {'ok' if c['passed'] else 'FAIL'}"))
-    return rows
+        lines.append(f"  {'ok  ' if c['passed'] else 'FAIL'} {c['metric']} {c['bound']}: {shown}")
+    return lines
 
 
 def print_summary(metrics: dict, run_dir: Path, wall_s: float | None) -> None:
@@ -177,13 +178,15 @@ def print_summary(metrics: dict, run_dir: Path, wall_s: float | None) -> None:
     from rich.table import Table
 
     table = Table(title=f"{metrics['scenario']} ({metrics['mode']}, {metrics.get('steps', '?')} steps)")
-    table.add_column("metric")
+    table.add_column("metric", no_wrap=True)
     table.add_column("value", justify="right")
-    rows = summary_rows(metrics) + verdict_rows(metrics.get("verdict", {}))
+    rows = summary_rows(metrics)
     if wall_s is not None:
         rows.append(("wall time (the command)", f"{wall_s:.1f} s"))
     for name, value in rows:
         table.add_row(name, value)
     console = Console(stderr=False)
     console.print(table)
+    for line in verdict_lines(metrics.get("verdict", {})):
+        console.print(line, highlight=False, markup=False)
     console.print(f"run directory: {run_dir}")
