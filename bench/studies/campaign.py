@@ -461,6 +461,7 @@ def run_local(cases: list[Case], workers: int, on_row: Callable[[dict], None]) -
 # On this 24 GiB machine Ray would reserve 30 % of memory for its object store; a campaign passes
 # a scenario dict in and a row of numbers out per task, so 256 MiB is plenty.
 RAY_OBJECT_STORE_BYTES = 256 * 1024**2
+RAY_WAIT_S = 0.5
 
 
 def run_ray(cases: list[Case], workers: int, on_row: Callable[[dict], None], address: str | None) -> None:
@@ -477,12 +478,14 @@ def run_ray(cases: list[Case], workers: int, on_row: Callable[[dict], None], add
             ray.init(address="local", num_cpus=workers, object_store_memory=RAY_OBJECT_STORE_BYTES,
                      include_dashboard=False, log_to_driver=False)
         started_here = True
+    pending: dict = {}
     try:
         # max_retries=0: a case that kills its worker is a failed row, not a silent re-run.
         remote_case = ray.remote(num_cpus=1, max_retries=0)(run_case)
         pending = {remote_case.remote(case): case for case in cases}
         while pending:
-            done, _ = ray.wait(list(pending), num_returns=1)
+            # With a timeout: a ray.wait that blocks for a whole case never lets Python act on Ctrl-C.
+            done, _ = ray.wait(list(pending), num_returns=1, timeout=RAY_WAIT_S)
             for ref in done:
                 case = pending.pop(ref)
                 try:
@@ -490,6 +493,13 @@ def run_ray(cases: list[Case], workers: int, on_row: Callable[[dict], None], add
                 except Exception as exc:         # worker crash, node loss
                     row = _failed_row(case, "error", f"ray task failed: {type(exc).__name__}: {exc}")
                 on_row(row)
+    except BaseException:                # interrupted: stop the cases still running or queued
+        for ref in pending:
+            try:
+                ray.cancel(ref, force=True)
+            except Exception:            # noqa: BLE001 - already finished or its worker gone
+                pass
+        raise
     finally:
         if started_here:
             ray.shutdown()
