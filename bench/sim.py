@@ -27,14 +27,15 @@ def simulate_in_process(scenario: Scenario) -> tuple[dict[str, np.ndarray], dict
     estimator = StateEstimator(scenario)
     control = ControlCycle(scenario)
     thrust_n = np.zeros(3)
-    estimates = []
+    estimates, covariances, navigation_truth = [], [], []
     cycles = {"solve_time_s": [], "solver_iterations": [], "ctrl_feasible": []}   # per controller cycle
     for k in range(scenario.n_steps):
         position_m = plant.measure_position_m()
         # Drawn every step as the plant process does, so both keep the same noise sequence.
         range_bearing = plant.measure_range_bearing()
         measured = dict(range_bearing=range_bearing) if estimator.sensor == "range_bearing" else dict(position_m=position_m)
-        estimate = estimator.step(k, plant.sim_time_s, truth_m_mps=plant.navigation_state_m_mps,
+        truth_m_mps = plant.navigation_state_m_mps
+        estimate = estimator.step(k, plant.sim_time_s, truth_m_mps=truth_m_mps,
                                   thrust_commanded_n=thrust_n, **measured)
         outcome = control.run(estimate.state_m_mps, estimate.mean_motion_radps)
         thrust_n = outcome.thrust_n
@@ -42,9 +43,14 @@ def simulate_in_process(scenario: Scenario) -> tuple[dict[str, np.ndarray], dict
         cycles["solver_iterations"].append(int(outcome.info.get("iterations", 0)))
         cycles["ctrl_feasible"].append(bool(outcome.info.get("ctrl_feas", True)))
         estimates.append(estimate.state_m_mps)
+        # The estimate's consistency (NEES) compares it with the truth in the same coordinates.
+        covariances.append(np.full((6, 6), np.nan) if estimate.covariance is None else estimate.covariance)
+        navigation_truth.append(truth_m_mps)
         plant.apply(thrust_n)
     trajectory = plant.trajectory()
     trajectory["estimate_m_mps"] = np.array(estimates)
+    trajectory["estimate_covariance"] = np.array(covariances)
+    trajectory["navigation_truth_m_mps"] = np.array(navigation_truth)
     trajectory.update({name: np.array(values) for name, values in cycles.items()})
     return trajectory, trajectory_metrics(trajectory["state_m_mps"], trajectory["thrust_n"], plant.params)
 
@@ -127,4 +133,6 @@ def campaign_case(scenario: Scenario) -> dict:
     """One campaign row's metrics from an in-process run (`bench campaign`, mode "in-process")."""
     trajectory, _ = simulate_in_process(scenario)
     return run_metrics(trajectory["state_m_mps"], trajectory["thrust_n"], scenario.params(),
-                       trajectory["solve_time_s"], trajectory["solver_iterations"], trajectory["ctrl_feasible"])
+                       trajectory["solve_time_s"], trajectory["solver_iterations"], trajectory["ctrl_feasible"],
+                       estimate_m_mps=trajectory["estimate_m_mps"], estimate_covariance=trajectory["estimate_covariance"],
+                       navigation_truth_m_mps=trajectory["navigation_truth_m_mps"])

@@ -16,3 +16,8 @@ def flaky_case(scenario):
 def slow_case(scenario):
     time.sleep(0.4)                     # long enough to kill the campaign halfway
     return _run_in_process(scenario)
+
+
+def sleepy_case(scenario):
+    time.sleep(300)                     # a case still running when the campaign is killed
+    return _run_in_process(scenario)

@@ -77,6 +77,26 @@ def test_expansion_is_the_grid_times_seeds_with_common_draws_and_named_errors():
         expand(parse_spec({**SMALL, "knowledge": {"k": {"sample_radius_std": 0.1}}}))
     with pytest.raises(CampaignError, match="controllers"):
         parse_spec({**SMALL, "controllers": {}})
+    with pytest.raises(CampaignError, match="without '/'"):
+        parse_spec({**SMALL, "controllers": {"LQR/fast": {"controller": {"type": "lqr"}}}})
+
+
+def test_a_bad_case_is_named_whole_and_scenario_names_are_unique():
+    long_name = "noisy_sensor_and_an_uncertain_orbit_radius"
+    spec = {**SMALL, "knowledge": {"truth": {"estimator": {"mode": "truth"}},
+                                   long_name: {"estimator": {"mode": "smoother"}, "sample_radius_error_std": 0.01}}}
+    cases = expand(parse_spec(spec))
+    names = [c.scenario["name"] for c in cases]
+    assert len(set(names)) == len(names) and max(map(len, names)) <= 40
+    by_id = {c.case_id: c for c in cases}
+    assert by_id["LQR/linear/truth/A/none/seed1"].scenario["name"] == "small.LQR.truth.s1"   # varying axes only
+    orbit = by_id[f"MPC/linear/{long_name}/A/none/seed2"].scenario
+    assert orbit["onboard"]["believed_radius_error"] != 0.0            # the draw is the flight side's belief
+    assert f"MPC/linear/{long_name}/A/none/seed2" in orbit["description"]
+    # A patch that breaks the scenario: the error names the case in full, not its 40-character name.
+    broken = {**spec, "knowledge": {long_name: {"estimator": {"mode": "smoother", "translation": {"warp": 1}}}}}
+    with pytest.raises(CampaignError, match=f"case LQR/linear/{long_name}/A/none/seed1: .*warp"):
+        expand(parse_spec(broken))
 
 
 def test_local_and_ray_engines_give_identical_results(tmp_path, tests_on_path):
@@ -183,6 +203,38 @@ def test_run_metrics_fuel_norms_time_to_rendezvous_and_divergence():
     m = run_metrics(x, u, params)
     assert not m["rendezvous"] and math.isnan(m["time_to_rendezvous_s"]) and m["diverged"] and not m["success"]
     assert math.isnan(time_to_rendezvous_s(x, dt, 100.0, 1.0))
+
+
+def test_nees_of_a_run_against_an_explicit_inverse_and_a_monte_carlo_draw():
+    from bench.studies.campaign_metrics import estimate_consistency
+
+    rng = np.random.default_rng(3)
+    steps = 4000
+    root = rng.normal(size=(steps, 6, 6))
+    covariance = root @ root.transpose(0, 2, 1) + 0.1 * np.eye(6)
+    truth = rng.normal(size=(steps, 6)) * 100.0
+    # Errors drawn from each step's covariance: the time-averaged NEES of a consistent estimate is 6.
+    error = np.einsum("kij,kj->ki", np.linalg.cholesky(covariance), rng.standard_normal((steps, 6)))
+    m = estimate_consistency(truth - error, covariance, truth)
+    explicit = np.mean([e @ np.linalg.inv(p) @ e for e, p in zip(error, covariance)])
+    assert m["nees_mean"] == pytest.approx(explicit, rel=1e-9)
+    assert 6 * (1 - 4 * math.sqrt(2 / (6 * steps))) < m["nees_mean"] < 6 * (1 + 4 * math.sqrt(2 / (6 * steps)))
+    assert m["nees_steps"] == steps and m["estimate_position_error_final_m"] == pytest.approx(np.linalg.norm(error[-1, :3]))
+    # An estimate that believes itself 4x tighter than it is: NEES 4x larger.
+    assert estimate_consistency(truth - error, covariance / 4, truth)["nees_mean"] == pytest.approx(4 * explicit)
+    # Full state knowledge has no covariance: no NEES.
+    none = estimate_consistency(truth, np.full((steps, 6, 6), np.nan), truth)
+    assert math.isnan(none["nees_mean"]) and none["nees_steps"] == 0
+
+
+def test_nees_bounds_against_a_published_value():
+    from bench.studies.campaign_report import nees_bounds
+
+    # Bar-Shalom, Li, Kirubarajan (2001), 5.4.2: 2 states, 50 runs -> [1.5, 2.6].
+    low, high = nees_bounds(50, dof=2)
+    assert round(low, 1) == 1.5 and round(high, 1) == 2.6
+    low, high = nees_bounds(30)
+    assert low < 6 < high
 
 
 def test_wilson_interval_against_a_published_value():

@@ -17,7 +17,13 @@ merged into the base scenario), so any scenario field can be an axis:
 Keys starting with `sample_` are per-seed draws, not scenario fields: `sample_position_std_m`,
 `sample_velocity_std_mps` (initial-state dispersion, Cartesian LVLH, common to every cell for a
 given seed so cells are compared on the same draws) and `sample_radius_error_std` (the flight
-side's believed orbit-radius error, estimator.translation.believed_radius_error).
+side's believed orbit-radius error, onboard.believed_radius_error).
+
+A case is named by its case id, every axis value and the seed in full
+(`LQR/nonlinear/noisy_sensor_and_orbit/A/none/seed30`); errors and rows name it so. The scenario
+name (at most 40 characters, the bench's name rule) is the campaign and the axis values that vary,
+shortened with a hash of the whole id only where that is still too long; the scenario's
+description carries the full case id.
 
 Every case's scenario is expanded and validated before anything runs, and stored in its row
 (`scenario_json`), so a row is re-run exactly with `bench run` on that JSON. A case runs in a
@@ -127,6 +133,10 @@ def parse_spec(data: dict, source: str = "<spec>") -> CampaignSpec:
     for axis in AXES:
         if not getattr(spec, axis):
             raise CampaignError(f"{source}: {axis}: needs at least one entry")
+        for name in getattr(spec, axis):
+            # Case ids join the names with '/': a name holding one would make two cases one id.
+            if not name.strip() or "/" in name:
+                raise CampaignError(f"{source}: {axis}.{name!r}: a name must be non-empty and without '/'")
     if spec.mode not in MODES and ":" not in spec.mode:
         raise CampaignError(f"{source}: mode: {spec.mode!r} is not one of {', '.join(MODES)} or 'package.module:function'")
     return spec
@@ -151,7 +161,7 @@ def _stream(seed: int, label: str) -> np.random.Generator:
 _SAMPLE_KEYS = {"sample_position_std_m", "sample_velocity_std_mps", "sample_radius_error_std"}
 
 
-def _apply_samples(scenario: dict, samples: dict, seed: int, axis_value: str) -> dict:
+def _apply_samples(scenario: dict, samples: dict, seed: int, axis_value: str, source: str) -> dict:
     unknown = set(samples) - _SAMPLE_KEYS
     if unknown:
         raise CampaignError(f"{axis_value}: unknown per-seed draw(s) {', '.join(sorted(unknown))} "
@@ -159,7 +169,7 @@ def _apply_samples(scenario: dict, samples: dict, seed: int, axis_value: str) ->
     position_std = float(samples.get("sample_position_std_m", 0.0))
     velocity_std = float(samples.get("sample_velocity_std_mps", 0.0))
     if position_std or velocity_std:
-        parsed = parse_scenario(scenario, scenario["name"])
+        parsed = parse_scenario(scenario, source)
         x0 = parsed.initial_state_m_mps()
         # Drawn per seed and initial-condition set only: every cell sees the same dispersed states.
         rng = _stream(seed, f"initial_state/{axis_value}")
@@ -169,7 +179,7 @@ def _apply_samples(scenario: dict, samples: dict, seed: int, axis_value: str) ->
     if radius_std:
         rng = _stream(seed, "believed_radius_error")
         error = float(np.clip(radius_std * rng.standard_normal(), -0.2, 0.2))
-        scenario = _merge(scenario, {"estimator": {"translation": {"believed_radius_error": error}}})
+        scenario = _merge(scenario, {"onboard": {"believed_radius_error": error}})
     return scenario
 
 
@@ -180,6 +190,8 @@ def expand(spec: CampaignSpec) -> list[Case]:
         base = _merge(base, {"run": {"steps": spec.steps}})
     cases = []
     axes = [list(getattr(spec, axis).items()) for axis in AXES]
+    # Axes with one value say nothing about which case a scenario is: left out of its name.
+    varying = [len(values) > 1 for values in axes]
     for combo in itertools.product(*axes):
         cell = {column: name for column, (name, _) in zip(CELL_COLUMNS, combo)}
         for seed in range(spec.first_seed, spec.first_seed + spec.seeds):
@@ -192,15 +204,23 @@ def expand(spec: CampaignSpec) -> list[Case]:
                 if draws:
                     samples[axis] = (draws, name)
             case_id = "/".join([*cell.values(), f"seed{seed}"])
-            scenario = _merge(scenario, {"name": scenario_name(spec.name, case_id), "run": {"seed": seed}})
+            label = [name for name, varies in zip(cell.values(), varying) if varies] + [f"s{seed}"]
+            scenario = _merge(scenario, {"name": scenario_name(spec.name, label), "run": {"seed": seed},
+                                         "description": f"campaign {spec.name}, case {case_id}"})
+            source = f"case {case_id}"
             try:
                 # Draws go last: the initial condition set's base state may come from any patch.
                 for axis, (draws, name) in samples.items():
-                    scenario = _apply_samples(scenario, draws, seed, f"{axis}.{name}")
-                scenario = scenario_to_toml_dict(parse_scenario(scenario, f"case {case_id}"))
+                    scenario = _apply_samples(scenario, draws, seed, f"{axis}.{name}", source)
+                scenario = scenario_to_toml_dict(parse_scenario(scenario, source))
             except ScenarioError as exc:
                 raise CampaignError(str(exc)) from None
             cases.append(Case(case_id, len(cases), cell, seed, scenario, spec.mode, spec.case_timeout_s))
+    names: dict[str, str] = {}
+    for case in cases:
+        other = names.setdefault(case.scenario["name"], case.case_id)
+        if other != case.case_id:       # a hash collision: never seen, but a clash would mix run directories
+            raise CampaignError(f"cases {other} and {case.case_id} get the same scenario name {case.scenario['name']!r}")
     return cases
 
 
@@ -351,8 +371,70 @@ def _failed_row(case: Case, status: str, message: str) -> dict:
             "wall_time_s": float("nan")}
 
 
+# A pool worker whose driver is gone (the kernel's parent-death signal missed: not Linux, or a
+# worker stuck in C) notices within this and ends itself.
+_PARENT_POLL_S = 0.5
+# A worker asked to stop (SIGTERM) when the campaign is interrupted is killed after this.
+_WORKER_STOP_S = 5.0
+PR_SET_PDEATHSIG = 1          # linux/prctl.h
+
+
+def _die_with_driver(driver_pid: int) -> None:
+    """Pool worker initializer: the worker ends with the campaign command, however that ends.
+
+    - Its own process group: Ctrl-C at a terminal signals the foreground group, which is then the
+      command alone; the command stops the pool (one line, exit 130), no traceback per worker.
+    - On Linux, SIGTERM from the kernel when the driver dies (prctl PR_SET_PDEATHSIG), also after
+      SIGKILL; SIGTERM, not SIGKILL, so a `processes` case's launcher stops its nodes.
+    - Everywhere, a thread that polls the parent pid, for where the signal is not available.
+    The multiprocessing resource tracker ends by itself once no worker holds its pipe.
+    """
+    os.setpgid(0, 0)
+    try:
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0)
+    except (OSError, AttributeError):
+        pass                                    # not Linux: the thread below still notices
+    if os.getppid() != driver_pid:              # the driver died before prctl took effect
+        os._exit(1)
+    threading.Thread(target=_watch_driver, args=(driver_pid,), name="watch-driver", daemon=True).start()
+
+
+def _watch_driver(driver_pid: int) -> None:
+    while os.getppid() == driver_pid:
+        time.sleep(_PARENT_POLL_S)
+    os.kill(os.getpid(), signal.SIGTERM)
+    time.sleep(_WORKER_STOP_S)
+    os._exit(1)
+
+
+def _stop_pool(pool) -> None:
+    """Interrupted: cancel what has not started, stop the workers running a case (SIGTERM, then
+    SIGKILL), without waiting for their cases. ProcessPoolExecutor has no public way to stop a
+    running task; its worker processes are in `_processes`."""
+    previous = None
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.signal(signal.SIGINT, signal.SIG_IGN)     # a second Ctrl-C: no traceback
+    try:
+        processes = list((getattr(pool, "_processes", None) or {}).values())
+        pool.shutdown(wait=False, cancel_futures=True)
+        for process in processes:
+            process.terminate()
+        deadline = time.monotonic() + _WORKER_STOP_S
+        for process in processes:
+            process.join(max(0.0, deadline - time.monotonic()))
+            if process.is_alive():
+                process.kill()
+                process.join(1.0)
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGINT, previous)
+
+
 def run_local(cases: list[Case], workers: int, on_row: Callable[[dict], None]) -> None:
-    """A local process pool (spawned workers: no state inherited from the driver)."""
+    """A local process pool (spawned workers: no state inherited from the driver), whose workers
+    end with the driver (`_die_with_driver`) and are stopped when it is interrupted."""
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor, as_completed
 
@@ -360,7 +442,9 @@ def run_local(cases: list[Case], workers: int, on_row: Callable[[dict], None]) -
         for case in cases:
             on_row(run_case(case))
         return
-    with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
+                               initializer=_die_with_driver, initargs=(os.getpid(),))
+    try:
         futures = {pool.submit(run_case, case): case for case in cases}
         for future in as_completed(futures):
             try:
@@ -368,11 +452,16 @@ def run_local(cases: list[Case], workers: int, on_row: Callable[[dict], None]) -
             except Exception as exc:            # the worker process itself died (not the case)
                 row = _failed_row(futures[future], "error", f"worker died: {type(exc).__name__}: {exc}")
             on_row(row)
+    except BaseException:                       # Ctrl-C (KeyboardInterrupt), SIGTERM handlers, bugs
+        _stop_pool(pool)
+        raise
+    pool.shutdown(wait=True)
 
 
 # On this 24 GiB machine Ray would reserve 30 % of memory for its object store; a campaign passes
 # a scenario dict in and a row of numbers out per task, so 256 MiB is plenty.
 RAY_OBJECT_STORE_BYTES = 256 * 1024**2
+RAY_WAIT_S = 0.5
 
 
 def run_ray(cases: list[Case], workers: int, on_row: Callable[[dict], None], address: str | None) -> None:
@@ -389,12 +478,14 @@ def run_ray(cases: list[Case], workers: int, on_row: Callable[[dict], None], add
             ray.init(address="local", num_cpus=workers, object_store_memory=RAY_OBJECT_STORE_BYTES,
                      include_dashboard=False, log_to_driver=False)
         started_here = True
+    pending: dict = {}
     try:
         # max_retries=0: a case that kills its worker is a failed row, not a silent re-run.
         remote_case = ray.remote(num_cpus=1, max_retries=0)(run_case)
         pending = {remote_case.remote(case): case for case in cases}
         while pending:
-            done, _ = ray.wait(list(pending), num_returns=1)
+            # With a timeout: a ray.wait that blocks for a whole case never lets Python act on Ctrl-C.
+            done, _ = ray.wait(list(pending), num_returns=1, timeout=RAY_WAIT_S)
             for ref in done:
                 case = pending.pop(ref)
                 try:
@@ -402,6 +493,13 @@ def run_ray(cases: list[Case], workers: int, on_row: Callable[[dict], None], add
                 except Exception as exc:         # worker crash, node loss
                     row = _failed_row(case, "error", f"ray task failed: {type(exc).__name__}: {exc}")
                 on_row(row)
+    except BaseException:                # interrupted: stop the cases still running or queued
+        for ref in pending:
+            try:
+                ray.cancel(ref, force=True)
+            except Exception:            # noqa: BLE001 - already finished or its worker gone
+                pass
+        raise
     finally:
         if started_here:
             ray.shutdown()
@@ -469,13 +567,21 @@ def run_campaign(spec: CampaignSpec, out: Path, *, engine: str = "local", worker
     return CampaignOutcome(len(cases), len(cases) - len(todo), len(todo), failed, wall_s)
 
 
-def scenario_name(campaign: str, case_id: str) -> str:
+def scenario_name(campaign: str, label: list[str]) -> str:
     """A scenario name for one case that passes the bench's name rule ([A-Za-z0-9_.-], at most 40
-    characters): the case id with '/' as '.', shortened with a hash of the whole id where too long."""
+    characters): the campaign and `label` (the varying axis values and s<seed>) joined by '.';
+    without the campaign where that is too long; shortened with a hash of the whole where even
+    the label is. The full case id is in the case's `case_id` and the scenario's description."""
     import hashlib
     import re
 
-    name = re.sub(r"[^A-Za-z0-9_.-]", ".", f"{campaign}.{case_id}")
+    def clean(text: str) -> str:
+        return re.sub(r"[^A-Za-z0-9_.-]", ".", text)
+
+    full = clean(".".join([campaign, *label]))
+    name = full
     if len(name) > 40:
-        name = f"{name[:31]}-{hashlib.sha1(name.encode()).hexdigest()[:8]}"
+        name = clean(".".join(label))
+    if len(name) > 40:
+        name = f"{name[:31]}-{hashlib.sha1(full.encode()).hexdigest()[:8]}"
     return name if name[0].isalnum() else f"c{name[1:]}"

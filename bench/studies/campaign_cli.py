@@ -7,12 +7,14 @@ from pathlib import Path
 from bench.scenario import ScenarioError
 
 EXIT_BAD_INPUT = 2
+EXIT_INTERRUPTED = 130      # 128 + SIGINT, as a shell reports a command Ctrl-C stopped
 
 
 def cmd_campaign(args) -> int:
-    from bench.studies.campaign import CampaignError, load_spec, run_campaign
+    from bench.studies.campaign import CampaignError, load_spec, parts_dir, read_rows, run_campaign
     from bench.studies.campaign_report import write_report
 
+    out = None
     try:
         spec = load_spec(args.spec)
         if args.seeds is not None:
@@ -26,6 +28,13 @@ def cmd_campaign(args) -> int:
     except (CampaignError, ScenarioError, ValueError) as exc:
         print(f"bench: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
+    except KeyboardInterrupt:
+        # The pool is stopped and every finished row is in the parts: the same command resumes.
+        kept = len(read_rows(out)) if out is not None else 0
+        where = parts_dir(out) if out is not None else "nowhere (nothing had run)"
+        print(f"bench: campaign interrupted: {kept} rows kept in {where}; run the same command to resume",
+              file=sys.stderr)
+        return EXIT_INTERRUPTED
     print(f"{outcome.total} cases: {outcome.skipped} already done, {outcome.ran} run ({outcome.failed} failed) "
           f"in {outcome.wall_s:.1f} s, {outcome.runs_per_s:.2f} runs/s; results: {out}")
     if not args.no_report:

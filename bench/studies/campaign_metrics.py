@@ -41,10 +41,31 @@ def _percentile(values: np.ndarray, q: float) -> float:
     return float(np.percentile(values, q)) if values.size else float("nan")
 
 
+def estimate_consistency(estimate_m_mps, estimate_covariance, navigation_truth_m_mps) -> dict:
+    """NEES of the estimate against the truth (both in the flight side's coordinates), per step
+    e' P^-1 e with e = truth - estimate, averaged over the steps that have a covariance (a
+    consistent 6-state estimator averages 6); and the estimate's position error at the last step.
+    NaN without a covariance (full state knowledge)."""
+    nan = float("nan")
+    if estimate_m_mps is None or estimate_covariance is None or navigation_truth_m_mps is None:
+        return {"nees_mean": nan, "nees_steps": 0, "estimate_position_error_final_m": nan}
+    error = np.asarray(navigation_truth_m_mps, dtype=float) - np.asarray(estimate_m_mps, dtype=float)
+    covariance = np.asarray(estimate_covariance, dtype=float).reshape(-1, 6, 6)
+    usable = np.all(np.isfinite(covariance), axis=(1, 2)) & np.all(np.isfinite(error), axis=1)
+    if not usable.any():
+        return {"nees_mean": nan, "nees_steps": 0, "estimate_position_error_final_m": nan}
+    nees = np.einsum("ki,ki->k", error[usable], np.linalg.solve(covariance[usable], error[usable][..., None])[..., 0])
+    return {"nees_mean": float(nees.mean()), "nees_steps": int(usable.sum()),
+            "estimate_position_error_final_m": float(np.linalg.norm(error[-1, :3]))}
+
+
 def run_metrics(state_m_mps: np.ndarray, thrust_n: np.ndarray, params: RendezvousParams,
                 solve_time_s: np.ndarray | None = None, solver_iterations: np.ndarray | None = None,
-                ctrl_feasible: np.ndarray | None = None) -> dict:
-    """One campaign row's metrics (flat: numbers and booleans only)."""
+                ctrl_feasible: np.ndarray | None = None, *, estimate_m_mps: np.ndarray | None = None,
+                estimate_covariance: np.ndarray | None = None,
+                navigation_truth_m_mps: np.ndarray | None = None) -> dict:
+    """One campaign row's metrics (flat: numbers and booleans only). With the estimate, its
+    covariance and the truth in the flight side's coordinates, also the estimate's NEES."""
     x = np.asarray(state_m_mps, dtype=float)
     u = np.asarray(thrust_n, dtype=float).reshape(-1, 3)
     finite = bool(np.all(np.isfinite(x)) and np.all(np.isfinite(u)))
@@ -85,6 +106,7 @@ def run_metrics(state_m_mps: np.ndarray, thrust_n: np.ndarray, params: Rendezvou
         "solver_iterations_max": float(iters.max()) if iters.size else nan,
         "infeasible_cycles": int(np.sum(~feas)),
         "steps": int(u.shape[0]),
+        **estimate_consistency(estimate_m_mps, estimate_covariance, navigation_truth_m_mps),
     }
 
 # Columns that depend on the machine and its load, not on the scenario: two runs of the same case

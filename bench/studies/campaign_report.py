@@ -28,7 +28,11 @@ SUMMARY_METRICS = [
     ("solve_time_p50_ms", "solve p50 [ms]", 1.0, "{:.3f}"),
     ("solve_time_p99_ms", "solve p99 [ms]", 1.0, "{:.3f}"),
     ("solver_iterations_median", "iterations (median)", 1.0, "{:.0f}"),
+    ("nees_mean", "run's mean NEES", 1.0, "{:.1f}"),
+    ("estimate_position_error_final_m", "final estimate error [m]", 1.0, "{:.1f}"),
 ]
+# The translational estimate's state dimension: a consistent estimator's NEES averages this.
+NEES_DOF = 6
 BOX_METRICS = ["final_position_error_m", "delta_v_mps", "time_to_rendezvous_s", "solve_time_p99_ms"]
 
 
@@ -44,6 +48,18 @@ def wilson_interval(successes: int, n: int, z: float = Z_95) -> tuple[float, flo
     return max(0.0, centre - half), min(1.0, centre + half)
 
 
+def nees_bounds(runs: int, dof: int = NEES_DOF, probability: float = 0.95) -> tuple[float, float]:
+    """Two-sided bounds of the mean over `runs` runs of one NEES each: runs x mean ~ chi-square with
+    runs x dof degrees of freedom (Bar-Shalom, Li, Kirubarajan 2001, 5.4.2). A run's *time-averaged*
+    NEES varies less than one step's, so for the mean of time averages the bounds are generous."""
+    from scipy.stats import chi2
+
+    if runs <= 0:
+        return float("nan"), float("nan")
+    tail = (1 - probability) / 2
+    return float(chi2.ppf(tail, runs * dof) / runs), float(chi2.ppf(1 - tail, runs * dof) / runs)
+
+
 @dataclass
 class CellSummary:
     cell: tuple[str, ...]
@@ -55,6 +71,14 @@ class CellSummary:
     ci_high: float
     stats: dict[str, tuple[float, float, float]]      # metric -> (median, p25, p75) of ok runs
     values: dict[str, np.ndarray]
+    # Mean over the runs of each run's time-averaged NEES, and its 95 % bounds (NaN: no estimator).
+    nees_mean: float = float("nan")
+    nees_low: float = float("nan")
+    nees_high: float = float("nan")
+
+    @property
+    def nees_consistent(self) -> bool:
+        return bool(self.nees_low <= self.nees_mean <= self.nees_high)
 
     @property
     def success_rate(self) -> float:
@@ -83,8 +107,11 @@ def summarise(rows: list[dict]) -> list[CellSummary]:
             v = v[np.isfinite(v)]
             values[metric] = v
             stats[metric] = tuple(float(np.percentile(v, q)) for q in (50, 25, 75)) if v.size else (float("nan"),) * 3
+        nees = values["nees_mean"]
+        nees_low, nees_high = nees_bounds(nees.size)
         out.append(CellSummary(cell, len(group), len(group) - len(ok), successes,
-                               sum(bool(r["diverged"]) for r in ok), low, high, stats, values))
+                               sum(bool(r["diverged"]) for r in ok), low, high, stats, values,
+                               float(nees.mean()) if nees.size else float("nan"), nees_low, nees_high))
     return out
 
 
@@ -92,9 +119,16 @@ def _pct(x: float) -> str:
     return "-" if math.isnan(x) else f"{100 * x:.0f}"
 
 
+def _nees(s: CellSummary) -> str:
+    """Mean NEES [95 % bounds], '-' without an estimator."""
+    if math.isnan(s.nees_mean):
+        return "-"
+    return f"{s.nees_mean:.1f} [{s.nees_low:.1f}, {s.nees_high:.1f}]"
+
+
 def seed001_table(summaries: list[CellSummary]) -> str:
-    """Controller rows, dynamics x knowledge columns: success % [95 % CI], median final distance,
-    median delta-v (first initial-condition set and fault kind of the campaign)."""
+    """Controller rows, dynamics x knowledge columns: success % [95 % CI], mean NEES [95 % bounds],
+    median final distance, median delta-v (first initial-condition set and fault kind)."""
     first_ic = summaries[0].cell[3]
     first_fault = summaries[0].cell[4]
     by = {(s.cell[0], s.cell[1], s.cell[2]): s for s in summaries if s.cell[3] == first_ic and s.cell[4] == first_fault}
@@ -110,18 +144,19 @@ def seed001_table(summaries: list[CellSummary]) -> str:
                 cells.append("")
                 continue
             cells.append(f"{_pct(s.success_rate)} % [{_pct(s.ci_low)}, {_pct(s.ci_high)}] of {s.runs}; "
+                         f"NEES {_nees(s)}; "
                          f"{s.stats['final_position_error_m'][0]:.0f} m; {s.stats['delta_v_mps'][0]:.1f} m/s")
         lines.append(f"| {ctrl} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
 def cell_table(summaries: list[CellSummary]) -> str:
-    header = ["cell", "runs", "failed", "success % [95 % CI]", "diverged"]
+    header = ["cell", "runs", "failed", "success % [95 % CI]", "diverged", "mean NEES [95 % bounds]"]
     header += [f"{label} median (p25-p75)" for _, label, _, _ in SUMMARY_METRICS]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for s in summaries:
         row = ["/".join(s.cell), str(s.runs), str(s.failed_runs),
-               f"{_pct(s.success_rate)} [{_pct(s.ci_low)}, {_pct(s.ci_high)}]", str(s.diverged)]
+               f"{_pct(s.success_rate)} [{_pct(s.ci_low)}, {_pct(s.ci_high)}]", str(s.diverged), _nees(s)]
         for metric, _, scale, fmt in SUMMARY_METRICS:
             med, lo, hi = (v * scale for v in s.stats[metric])
             row.append("-" if math.isnan(med) else f"{fmt.format(med)} ({fmt.format(lo)}-{fmt.format(hi)})")
@@ -173,7 +208,9 @@ def write_report(results: Path, out_dir: Path | None = None) -> Path:
     text = [f"# Campaign report: {results.name}", "",
             f"{len(rows)} runs in {len(summaries)} cells; {len(failures)} failed (exception or timeout).", "",
             "## Seed 001 table", "",
-            "Success % [Wilson 95 % CI] of n runs; median final distance; median delta-v.", "",
+            "Success % [Wilson 95 % CI] of n runs; the estimator's NEES (mean over the runs of each run's "
+            "time-averaged NEES) [its 95 % chi-square bounds], '-' with full state knowledge; median final "
+            "distance; median delta-v.", "",
             seed001_table(summaries), "", "## Every cell", "", cell_table(summaries), "", "## Distributions", ""]
     text += [f"![{p.stem}]({p.name})" for p in plots]
     if failures:
