@@ -26,6 +26,7 @@ from bench.bus.schemas import STAGES
 from bench.report.timebase import RunClock
 from bench.report.rundata import load_run
 from bench.scenario import builtin_names, load_scenario
+from tests.browser import CHROMIUM, colourful_fraction, images_loaded
 from tests.conftest import run_bench_cli
 
 RUN_TIMEOUT_S = 240
@@ -83,16 +84,26 @@ def chain_breaks(trajectory: dict) -> list[str]:
     return broken
 
 
+_done: dict[str, object] = {}
+
+
+def short_run(runs, name: str):
+    """`bench run` of the scenario's short form, once per test session; the finished process."""
+    if name not in _done:
+        scenario_file = runs / f"{name}.json"
+        scenario_file.write_text(json.dumps(short_form(name)))
+        _done[name] = run_bench_cli("run", str(scenario_file), "--run-id", name, "--runs-dir", str(runs), "--no-progress",
+                                    timeout_s=RUN_TIMEOUT_S)
+    return _done[name]
+
+
 @pytest.mark.parametrize("name", builtin_names())
 def test_a_short_run_of_every_builtin_scenario_reads_right(runs, name):
     if needs_kernel_can(name) and not Path("/sys/class/net/vcan0").exists():
         pytest.skip("needs the kernel's SocketCAN (vcan); its loop is run in user-mode Linux by tests/test_kernel_can_uml.py")
-    scenario_file = runs / f"{name}.json"
-    scenario_file.write_text(json.dumps(short_form(name)))
-    result = run_bench_cli("run", str(scenario_file), "--run-id", name, "--runs-dir", str(runs), "--no-progress",
-                           timeout_s=RUN_TIMEOUT_S)
+    result = short_run(runs, name)
     assert result.returncode == 0, result.stderr[-3000:]
-    assert "verdict" in result.stdout and ("PASS" in result.stdout or "FAIL" in result.stdout)
+    assert "verdict: PASS" in result.stdout or "verdict: FAIL" in result.stdout
     run = load_run(runs / name)
     metrics = json.loads((runs / name / "metrics.json").read_text())
 
@@ -133,3 +144,17 @@ def test_a_short_run_of_every_builtin_scenario_reads_right(runs, name):
     # a verdict everywhere
     assert isinstance(metrics["verdict"]["passed"], bool) and metrics["verdict"]["criteria"]
     assert "Verdict: **PASS**" in report or "Verdict: **FAIL**" in report
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="chromium not installed (tools/install-system-deps.sh)")
+@pytest.mark.parametrize("name", ["attitude_fault_all", "rendezvous_card"])
+def test_each_loops_report_renders_in_a_browser_with_no_empty_plot(runs, tmp_path, name):
+    """The attitude loop with bus faults and the rendezvous card, as Chromium shows them: every
+    figure loads, and no plot is empty (each holds coloured lines or fills)."""
+    assert short_run(runs, name).returncode == 0
+    page = runs / name / "report.html"
+    n_figures = page.read_text().count("<img ")
+    assert n_figures >= 5
+    assert images_loaded(tmp_path, page) == (n_figures, n_figures)
+    for plot in sorted((runs / name / "plots").glob("*.png")):
+        assert colourful_fraction(plot) > 1e-4, f"{plot.name} is empty"    # a dozen points: 3.5e-4

@@ -27,6 +27,11 @@ def fault_windows_sim_s(run_dir: Path, scenario, trajectory: dict) -> list[tuple
     return canbus.fault_windows_sim_s(run_dir, scenario.can, RunClock.from_run(trajectory, scenario))
 
 
+def _criterion_bounds(scenario, metrics: tuple[str, ...]) -> list[tuple[float, str]]:
+    """Upper bounds the scenario's criteria put on these metrics, for threshold lines."""
+    return [(c.max, c.metric) for c in scenario.criteria if c.metric in metrics and c.max is not None]
+
+
 def _shade(ax, windows) -> None:
     for i, (name, start, end) in enumerate(windows):
         ax.axvspan(start, max(end, start + 0.1), color=f"C{i + 3}", alpha=0.25, label=f"fault: {name}")
@@ -40,12 +45,26 @@ def loop_figure(trajectory: dict, scenario, windows, path: Path) -> Path:
     axes = axes[:, 0]
     if error is not None:
         axes[0].plot(t, error, label="pointing error")
+        for bound, why in _criterion_bounds(scenario, ("final_pointing_error_deg", "max_pointing_error_deg")):
+            axes[0].axhline(bound, color="tab:red", ls="--", lw=0.8, label=f"criterion: {why} ({bound:g} deg)")
         axes[0].set_ylabel("pointing error [deg]")
+        if error.max() > 100 * max(error.min(), 1e-6):
+            axes[0].set_yscale("log")
         _shade(axes[0], windows)
         axes[0].legend(fontsize="small")
     ax = axes[-1]
-    ax.plot(t, np.rad2deg(trajectory["att_omega_radps"]), label=["wx", "wy", "wz"])
-    ax.plot(t, np.rad2deg(np.linalg.norm(trajectory["att_omega_radps"], axis=1)), "k", lw=1, label="|w|")
+    rate_dps = np.rad2deg(np.linalg.norm(trajectory["att_omega_radps"], axis=1))
+    if rate_dps.max() > 100 * max(rate_dps.min(), 1e-9):
+        # a detumble spans decades: |w| on a log axis, the components would not show there
+        ax.semilogy(t, rate_dps, "k", lw=1, label="|w|")
+    else:
+        ax.plot(t, np.rad2deg(trajectory["att_omega_radps"]), label=["wx", "wy", "wz"])
+        ax.plot(t, rate_dps, "k", lw=1, label="|w|")
+    if "detumble" in scenario.attitude_control.law or "bdot" in scenario.attitude_control.law:
+        from bench.report.attitude_metrics import DETUMBLE_THRESHOLD_DPS
+
+        ax.axhline(DETUMBLE_THRESHOLD_DPS, color="tab:red", ls="--", lw=0.8,
+                   label=f"detumbled below {DETUMBLE_THRESHOLD_DPS:g} deg/s")
     _shade(ax, windows)
     ax.set_ylabel("body rate [deg/s]")
     ax.set_xlabel("simulated time [s]")

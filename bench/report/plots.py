@@ -169,10 +169,17 @@ def estimator_error(sim_time_s: np.ndarray, error: np.ndarray, bound_3sigma: np.
         if not np.all(np.isnan(bound_3sigma[:, i])):
             ax.fill_between(t_h, -bound_3sigma[:, i], bound_3sigma[:, i], color="tab:gray", alpha=0.3, label="±3σ")
         ax.set_ylabel(names[i])
+        # The axis follows the error, not the initial prior: a +-30 m/s prior on the first step
+        # would flatten velocity errors of 1e-3 m/s into a line (the band is clipped, not hidden).
+        scale = np.nanpercentile(np.abs(error[:, i]), 99) if np.isfinite(error[:, i]).any() else 0.0
+        band = np.nanmedian(bound_3sigma[:, i]) if np.isfinite(bound_3sigma[:, i]).any() else 0.0
+        limit = 1.3 * max(scale, band)
+        if np.isfinite(limit) and limit > 0:
+            ax.set_ylim(-limit, limit)
     for ax in axes[1]:
         ax.set_xlabel("time [h]")
     axes[0, 0].legend(fontsize="small")
-    fig.suptitle("Estimator error (estimate - truth) with its 3-sigma bounds")
+    fig.suptitle("Estimator error (estimate - truth) with its 3-sigma bounds (axes: 99 % of the error or the median bound)")
     return _save(fig, path)
 
 
