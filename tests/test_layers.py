@@ -24,7 +24,7 @@ LAYERS: list[dict[str, list[str]]] = [
     {"bus": ["bench.bus", "bench.bus.*"]},                # Zenoh session, messages, CAN
     # The scenario and the section schema each part owns (bench/<part>/config.py): plain data,
     # below every process so each part can read the scenario it runs.
-    {"scenario": ["bench.scenario", "bench.scenarios", "bench.*.config"]},
+    {"scenario": ["bench.scenario", "bench.scenarios", "bench.*.config", "bench.criteria"]},
     {"runtime": ["bench.runtime", "bench.runtime.*"]},    # node context, process start, deadlines
     {"plant": ["bench.plant", "bench.plant.*"],           # the processes that only know the bus
      "estimator": ["bench.estimator", "bench.estimator.*"],
