@@ -42,3 +42,19 @@ def test_velocity_rms_is_not_the_first_samples(tmp_path):
     assert metrics["nis_dof"] == 3 and metrics["rejected_measurements"] == 1
     assert any(f.path.name == "nis.png" for f in section.figures)
     assert (tmp_path / "nis.png").stat().st_size > 10_000
+
+
+def test_rejection_runs_and_reacquisitions_are_counted(tmp_path):
+    # Rejected at 30 (one), 40-49 (ten in a row, then a used fix: a re-acquisition at the default
+    # 8) and 55-56 with a step without a measurement between (still one run of two).
+    run = _run(tmp_path)
+    rejected_steps = {30, *range(40, 50), 55, 57}
+    for m in run.messages:
+        if m.topic == keys.ESTIMATE_TRANSLATION and m.seq > 0:
+            m.body["measurement_rejected"] = m.seq in rejected_steps
+            m.body["nis"] = None if m.seq == 56 else 50.0 if m.seq in rejected_steps else 3.0
+    _, metrics = estimation_section(run, tmp_path)
+    assert metrics["rejected_measurements"] == 13
+    assert metrics["rejection_runs"] == 3 and metrics["longest_rejection_run"] == 10
+    assert metrics["reacquisitions"] == 1
+    assert metrics["mean_nis_accepted"] == pytest.approx(3.0)

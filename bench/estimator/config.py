@@ -48,10 +48,26 @@ class TranslationSmootherConfig(msgspec.Struct, forbid_unknown_fields=True):
     estimate_mean_motion: bool = False
     mean_motion_prior_rel_std: Positive = 0.03
     # Innovation gate: a measurement whose NIS against the prediction exceeds the chi-square
-    # quantile of this probability (3 degrees of freedom) is not used. None: no gate.
-    gate_probability: Probability | None = None
+    # quantile of this probability (3 degrees of freedom; 0.9999: NIS 21.1, one good fix in
+    # 10 000 lost) is not used. None: no gate (and none of the protections below).
+    gate_probability: Probability | None = 0.9999
+    # A run of rejected fixes must not walk the gate open: while fixes are being rejected the
+    # prediction widens (process noise), until a fix of an outlier burst fits it. The rejected
+    # fixes of the run are tracked on their own (a track started from them alone); a fix the
+    # gate would pass but which that track explains better than the prediction by this
+    # likelihood ratio is taken for the burst's next fix and rejected too.
+    gate_burst_likelihood_ratio: Annotated[float, msgspec.Meta(ge=1, le=1e15)] = 1.0
+    # Re-acquisition: after at least this many consecutive rejected fixes, when the last
+    # reacquire_consistent_fixes of them form a consistent track (each within the gate of the
+    # track made by the ones before it), the smoother restarts from that track. A one-sided
+    # burst shorter than this is never adopted; a longer consistent one cannot be told from a
+    # real unmodelled motion by the fixes alone.
+    reacquire_after_rejections: PositiveInt = 8
+    reacquire_consistent_fixes: Annotated[int, msgspec.Meta(ge=3, le=10_000)] = 4
     # Robust measurement noise (gtsam's m-estimators): "huber" or "cauchy" down-weight residuals
     # beyond robust_threshold_sigma (norm of the whitened residual); "none" is least squares.
+    # Relinearised as the state moves (iterated, as iSAM2 / batch Levenberg-Marquardt would), so
+    # the weights are those of the converged estimate, not of the prediction.
     robust_loss: Literal["none", "huber", "cauchy"] = "none"
     robust_threshold_sigma: Positive = 3.0
 

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 import gtsam
 import numpy as np
+import scipy.linalg
 from scipy.stats import chi2
 
 from bench.estimator import factors
@@ -52,6 +53,14 @@ _DELTA_RELINEARISE = np.array([1e-4])
 # at most 0.02 sigma (state) and 0.004 sigma (mean motion) and cuts the median CPU time 1.5-2.7x.
 _STATE_RELINEARISE_LINEAR_MEASUREMENTS = 100.0 * _STATE_RELINEARISE
 _MAX_EXTRA_GAUSS_NEWTON_STEPS = 3
+# A robust loss is iteratively reweighted least squares: each relinearisation recomputes the
+# weights, and a fix a few sigma out needs more steps than a smooth nonlinearity to settle.
+_MAX_EXTRA_ROBUST_STEPS = 10
+# Position sigma of the prior a track of rejected fixes starts from: far wider than any fix, so
+# the track is the fixes' own (its velocity prior is the smoother's initial one).
+_TRACK_SEED_POSITION_STD_M = 1.0e4
+# Prior of a burst's measurement bias, in measurement sigmas: uninformative next to any burst.
+_BURST_BIAS_PRIOR_SIGMAS = 1.0e4
 
 
 def state_key(seq: int) -> int:
@@ -75,6 +84,12 @@ class TranslationEstimateResult:
     nis_dof: int = 0
     measurement_rejected: bool = False
     rejected_measurements: int = 0
+    # This step's fix ended a run of at least reacquire_after_rejections rejected ones (the
+    # smoother re-acquired), and how many times that happened so far; the length of the current
+    # run of consecutive rejected fixes.
+    reacquired: bool = False
+    reacquisitions: int = 0
+    rejection_run: int = 0
 
     def covariance_row_major(self) -> list[float]:
         """The 36 numbers of TranslationEstimate.covariance."""
@@ -123,6 +138,8 @@ class TranslationSmoother:
         self.model = CwhMotionModel(params.mass_kg, params.time_step_s, _or(config.process_noise_psd_m2ps3, 0.0))
         self.failed_updates = 0
         self.rejected_measurements = 0
+        self.reacquisitions = 0
+        self._run = _RejectionRun()
         self.late_measurements_applied = 0
         self.late_measurements_dropped = 0     # older than the window: too late to use
         self._gate = (None if config.gate_probability is None
@@ -130,6 +147,7 @@ class TranslationSmoother:
         self._smoother: gtsam.IncrementalFixedLagSmoother | None = None
         self._last: _GoodEstimate | None = None
         self._innovation: tuple[float | None, int, bool] = (None, 0, False)
+        self._reacquired = False
 
     @property
     def estimates_mean_motion(self) -> bool:
@@ -146,14 +164,16 @@ class TranslationSmoother:
 
     @property
     def _relinearises_measurements(self) -> bool:
-        """gtsam's nonlinear range/bearing factors, relinearised as the state moves."""
-        return self.config.sensor == "range_bearing" and not self.linearises_measurements
+        """gtsam's nonlinear measurement factors (range/bearing, or any sensor with a robust loss,
+        whose weights are recomputed at each linearisation), relinearised as the state moves."""
+        return self.config.robust_loss != "none" or (self.config.sensor == "range_bearing"
+                                                     and not self.linearises_measurements)
 
     @property
     def is_nonlinear(self) -> bool:
         """Unknown mean motion or relinearised range/bearing: relinearise and iterate."""
-        return self.config.estimate_mean_motion or (self.config.sensor == "range_bearing"
-                                                    and not self.linearises_measurements)
+        return (self.config.estimate_mean_motion or self.config.robust_loss != "none"
+                or (self.config.sensor == "range_bearing" and not self.linearises_measurements))
 
     def _measurement_factor(self, measurement: "_Measurement", key: int, about: Gaussian):
         """The measurement's factor on `key`: linearised about `about` (the state's prediction or
@@ -185,6 +205,7 @@ class TranslationSmoother:
             raise ValueError(f"seq must increase: got {seq} after {self._last.seq}")
 
         self._innovation = (None, 0, False)
+        self._reacquired = False
         if self._last is None:
             if measurement is None:
                 return None
@@ -197,7 +218,10 @@ class TranslationSmoother:
                 self._last = None
                 return None
         predicted = self._predict_last(seq, thrust)
-        measurement = self._check_innovation(measurement, predicted)
+        self._run.propagate(self, seq, thrust)
+        measurement, track = self._screen(seq, measurement, predicted)
+        if track is not None:
+            return self._reacquire(seq, sim_time_s, track)
         if self._smoother is None:
             return self._restart(seq, sim_time_s, thrust, measurement)
 
@@ -317,8 +341,93 @@ class TranslationSmoother:
             graph.add(self._measurement_factor(measurement, state_key(seq), predicted))
         return graph, predicted.mean[:6]
 
+    def _screen(self, seq: int, measurement: "_Measurement | None",
+                predicted: Gaussian) -> tuple["_Measurement | None", Gaussian | None]:
+        """The gate of an on-time fix, which a run of outliers cannot walk open.
+
+        Returns (the measurement, or None when rejected; the track to restart from when this fix
+        re-acquires). A fix is rejected when its NIS against the prediction exceeds the gate, or,
+        during a run of rejected fixes, when the track of those rejected fixes explains it better
+        than the prediction by more than gate_burst_likelihood_ratio (it looks like the burst's
+        next fix, however wide the prediction has grown). After reacquire_after_rejections
+        rejected fixes, reacquire_consistent_fixes that agree with each other re-acquire.
+        """
+        if measurement is None:
+            return None, None
+        nis, innovation_cov = measurement.innovation(predicted)
+        dof = measurement.dof
+        if self._gate is None:
+            self._innovation = (nis, dof, False)
+            return measurement, None
+        gate, run, config = self._gate[dof], self._run, self.config
+        rejected = nis > gate
+        if run.candidate is not None and not rejected:
+            candidate_nis, candidate_cov = measurement.innovation(run.candidate, bias=True)
+            # log of p(fix | it is offset like the run's rejected fixes) / p(fix | it is good)
+            log_ratio = 0.5 * (nis - candidate_nis) + 0.5 * (_log_det(innovation_cov) - _log_det(candidate_cov))
+            rejected = log_ratio > np.log(config.gate_burst_likelihood_ratio)
+        if not rejected:
+            if run.length >= config.reacquire_after_rejections:
+                self.reacquisitions += 1
+                self._reacquired = True
+            self._run = _RejectionRun()
+            self._innovation = (nis, dof, False)
+            return measurement, None
+        # Rejected. The hypothesis that the run's fixes are all offset by one unknown bias b (a
+        # burst): the prediction with b appended (diffuse), corrected by them.
+        if run.candidate is None:
+            bias_var = (_BURST_BIAS_PRIOR_SIGMAS * np.sqrt(measurement.variances))**2
+            run.candidate = Gaussian(np.concatenate([predicted.mean, np.zeros(dof)]),
+                                     scipy.linalg.block_diag(predicted.covariance, np.diag(bias_var)))
+        run.candidate = measurement.update(run.candidate, bias=True)
+        # The track of the fixes alone: extended, or started anew from this fix when it does not
+        # fit the track (the run's first fix, or an isolated outlier inside a run).
+        track_nis = None if run.track is None else measurement.innovation(run.track)[0]
+        if run.track is None or track_nis > gate:
+            run.track = measurement.update(self._track_seed(measurement, predicted))
+            run.fixes, run.track_seq = 1, seq
+        else:
+            run.track = measurement.update(run.track)
+            run.fixes += 1
+        if run.length >= config.reacquire_after_rejections and run.fixes >= config.reacquire_consistent_fixes:
+            self.reacquisitions += 1
+            self._reacquired = True
+            self._innovation = (nis, dof, False)
+            track, self._run = run.track, _RejectionRun()
+            log.warning("step %d: %d fixes rejected in a row; re-acquired on the last %d, which agree with "
+                        "each other", seq, run.length, run.fixes)
+            return None, track
+        run.length += 1
+        self.rejected_measurements += 1
+        self._innovation = (nis, dof, True)
+        log.info("measurement of step %d rejected (NIS %.1f, gate %.1f, %d rejected in a row)", seq, nis, gate, run.length)
+        return None, None
+
+    def _track_seed(self, measurement: "_Measurement", predicted: Gaussian) -> Gaussian:
+        """Where a track of rejected fixes starts: the fix alone (a position prior far wider than
+        any fix, the smoother's initial velocity prior), the mean motion as predicted."""
+        mean = predicted.mean.copy()
+        mean[:3] = measurement.position_guess_m
+        variances = [_TRACK_SEED_POSITION_STD_M**2] * 3 + [self.config.initial_velocity_std_mps**2] * 3
+        if mean.size == 7:
+            variances.append(predicted.covariance[6, 6])
+        return Gaussian(mean, np.diag(variances))
+
+    def _reacquire(self, seq: int, sim_time_s: float, track: Gaussian) -> TranslationEstimateResult:
+        """The smoother restarted from the track of the consistent rejected fixes (this one included):
+        the old estimate disagreed with all of them, so its history is dropped."""
+        self._smoother = None
+        try:
+            return self._start(seq, sim_time_s, gtsam.NonlinearFactorGraph(), track, reinitialised=False)
+        except Exception as exc:
+            self.failed_updates += 1
+            log.warning("re-acquisition at step %d failed in gtsam (%d failures so far): %s; publishing the track",
+                        seq, self.failed_updates, exc)
+            self._last = _GoodEstimate(seq, track)
+            return self._result(seq, sim_time_s, self._last, reinitialised=True)
+
     def _check_innovation(self, measurement: "_Measurement | None", predicted: Gaussian) -> "_Measurement | None":
-        """NIS of the measurement against the prediction; None in its place if the gate rejects it."""
+        """NIS of a late measurement against its step's estimate; None in its place if the gate rejects it."""
         if measurement is None:
             return None
         nis = measurement.nis(predicted.mean[:6], predicted.covariance[:6, :6])
@@ -333,21 +442,35 @@ class TranslationSmoother:
 
     def _predict_last(self, seq: int, thrust: np.ndarray) -> Gaussian:
         """The last good joint estimate ([x] or [x; delta]) carried to step `seq` (first order in delta)."""
-        last, n_steps = self._last, seq - self._last.seq
+        return self._propagate(self._last.joint, seq - self._last.seq, thrust)
+
+    def _propagate(self, joint: Gaussian, n_steps: int, thrust: np.ndarray) -> Gaussian:
+        """A joint belief ([x] or [x; delta], then any constant states) carried n_steps with the
+        thrust held (first order in delta)."""
         process_cov = self.model.discrete(self.believed_mean_motion_radps, n_steps).process_cov
         if not self.estimates_mean_motion:
             m = self.model.discrete(self.believed_mean_motion_radps, n_steps)
-            return predict(last.joint, m.transition, m.input_matrix, thrust, process_cov)
-        mean_motion = self._mean_motion(last.delta)
+            if joint.mean.size == 6:
+                return predict(joint, m.transition, m.input_matrix, thrust, process_cov)
+            jacobian = np.eye(joint.mean.size)
+            jacobian[:6, :6] = m.transition
+            mean = joint.mean.copy()
+            mean[:6] = m.transition @ joint.mean[:6] + m.input_matrix @ thrust
+            cov = jacobian @ joint.covariance @ jacobian.T
+            cov[:6, :6] += process_cov
+            return Gaussian(mean, 0.5 * (cov + cov.T))
+        delta = float(joint.mean[6])
+        mean_motion = self._mean_motion(delta)
         transition, input_matrix = self.model.transition_and_input(mean_motion, n_steps)
         d_transition, d_input = self.model.derivative(mean_motion, n_steps)
-        x = last.joint.mean[:6]
+        x = joint.mean[:6]
         # x_k = Ad(n) x + Bd(n) u, n = n_b (1 + delta): d x_k / d delta = (dAd/dn x + dBd/dn u) n_b.
-        jacobian = np.eye(7)
+        jacobian = np.eye(joint.mean.size)
         jacobian[:6, :6] = transition
         jacobian[:6, 6] = (d_transition @ x + d_input @ thrust) * self.believed_mean_motion_radps
-        mean = np.concatenate([transition @ x + input_matrix @ thrust, [last.delta]])
-        cov = jacobian @ last.joint.covariance @ jacobian.T
+        mean = joint.mean.copy()
+        mean[:6] = transition @ x + input_matrix @ thrust
+        cov = jacobian @ joint.covariance @ jacobian.T
         cov[:6, :6] += process_cov
         return Gaussian(mean, 0.5 * (cov + cov.T))
 
@@ -451,7 +574,8 @@ class TranslationSmoother:
             # iSAM2 takes one Gauss-Newton step per update. While the newest keys' step is still
             # above the relinearisation thresholds (their first linearisation point, a prediction,
             # can be kilometres off early on), take more, up to a bound.
-            for _ in range(_MAX_EXTRA_GAUSS_NEWTON_STEPS):
+            extra_steps = _MAX_EXTRA_ROBUST_STEPS if self.config.robust_loss != "none" else _MAX_EXTRA_GAUSS_NEWTON_STEPS
+            for _ in range(extra_steps):
                 if not self._newest_step_is_large(smoother, seq, measured_key):
                     break
                 smoother.update()
@@ -463,8 +587,8 @@ class TranslationSmoother:
     def _newest_step_is_large(self, smoother, seq: int, measured_key=None) -> bool:
         """Would another Gauss-Newton step relinearise a variable whose linearisation matters?
 
-        The newest state enters its motion factor linearly, so only a range/bearing factor cares
-        where it is linearised; delta enters every motion factor nonlinearly.
+        The newest state enters its motion factor linearly, so only a range/bearing or robust
+        factor cares where it is linearised; delta enters every motion factor nonlinearly.
         """
         delta = smoother.getDelta()
         key = state_key(seq) if measured_key is None else measured_key
@@ -498,7 +622,29 @@ class TranslationSmoother:
             failed_updates=self.failed_updates, reinitialised=reinitialised,
             nis=self._innovation[0], nis_dof=self._innovation[1], measurement_rejected=self._innovation[2],
             rejected_measurements=self.rejected_measurements,
+            reacquired=self._reacquired, reacquisitions=self.reacquisitions, rejection_run=self._run.length,
         )
+
+
+class _RejectionRun:
+    """The current run of consecutive rejected fixes: the estimate had they been used, and the
+    track the latest mutually consistent ones make on their own."""
+
+    def __init__(self):
+        self.length = 0                      # consecutive rejected fixes
+        # [x (; delta); b]: the prediction corrected by the run's fixes, each offset by the bias b
+        self.candidate: Gaussian | None = None
+        self.track: Gaussian | None = None   # joint belief from the rejected fixes alone, at track_seq
+        self.track_seq = 0
+        self.fixes = 0                       # fixes in the track (each within the gate of the ones before)
+
+    def propagate(self, smoother: "TranslationSmoother", seq: int, thrust: np.ndarray) -> None:
+        """Carry the track to step `seq` with the smoother's model (the thrust held since its step)."""
+        if self.track is not None and seq > self.track_seq:
+            n_steps = seq - self.track_seq
+            self.track = smoother._propagate(self.track, n_steps, thrust)
+            self.candidate = smoother._propagate(self.candidate, n_steps, thrust)
+            self.track_seq = seq
 
 
 @dataclass(frozen=True)
@@ -534,6 +680,44 @@ class _Measurement:
         innovation, h = self.residual(x)
         return factors.linear_factor([(key, h)], innovation + h @ x, whiten=np.diag(1.0 / np.sqrt(self.variances)))
 
+    def _jacobian(self, state: np.ndarray, bias: bool) -> tuple[np.ndarray, np.ndarray]:
+        """Innovation at a joint state [x (; delta) (; b)] and its Jacobian (delta does not enter
+        the measurement; b, when `bias`, is an offset added to it)."""
+        innovation, h = self.residual(state[:6])
+        size, dof = state.size, self.dof
+        jacobian = np.zeros((dof, size))
+        jacobian[:, :6] = h
+        if bias:
+            innovation = innovation - state[-dof:]
+            jacobian[:, -dof:] = np.eye(dof)
+        return innovation, jacobian
+
+    def innovation(self, belief: Gaussian, bias: bool = False) -> tuple[float, np.ndarray]:
+        """NIS of this measurement against a joint belief, and the innovation covariance S."""
+        innovation, h = self._jacobian(belief.mean, bias)
+        s = h @ belief.covariance @ h.T + np.diag(self.variances)
+        return float(innovation @ np.linalg.solve(s, innovation)), s
+
+    def update(self, belief: Gaussian, bias: bool = False) -> Gaussian:
+        """The joint belief corrected by this measurement: an iterated EKF (exact for a position
+        fix), covariance in Joseph form at the final linearisation."""
+        prior_mean, p, size = belief.mean, belief.covariance, belief.mean.size
+        r = np.diag(self.variances)
+        x = prior_mean
+        for _ in range(_MAX_EXTRA_GAUSS_NEWTON_STEPS + 1):
+            innovation, h = self._jacobian(x, bias)
+            s = h @ p @ h.T + r
+            x_next = prior_mean + p @ h.T @ np.linalg.solve(s, innovation + h @ (x - prior_mean))
+            converged = np.all(np.abs(x_next[:6] - x[:6]) <= _STATE_RELINEARISE)
+            x = x_next
+            if converged:
+                break
+        _, h = self._jacobian(x, bias)
+        gain = np.linalg.solve(h @ p @ h.T + r, h @ p).T
+        i_kh = np.eye(size) - gain @ h
+        cov = i_kh @ p @ i_kh.T + gain @ r @ gain.T
+        return Gaussian(x, 0.5 * (cov + cov.T))
+
     def nis(self, state: np.ndarray, covariance: np.ndarray) -> float:
         """Normalised innovation squared nu' S^-1 nu, S = H P H' + R (first order in h)."""
         innovation, h = self.residual(state)
@@ -563,6 +747,11 @@ def _vector(name: str, value, size: int) -> np.ndarray:
     if not np.all(np.isfinite(v)):
         raise ValueError(f"{name} has non-finite entries: {v}")
     return v
+
+
+def _log_det(matrix: np.ndarray) -> float:
+    sign, value = np.linalg.slogdet(matrix)
+    return float(value) if sign > 0 else np.inf
 
 
 def _or(value, default):

@@ -24,6 +24,8 @@ class EstimationResult:
     nis: np.ndarray | None = None            # (n,) NIS of each step's measurement, NaN without one
     nis_dof: int = 0
     rejected: np.ndarray | None = None       # (n,) the innovation gate rejected the measurement
+    # The smoother re-acquires on a fix used after at least this many rejected in a row (None: no gate).
+    reacquire_after_rejections: int | None = None
 
     def to_metrics(self) -> dict:
         rms = np.sqrt(np.mean(self.error**2, axis=0))
@@ -43,7 +45,31 @@ class EstimationResult:
             "mean_nis": float(nis.mean()) if nis is not None and nis.size else None,
             "nis_dof": self.nis_dof,
             "rejected_measurements": int(self.rejected.sum()) if self.rejected is not None else 0,
+            **self._rejection_runs(),
         }
+
+    def _rejection_runs(self) -> dict:
+        """Runs of consecutive rejected measurements (steps without one do not break a run), the
+        mean NIS of the measurements used, and re-acquisitions: a used measurement after a run
+        of at least reacquire_after_rejections rejected ones, as the smoother counts them."""
+        if self.rejected is None or self.nis is None:
+            return {"mean_nis_accepted": None, "rejection_runs": 0, "longest_rejection_run": 0, "reacquisitions": 0}
+        used = np.isfinite(self.nis) & ~self.rejected
+        runs, current, reacquisitions = [], 0, 0
+        for has_measurement, rejected in zip(np.isfinite(self.nis), self.rejected):
+            if rejected:
+                current += 1
+            elif has_measurement:
+                if current:
+                    runs.append(current)
+                    limit = self.reacquire_after_rejections
+                    reacquisitions += limit is not None and current >= limit
+                current = 0
+        if current:
+            runs.append(current)
+        return {"mean_nis_accepted": float(self.nis[used].mean()) if used.any() else None,
+                "rejection_runs": len(runs), "longest_rejection_run": max(runs, default=0),
+                "reacquisitions": int(reacquisitions)}
 
 
 def estimation_error(run: RunData) -> EstimationResult | None:
@@ -64,5 +90,7 @@ def estimation_error(run: RunData) -> EstimationResult | None:
     if not rows:
         return None
     t, e, b, nis, dof, rejected = zip(*rows)
+    translation = run.scenario.estimator.translation
+    reacquire_after = None if translation.gate_probability is None else translation.reacquire_after_rejections
     return EstimationResult(np.asarray(t), np.vstack(e), np.vstack(b), np.asarray(nis, dtype=float),
-                            int(max(dof)), np.asarray(rejected))
+                            int(max(dof)), np.asarray(rejected), reacquire_after)
