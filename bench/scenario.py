@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import json
 import math
+import re
+import sys
 import tomllib
 from importlib import resources
 from pathlib import Path
@@ -55,6 +57,7 @@ class ScenarioError(ValueError):
 # recursion on it: a 50 000-deep array).
 MAX_SCENARIO_BYTES = 1 << 20
 MAX_NESTING = 32
+TOML_STACK_FRAMES = 400     # see parse_toml_text
 # Every step keeps a state, a command and nine stamps in the plant's memory (~200 B): 1e5 steps
 # is 20 MB, and at 600 s per step 694 days of simulated time.
 MAX_STEPS = 100_000
@@ -270,10 +273,23 @@ def _check_semantics(s: Scenario) -> None:
 def _msgspec_message(exc: msgspec.ValidationError) -> str:
     # msgspec says "Expected `float` >= 0 - at `$.plant.time_step_s`"; lead with the field.
     text = str(exc)
-    if " - at `$." in text:
-        problem, _, where = text.rpartition(" - at `$.")
-        return f"{where.rstrip('`')}: {problem}"
-    return text
+    problem, at, where = text.rpartition(" - at `$")
+    if not at:
+        problem, where = text, ""
+    where = where.rstrip("`").lstrip(".")
+    unknown = re.fullmatch(r"Object contains unknown field `(.*)`", problem, re.DOTALL)
+    if unknown:   # the unknown key is the field to name: "run.stesp: unknown field"
+        return f"{where + '.' if where else ''}{_key(unknown.group(1))}: unknown field"
+    missing = re.fullmatch(r"Object missing required field `(.*)`", problem, re.DOTALL)
+    if missing:
+        return f"{where + '.' if where else ''}{_key(missing.group(1))}: required field missing"
+    return f"{where}: {problem}" if where else f"<root>: {problem}"
+
+
+def _key(key) -> str:
+    """A key as a message shows it: bare if plain, else quoted (a key may hold ':', '.' or spaces)."""
+    key = str(key)
+    return key if re.fullmatch(r"[A-Za-z0-9_-]+", key) else json.dumps(key, ensure_ascii=False)
 
 
 def _first_non_finite(value, path: str = "") -> str | None:
@@ -284,7 +300,7 @@ def _first_non_finite(value, path: str = "") -> str | None:
         if isinstance(item, float) and not math.isfinite(item):
             return f"{where.lstrip('.') or '<root>'}: must be a finite number, got {item!r}"
         if isinstance(item, dict):
-            stack.extend((f"{where}.{k}", v) for k, v in reversed(list(item.items())))
+            stack.extend((f"{where}.{_key(k)}", v) for k, v in reversed(list(item.items())))
         elif isinstance(item, (list, tuple)):
             stack.extend((f"{where}[{i}]", v) for i, v in reversed(list(enumerate(item))))
     return None
@@ -300,7 +316,7 @@ def _deeper_than(value, limit: int) -> str | None:
             if depth >= limit:
                 return where.lstrip(".") or "<root>"
             items = item.items() if isinstance(item, dict) else enumerate(item)
-            stack.extend((f"{where}.{k}" if isinstance(item, dict) else f"{where}[{k}]", v, depth + 1)
+            stack.extend((f"{where}.{_key(k)}" if isinstance(item, dict) else f"{where}[{k}]", v, depth + 1)
                          for k, v in items)
     return None
 
@@ -320,7 +336,7 @@ def _toml_field_of_recursion(exc: RecursionError, text: str) -> str:
                 key, pos = local["key"], local.get("pos")
         tb = tb.tb_next
     if key is not None and all(isinstance(part, str) for part in (header or ()) + key):
-        return ".".join((header or ()) + key)
+        return ".".join(_key(part) for part in (header or ()) + key)
     if isinstance(pos, int):
         return f"line {text.count(chr(10), 0, pos) + 1}"
     return "<root>"
@@ -332,10 +348,25 @@ def _check_nesting(data, source: str) -> None:
         raise ScenarioError(f"{source}: {where}: nested deeper than {MAX_NESTING} levels of tables and arrays")
 
 
+def _stack_depth() -> int:
+    frame, depth = sys._getframe(), 0
+    while frame is not None:
+        frame, depth = frame.f_back, depth + 1
+    return depth
+
+
 def parse_toml_text(text: str, source: str) -> dict:
     """tomllib's parse of a scenario's text, its limits turned into one-line ScenarioErrors: a
-    syntax error, a nesting deep enough to exhaust the parser's recursion, or deeper than MAX_NESTING."""
+    syntax error, a nesting deep enough to exhaust the parser's recursion, or deeper than MAX_NESTING.
+
+    tomllib recurses two to four frames per level of nesting. It runs with TOML_STACK_FRAMES frames
+    above this one (never more than the interpreter's limit), so a file nested beyond ~100 levels
+    runs out of recursion and is named by its key whatever limit the interpreter was given (a test
+    runner raises it), and one within MAX_NESTING always parses. The limit is the interpreter's, so
+    it is lowered only for the parse."""
+    limit = sys.getrecursionlimit()
     try:
+        sys.setrecursionlimit(min(limit, _stack_depth() + TOML_STACK_FRAMES))
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ScenarioError(f"{source}: not valid TOML: {exc}") from None
@@ -343,6 +374,8 @@ def parse_toml_text(text: str, source: str) -> dict:
         where = _toml_field_of_recursion(exc, text)
         raise ScenarioError(f"{source}: {where}: nested deeper than {MAX_NESTING} levels of tables and arrays "
                             "(too deep for the TOML parser)") from None
+    finally:
+        sys.setrecursionlimit(limit)
     _check_nesting(data, source)
     return data
 

@@ -242,13 +242,22 @@ def load_deployment(path: str | Path) -> Deployment:
     path = Path(path)
     raw = _read(path)
     raw["base_dir"] = str(path.resolve().parent)
-    try:
-        deployment = msgspec.convert(raw, Deployment, strict=True)
-    except msgspec.ValidationError as exc:
-        # msgspec says "Expected `str` - at `$.hosts.sim.nodes[0]`"; lead with the field.
-        problem, _, at = str(exc).rpartition(" - at `$.")
-        message = f"{at.rstrip('`')}: {problem}" if problem else str(exc)
-        raise DeploymentError(f"deployment file {str(path)!r}: {message}") from None
+
+    def convert(value, kind, prefix: str):
+        try:
+            return msgspec.convert(value, kind, strict=True)
+        except msgspec.ValidationError as exc:
+            # msgspec says "Expected `str` - at `$.nodes[0]`"; lead with the field.
+            problem, at, where = str(exc).rpartition(" - at `$")
+            field = prefix + where.rstrip("`") if at else prefix.rstrip(".")
+            raise DeploymentError(f"deployment file {str(path)!r}: {field or '<root>'}: {problem if at else exc}") from None
+
+    hosts = raw.get("hosts")
+    if isinstance(hosts, dict) and len(hosts) <= MAX_HOSTS:
+        # One host at a time, so that a message names the host (msgspec says hosts[...]).
+        for name, host in hosts.items():
+            convert(host, Host, f"hosts.{name}")
+    deployment = convert(raw, Deployment, "")
     _check(deployment)
     return deployment
 
