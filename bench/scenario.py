@@ -64,6 +64,8 @@ MAX_STEPS = 100_000
 # The IGRF field is tabulated along the orbit every attitude.field.grid_s over the run (and the
 # planner's horizon): at most this many points (6 floats each, one IGRF evaluation per point).
 MAX_FIELD_GRID_POINTS = 1_000_000
+# Rendezvous: orbit angle per plant step (mean motion x time_step_s), at most a quarter orbit.
+MAX_ORBIT_ANGLE_PER_STEP_RAD = math.pi / 2
 # MILQR plans max_horizon_s / plan_step_s steps (a 3x3 Riccati recursion and a rollout each).
 MAX_PLAN_STEPS = 10_000
 # Real-time: the wall-clock step period (time_step_s / time_factor) must be between these.
@@ -186,6 +188,8 @@ MAX_ATTITUDE_TIME_FACTOR = 2.0
 
 
 def _check_attitude(s: Scenario) -> None:
+    if s.controller.deadline.fallback == "lqr":
+        raise ScenarioError("controller.deadline.fallback: 'lqr' is a translational law; the attitude loop has none")
     try:
         check_attitude_plant(s.attitude)
     except AttitudeConfigError as exc:
@@ -257,6 +261,14 @@ def _check_semantics(s: Scenario) -> None:
             )
     if s.kind == "attitude":
         return  # the translational checks below are for the rendezvous loop
+    # The CWH discretisation and the LQR/MPC designs need a step that is a fraction of the orbit:
+    # the reference flies 600 s steps at n = 1.1e-3 rad/s (0.68 rad); a step of a whole orbit or
+    # more aliases the motion the controller is meant to follow.
+    step_rad = s.params().mean_motion * s.plant.time_step_s
+    if not step_rad <= MAX_ORBIT_ANGLE_PER_STEP_RAD:
+        raise ScenarioError(f"plant.time_step_s: {s.plant.time_step_s:g} s is {step_rad:.3g} rad of the target's orbit "
+                            f"(mean motion from plant.gravitational_parameter_m3ps2 and target_radius_m); at most "
+                            f"{MAX_ORBIT_ANGLE_PER_STEP_RAD} rad per step")
     if s.plant.initial_state_m_mps is None:
         known = RendezvousParams.from_reference().initial_conditions_m_mps
         if s.plant.initial_condition not in known:
@@ -268,6 +280,31 @@ def _check_semantics(s: Scenario) -> None:
         raise ScenarioError(f"controller.q_diag: needs 6 weights, got {len(s.controller.q_diag)}")
     if len(s.controller.r_diag) != 3:
         raise ScenarioError(f"controller.r_diag: needs 3 weights, got {len(s.controller.r_diag)}")
+    _check_lqr_design(s)
+
+
+def _check_lqr_design(s: Scenario) -> None:
+    """Every translational controller designs an LQR (the law, MPC's terminal cost, the fallback)
+    on the believed model: weights or a plant it has no solution for (3e7 kg with 1 s steps and the
+    seed's weights: the scaled input is too weak) are refused here, not in the controller process."""
+    import numpy as np
+
+    from bench.controller.factory import weights_from_config
+    from bench.gnc.lqr import dlqr
+
+    model = s.onboard_params().scaled
+    q, r = weights_from_config(s.controller)
+    try:
+        with np.errstate(all="ignore"):
+            gain, cost = dlqr(model.A, model.B, q, r)
+        solved = bool(np.all(np.isfinite(gain)) and np.all(np.isfinite(cost)))
+    except (np.linalg.LinAlgError, ValueError) as exc:
+        solved, reason = False, str(exc)
+    else:
+        reason = "non-finite gain"
+    if not solved:
+        raise ScenarioError(f"controller.q_diag: no LQR solution for controller.q_diag and r_diag on this plant "
+                            f"(plant.mass_kg = {s.plant.mass_kg:g}, plant.time_step_s = {s.plant.time_step_s:g}): {reason}")
 
 
 def _msgspec_message(exc: msgspec.ValidationError) -> str:

@@ -290,8 +290,15 @@ def assert_names_a_field(message: str, top_keys: set[str]) -> None:
     if field.startswith("line "):
         return
     quoted = re.match(QUOTED, field)
-    top = json.loads(quoted.group(0)) if quoted else re.split(r"[.\[]", field, maxsplit=1)[0]
-    assert top in top_keys | set(Scenario.__struct_fields__), message
+    top = quoted.group(0) if quoted else re.split(r"[.\[]", field, maxsplit=1)[0]
+    assert top in {shown_key(k) for k in top_keys | set(Scenario.__struct_fields__)}, message
+
+
+def shown_key(key: str) -> str:
+    """A key as messages show it: bare if plain, else quoted with what cannot print escaped."""
+    if re.fullmatch(r"[A-Za-z0-9_-]+", key):
+        return key
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in json.dumps(key, ensure_ascii=False))
 
 
 @settings(max_examples=600, deadline=None, derandomize=True, database=None,

@@ -62,10 +62,13 @@ class PlantConfig(msgspec.Struct, forbid_unknown_fields=True):
     # A name from the reference (A, B, C) or an explicit state in m and m/s.
     initial_condition: Annotated[str, msgspec.Meta(max_length=32)] = "A"
     initial_state_m_mps: State6 | None = None
-    mass_kg: Annotated[float, msgspec.Meta(gt=0, le=1e9)] = MODEL["mass_kg"]
-    gravitational_parameter_m3ps2: Annotated[float, msgspec.Meta(gt=0, le=1e21)] = MODEL["gravitational_parameter"]
-    target_radius_m: Annotated[float, msgspec.Meta(gt=0, le=1e12)] = MODEL["target_radius_m"]
-    time_step_s: Annotated[float, msgspec.Meta(gt=0, le=86_400)] = MODEL["time_step_s"]
+    # Lower bounds too: 5e-324 kg made B = dt/m infinite. 1 g is a chip satellite; mu = 1 m^3/s^2
+    # a small asteroid; 1 m and 1 ms are the least that are still a radius and a step. What the
+    # mean motion makes of a step (n dt) is bounded in bench.scenario.
+    mass_kg: Annotated[float, msgspec.Meta(ge=1e-3, le=1e9)] = MODEL["mass_kg"]
+    gravitational_parameter_m3ps2: Annotated[float, msgspec.Meta(ge=1.0, le=1e21)] = MODEL["gravitational_parameter"]
+    target_radius_m: Annotated[float, msgspec.Meta(ge=1.0, le=1e12)] = MODEL["target_radius_m"]
+    time_step_s: Annotated[float, msgspec.Meta(ge=1e-3, le=86_400)] = MODEL["time_step_s"]
     relpos_sensor: RelativePositionSensorConfig = msgspec.field(default_factory=RelativePositionSensorConfig)
     range_bearing_sensor: RangeBearingSensorConfig = msgspec.field(default_factory=RangeBearingSensorConfig)
     command_acceptance: CommandAcceptanceConfig = msgspec.field(default_factory=CommandAcceptanceConfig)
