@@ -176,8 +176,11 @@ def _kill_children(children: list[Child]) -> None:
 
 
 def _check_children(children: list[Child], allowed_done: set[str]) -> None:
-    for child in children:
-        code = child.process.poll()
+    # A node that failed (non-zero code) is named before one that exited 0 early: two seen exited
+    # by the same poll were named in start order, so a plant that ended after the bus model died
+    # was blamed ("process 'plant' exited with code 0").
+    exited = [(child, child.process.poll()) for child in children]
+    for child, code in sorted(exited, key=lambda item: item[1] == 0):
         if code is None:
             continue
         if code != 0 or child.name not in allowed_done:

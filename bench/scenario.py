@@ -3,15 +3,19 @@
 A scenario is composed of one section per part of the loop; each part owns its section's schema
 (`bench/<part>/config.py`). A bad file raises `ScenarioError` with one line naming the field.
 
-Nothing a file holds may get past here and fail later: the file's size and nesting are bounded
-before it is parsed, every number must be finite, and every count and size has an upper bound
-(steps, horizons, list lengths) so no value makes a process allocate without limit. The ranges
+Nothing a file holds may get past here and fail later: the file's size is bounded before it is
+parsed and its nesting by the parser itself (tomllib's recursion, then a depth check of what it
+returned); values are converted strictly (a string is never a number; an integer is a float);
+every number must be finite, and every number has an upper bound (times, counts, rates, sizes,
+list lengths) so no value makes a process allocate, loop or overflow without limit. The ranges
 are listed in docs/run_safety.md.
 """
 from __future__ import annotations
 
 import json
 import math
+import re
+import sys
 import tomllib
 from importlib import resources
 from pathlib import Path
@@ -20,8 +24,8 @@ from typing import Annotated, Literal
 import msgspec
 
 from bench.bus.can.config import CanConfig
+from bench.controller.config import ATTITUDE_LAWS, PLANNED_LAWS, AttitudeControlConfig, ControllerConfig
 from bench.criteria import Criteria
-from bench.controller.config import ATTITUDE_LAWS, AttitudeControlConfig, ControllerConfig
 from bench.estimator.config import EstimatorConfig
 from bench.gnc.cwh import RendezvousParams
 from bench.plant.config import (
@@ -32,17 +36,39 @@ from bench.plant.config import PlantConfig
 BUILTIN_PACKAGE = "bench.scenarios"
 
 
+MAX_MESSAGE_CHARS = 1000
+
+
+def one_line(text: str, limit: int = MAX_MESSAGE_CHARS) -> str:
+    """`text` as one printable line: what a file put in a key or a value (a newline, an escape
+    sequence, a line separator) shown escaped, and at most `limit` characters."""
+    text = "".join(c if c.isprintable() else repr(c)[1:-1] for c in str(text))
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
 class ScenarioError(ValueError):
-    """A scenario that cannot be run, with the field and the problem in the message."""
+    """A scenario that cannot be run, with the field and the problem in the message (one line)."""
+
+    def __init__(self, message: str):
+        super().__init__(one_line(message))
 
 
-# A scenario file larger or deeper than this is refused before it is parsed (a 50 000-deep
-# array makes tomllib recurse until the interpreter gives up).
+# A scenario file larger than this is refused before it is read; one nested deeper than
+# MAX_NESTING levels of tables and arrays is refused after parsing (or when tomllib runs out of
+# recursion on it: a 50 000-deep array).
 MAX_SCENARIO_BYTES = 1 << 20
 MAX_NESTING = 32
+TOML_STACK_FRAMES = 400     # see parse_toml_text
 # Every step keeps a state, a command and nine stamps in the plant's memory (~200 B): 1e5 steps
 # is 20 MB, and at 600 s per step 694 days of simulated time.
 MAX_STEPS = 100_000
+# The IGRF field is tabulated along the orbit every attitude.field.grid_s over the run (and the
+# planner's horizon): at most this many points (6 floats each, one IGRF evaluation per point).
+MAX_FIELD_GRID_POINTS = 1_000_000
+# Rendezvous: orbit angle per plant step (mean motion x time_step_s), at most a quarter orbit.
+MAX_ORBIT_ANGLE_PER_STEP_RAD = math.pi / 2
+# MILQR plans max_horizon_s / plan_step_s steps (a 3x3 Riccati recursion and a rollout each).
+MAX_PLAN_STEPS = 10_000
 # Real-time: the wall-clock step period (time_step_s / time_factor) must be between these.
 MIN_WALL_PERIOD_S = 1e-3
 MAX_WALL_PERIOD_S = 60.0
@@ -55,7 +81,9 @@ class LivelinessConfig(msgspec.Struct, forbid_unknown_fields=True):
 
     A process whose liveliness token vanished is hung if it is stopped (state T in /proc, e.g.
     SIGSTOP) for stopped_grace_s, or if its token stays gone for hang_timeout_s whatever it does;
-    a token that comes back (a starved process whose lease lapsed) clears the suspicion.
+    a token that comes back (a starved process whose lease lapsed) clears the suspicion. So a
+    stopped node is named lease_s + stopped_grace_s after it stopped (3 s with the defaults; the
+    token lapses only when Zenoh's lease expires), plus up to one 0.1 s poll of the launcher.
     """
 
     lease_s: Annotated[float, msgspec.Meta(ge=0.1, le=60.0)] = 2.0
@@ -91,12 +119,13 @@ class OnboardConfig(msgspec.Struct, forbid_unknown_fields=True):
     believed_radius_error: Annotated[float, msgspec.Meta(gt=-0.5, lt=0.5)] = 0.0
     # Sensor noise believed on board; None: the plant's ([plant.relpos_sensor],
     # [plant.range_bearing_sensor]). A measurement message's own noise field is never used.
-    relpos_noise_std_m: Annotated[float, msgspec.Meta(gt=0)] | None = None
-    range_noise_std_m: Annotated[float, msgspec.Meta(gt=0)] | None = None
-    bearing_noise_std_rad: Annotated[float, msgspec.Meta(gt=0)] | None = None
+    # Bounded like the plant's sensor noise ([plant], 1e9) and the estimator's beliefs (1e15).
+    relpos_noise_std_m: Annotated[float, msgspec.Meta(gt=0, le=1e9)] | None = None
+    range_noise_std_m: Annotated[float, msgspec.Meta(gt=0, le=1e9)] | None = None
+    bearing_noise_std_rad: Annotated[float, msgspec.Meta(gt=0, le=1e9)] | None = None
     # White acceleration believed to act on the chaser (m^2/s^3). The linear CWH plant has none,
     # so neither does the default belief; set it for the nonlinear plant or a mistuned case.
-    process_noise_psd_m2ps3: Annotated[float, msgspec.Meta(ge=0)] = 0.0
+    process_noise_psd_m2ps3: Annotated[float, msgspec.Meta(ge=0, le=1e15)] = 0.0
 
 
 class Scenario(msgspec.Struct, forbid_unknown_fields=True):
@@ -162,6 +191,8 @@ MAX_ATTITUDE_TIME_FACTOR = 2.0
 
 
 def _check_attitude(s: Scenario) -> None:
+    if s.controller.deadline.fallback == "lqr":
+        raise ScenarioError("controller.deadline.fallback: 'lqr' is a translational law; the attitude loop has none")
     try:
         check_attitude_plant(s.attitude)
     except AttitudeConfigError as exc:
@@ -199,8 +230,30 @@ def _check_attitude(s: Scenario) -> None:
                             f"bus on the wall clock); got {s.run.time_factor}, at most {MAX_ATTITUDE_TIME_FACTOR}")
 
 
+def _check_attitude_sizes(s: Scenario) -> None:
+    """The attitude loop's counts that come from products of fields (each bounded alone)."""
+    rate_hz = s.attitude.sensors.gyro_rate_hz
+    if s.run.steps is None and s.attitude.duration_s * rate_hz > MAX_STEPS + 0.5:
+        raise ScenarioError(f"attitude.duration_s: {s.attitude.duration_s:g} s at {rate_hz:g} Hz is "
+                            f"{s.attitude.duration_s * rate_hz:.3g} steps; at most {MAX_STEPS}")
+    planner = s.attitude_control.planner
+    planned = s.attitude_control.law in PLANNED_LAWS
+    if planned and planner.max_horizon_s / planner.plan_step_s > MAX_PLAN_STEPS:
+        raise ScenarioError(f"attitude_control.planner.plan_step_s: {planner.max_horizon_s:g} s of horizon in "
+                            f"{planner.plan_step_s:g} s steps is more than {MAX_PLAN_STEPS} MILQR steps")
+    if s.attitude.field.model == "igrf":
+        duration_s = s.n_steps * s.step_s + 1.0
+        if planned:   # the planner tabulates its horizon and hold beyond the run (bench/planner/planner.py)
+            duration_s += planner.max_horizon_s + planner.hold_after_arrival_s + 2 * planner.plan_step_s
+        points = duration_s / s.attitude.field.grid_s
+        if points > MAX_FIELD_GRID_POINTS:
+            raise ScenarioError(f"attitude.field.grid_s: {s.attitude.field.grid_s:g} s over {duration_s:.3g} s is "
+                                f"{points:.3g} IGRF points; at most {MAX_FIELD_GRID_POINTS}")
+
+
 def _check_semantics(s: Scenario) -> None:
     if s.kind == "attitude":
+        _check_attitude_sizes(s)
         _check_attitude(s)
     if s.run.mode == "real-time":
         period_s = s.step_s / s.run.time_factor
@@ -211,6 +264,14 @@ def _check_semantics(s: Scenario) -> None:
             )
     if s.kind == "attitude":
         return  # the translational checks below are for the rendezvous loop
+    # The CWH discretisation and the LQR/MPC designs need a step that is a fraction of the orbit:
+    # the reference flies 600 s steps at n = 1.1e-3 rad/s (0.68 rad); a step of a whole orbit or
+    # more aliases the motion the controller is meant to follow.
+    step_rad = s.params().mean_motion * s.plant.time_step_s
+    if not step_rad <= MAX_ORBIT_ANGLE_PER_STEP_RAD:
+        raise ScenarioError(f"plant.time_step_s: {s.plant.time_step_s:g} s is {step_rad:.3g} rad of the target's orbit "
+                            f"(mean motion from plant.gravitational_parameter_m3ps2 and target_radius_m); at most "
+                            f"{MAX_ORBIT_ANGLE_PER_STEP_RAD} rad per step")
     if s.plant.initial_state_m_mps is None:
         known = RendezvousParams.from_reference().initial_conditions_m_mps
         if s.plant.initial_condition not in known:
@@ -222,15 +283,53 @@ def _check_semantics(s: Scenario) -> None:
         raise ScenarioError(f"controller.q_diag: needs 6 weights, got {len(s.controller.q_diag)}")
     if len(s.controller.r_diag) != 3:
         raise ScenarioError(f"controller.r_diag: needs 3 weights, got {len(s.controller.r_diag)}")
+    _check_lqr_design(s)
+
+
+def _check_lqr_design(s: Scenario) -> None:
+    """Every translational controller designs an LQR (the law, MPC's terminal cost, the fallback)
+    on the believed model: weights or a plant it has no solution for (3e7 kg with 1 s steps and the
+    seed's weights: the scaled input is too weak) are refused here, not in the controller process."""
+    import numpy as np
+
+    from bench.controller.factory import weights_from_config
+    from bench.gnc.lqr import dlqr
+
+    model = s.onboard_params().scaled
+    q, r = weights_from_config(s.controller)
+    try:
+        with np.errstate(all="ignore"):
+            gain, cost = dlqr(model.A, model.B, q, r)
+        solved = bool(np.all(np.isfinite(gain)) and np.all(np.isfinite(cost)))
+    except (np.linalg.LinAlgError, ValueError) as exc:
+        solved, reason = False, str(exc)
+    else:
+        reason = "non-finite gain"
+    if not solved:
+        raise ScenarioError(f"controller.q_diag: no LQR solution for controller.q_diag and r_diag on this plant "
+                            f"(plant.mass_kg = {s.plant.mass_kg:g}, plant.time_step_s = {s.plant.time_step_s:g}): {reason}")
 
 
 def _msgspec_message(exc: msgspec.ValidationError) -> str:
     # msgspec says "Expected `float` >= 0 - at `$.plant.time_step_s`"; lead with the field.
     text = str(exc)
-    if " - at `$." in text:
-        problem, _, where = text.rpartition(" - at `$.")
-        return f"{where.rstrip('`')}: {problem}"
-    return text
+    problem, at, where = text.rpartition(" - at `$")
+    if not at:
+        problem, where = text, ""
+    where = where.rstrip("`").lstrip(".")
+    unknown = re.fullmatch(r"Object contains unknown field `(.*)`", problem, re.DOTALL)
+    if unknown:   # the unknown key is the field to name: "run.stesp: unknown field"
+        return f"{where + '.' if where else ''}{_key(unknown.group(1))}: unknown field"
+    missing = re.fullmatch(r"Object missing required field `(.*)`", problem, re.DOTALL)
+    if missing:
+        return f"{where + '.' if where else ''}{_key(missing.group(1))}: required field missing"
+    return f"{where}: {problem}" if where else f"<root>: {problem}"
+
+
+def _key(key) -> str:
+    """A key as a message shows it: bare if plain, else quoted (a key may hold ':', '.' or spaces)."""
+    key = str(key)
+    return key if re.fullmatch(r"[A-Za-z0-9_-]+", key) else json.dumps(key, ensure_ascii=False)
 
 
 def _first_non_finite(value, path: str = "") -> str | None:
@@ -241,62 +340,110 @@ def _first_non_finite(value, path: str = "") -> str | None:
         if isinstance(item, float) and not math.isfinite(item):
             return f"{where.lstrip('.') or '<root>'}: must be a finite number, got {item!r}"
         if isinstance(item, dict):
-            stack.extend((f"{where}.{k}", v) for k, v in reversed(list(item.items())))
+            stack.extend((f"{where}.{_key(k)}", v) for k, v in reversed(list(item.items())))
         elif isinstance(item, (list, tuple)):
             stack.extend((f"{where}[{i}]", v) for i, v in reversed(list(enumerate(item))))
     return None
 
 
-def _max_nesting(text: str) -> int:
-    """Deepest [ / { nesting of a TOML or JSON text, strings and comments skipped (a pre-parse check)."""
-    depth = deepest = 0
-    quote, comment, escaped = None, False, False
-    for ch in text:
-        if comment:
-            comment = ch != "\n"
-        elif quote:
-            if escaped:
-                escaped = False
-            elif ch == "\\" and quote == '"':
-                escaped = True
-            elif ch == quote or ch == "\n":
-                quote = None
-        elif ch in "\"'":
-            quote = ch
-        elif ch == "#":
-            comment = True
-        elif ch in "[{":
-            depth += 1
-            deepest = max(deepest, depth)
-        elif ch in "]}":
-            depth -= 1
-    return deepest
+def _deeper_than(value, limit: int) -> str | None:
+    """Path of the first value nested deeper than `limit` tables and arrays, else None (iterative:
+    whatever the parser returned, this check cannot run out of stack)."""
+    stack = [("", value, 0)]
+    while stack:
+        where, item, depth = stack.pop()
+        if isinstance(item, (dict, list, tuple)):
+            if depth >= limit:
+                return where.lstrip(".") or "<root>"
+            items = item.items() if isinstance(item, dict) else enumerate(item)
+            stack.extend((f"{where}.{_key(k)}" if isinstance(item, dict) else f"{where}[{k}]", v, depth + 1)
+                         for k, v in items)
+    return None
+
+
+def _toml_field_of_recursion(exc: RecursionError, text: str) -> str:
+    """Which key tomllib was parsing when it ran out of recursion: the header and key of its
+    outermost key/value frame (tomllib's own locals), else the line; a best effort for the message."""
+    header = key = pos = None
+    tb = exc.__traceback__
+    while tb is not None and key is None:
+        frame = tb.tb_frame
+        if frame.f_globals.get("__name__", "").startswith("tomllib"):
+            local = frame.f_locals
+            if frame.f_code.co_name == "key_value_rule" and isinstance(local.get("header"), tuple):
+                header = local["header"]
+            elif frame.f_code.co_name == "parse_key_value_pair" and isinstance(local.get("key"), tuple):
+                key, pos = local["key"], local.get("pos")
+        tb = tb.tb_next
+    if key is not None and all(isinstance(part, str) for part in (header or ()) + key):
+        return ".".join(_key(part) for part in (header or ()) + key)
+    if isinstance(pos, int):
+        return f"line {text.count(chr(10), 0, pos) + 1}"
+    return "<root>"
+
+
+def _check_nesting(data, source: str) -> None:
+    where = _deeper_than(data, MAX_NESTING)
+    if where is not None:
+        raise ScenarioError(f"{source}: {where}: nested deeper than {MAX_NESTING} levels of tables and arrays")
+
+
+def _stack_depth() -> int:
+    frame, depth = sys._getframe(), 0
+    while frame is not None:
+        frame, depth = frame.f_back, depth + 1
+    return depth
+
+
+def parse_toml_text(text: str, source: str) -> dict:
+    """tomllib's parse of a scenario's text, its limits turned into one-line ScenarioErrors: a
+    syntax error, a nesting deep enough to exhaust the parser's recursion, or deeper than MAX_NESTING.
+
+    tomllib recurses two to four frames per level of nesting. It runs with TOML_STACK_FRAMES frames
+    above this one (never more than the interpreter's limit), so a file nested beyond ~100 levels
+    runs out of recursion and is named by its key whatever limit the interpreter was given (a test
+    runner raises it), and one within MAX_NESTING always parses. The limit is the interpreter's, so
+    it is lowered only for the parse."""
+    limit = sys.getrecursionlimit()
+    try:
+        sys.setrecursionlimit(min(limit, _stack_depth() + TOML_STACK_FRAMES))
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ScenarioError(f"{source}: not valid TOML: {exc}") from None
+    except RecursionError as exc:
+        where = _toml_field_of_recursion(exc, text)
+        raise ScenarioError(f"{source}: {where}: nested deeper than {MAX_NESTING} levels of tables and arrays "
+                            "(too deep for the TOML parser)") from None
+    finally:
+        sys.setrecursionlimit(limit)
+    _check_nesting(data, source)
+    return data
 
 
 def _read_bounded(path: Path) -> str:
-    """The file's text, refused before reading if it is too large or too deep to parse safely."""
-    size = path.stat().st_size
-    if size > MAX_SCENARIO_BYTES:
-        raise ScenarioError(f"{path}: {size} bytes; a scenario file may hold at most {MAX_SCENARIO_BYTES}")
-    text = path.read_text(errors="replace")
-    if _max_nesting(text) > MAX_NESTING:
-        raise ScenarioError(f"{path}: nested deeper than {MAX_NESTING} levels of [ or {{")
-    return text
+    """The file's text, refused before reading if it is too large to parse safely."""
+    try:
+        size = path.stat().st_size
+        if size > MAX_SCENARIO_BYTES:
+            raise ScenarioError(f"{path}: {size} bytes; a scenario file may hold at most {MAX_SCENARIO_BYTES}")
+        return path.read_text(errors="replace")
+    except OSError as exc:
+        raise ScenarioError(f"{path}: cannot be read: {exc.strerror or exc}") from None
 
 
 def parse_scenario(data: dict, source: str = "<scenario>") -> Scenario:
     if not isinstance(data, dict):
         raise ScenarioError(f"{source}: a scenario is a table of sections, not {type(data).__name__}")
+    _check_nesting(data, source)
     problem = _first_non_finite(data)
     if problem:
         raise ScenarioError(f"{source}: {problem}")
     try:
-        scenario = msgspec.convert(data, Scenario, strict=False)
+        # strict: no string becomes a number ("20" is not 20) and no bool an integer; an integer
+        # is accepted where a float is expected.
+        scenario = msgspec.convert(data, Scenario, strict=True)
     except msgspec.ValidationError as exc:
         raise ScenarioError(f"{source}: {_msgspec_message(exc)}") from None
-    problem = _first_non_finite(msgspec.to_builtins(scenario))   # strings such as "nan" converted
-    if problem:
-        raise ScenarioError(f"{source}: {problem}")
     try:
         _check_semantics(scenario)
     except ScenarioError as exc:
@@ -313,16 +460,22 @@ def load_scenario(name_or_path: str | Path | None = None) -> Scenario:
     """A built-in scenario by name, or a TOML file by path; the default is `rendezvous_lqr`."""
     name_or_path = str(name_or_path or "rendezvous_lqr")
     path = Path(name_or_path)
+    try:
+        exists = path.exists()
+    except (OSError, ValueError) as exc:    # a name too long, a NUL byte
+        raise ScenarioError(f"scenario file {name_or_path!r}: {exc}") from None
     if path.suffix == ".json":
         # The scenario a launcher wrote into a run directory, exactly as it ran.
         if not path.is_file():
             raise ScenarioError(f"scenario file {name_or_path!r} does not exist")
         try:
             data = json.loads(_read_bounded(path))
-        except (json.JSONDecodeError, RecursionError) as exc:
+        except json.JSONDecodeError as exc:
             raise ScenarioError(f"{path}: not valid JSON: {exc}") from None
+        except RecursionError:
+            raise ScenarioError(f"{path}: <root>: nested deeper than {MAX_NESTING} levels (too deep for the JSON parser)") from None
         return parse_scenario(data, str(path))
-    if path.suffix == ".toml" or path.exists():
+    if path.suffix == ".toml" or exists:
         if not path.is_file():
             raise ScenarioError(f"scenario file {name_or_path!r} does not exist")
         text, source = _read_bounded(path), str(path)
@@ -333,11 +486,7 @@ def load_scenario(name_or_path: str | Path | None = None) -> Scenario:
         raise ScenarioError(
             f"no scenario file or built-in named {name_or_path!r} (built-ins: {', '.join(builtin_names())})"
         )
-    try:
-        data = tomllib.loads(text)
-    except (tomllib.TOMLDecodeError, RecursionError) as exc:
-        raise ScenarioError(f"{source}: not valid TOML: {exc}") from None
-    return parse_scenario(data, source)
+    return parse_scenario(parse_toml_text(text, source), source)
 
 
 def scenario_to_toml_dict(s: Scenario) -> dict:

@@ -9,7 +9,7 @@ from conftest import bench_processes, run_bench_cli
 BAD_SCENARIOS = {
     "unknown key": ('name = "x"\n[plant]\nthrusters = 4\n', "plant", "thrusters"),
     "wrong type": ('name = "x"\n[run]\nsteps = "many"\n', "run.steps", "int"),
-    "negative time step": ('name = "x"\n[plant]\ntime_step_s = -600.0\n', "plant.time_step_s", "> 0"),
+    "negative time step": ('name = "x"\n[plant]\ntime_step_s = -600.0\n', "plant.time_step_s", ">= 0.001"),
     "zero steps": ('name = "x"\n[run]\nsteps = 0\n', "run.steps", ">= 1"),
     "unknown mode": ('name = "x"\n[run]\nmode = "fast"\n', "run.mode", "fast"),
     "unknown initial condition": ('name = "x"\n[plant]\ninitial_condition = "Z"\n', "plant.initial_condition", "Z"),

@@ -1,6 +1,8 @@
 """Deployment files: which node runs on which host, where each host listens, router or not.
 
-TOML, validated on load like scenarios (`DeploymentError` names the field and the problem):
+TOML, validated on load like scenarios (`DeploymentError` names the field and the problem, on one
+line): at most 64 kB, no type coercion, bounded lengths and counts, nesting limited by the parser
+and a depth check of its result, ports 0-65535 in ASCII digits.
 
 ```toml
 name = "lab"                 # names the certificate authority
@@ -28,6 +30,7 @@ from __future__ import annotations
 
 import tomllib
 from pathlib import Path
+from typing import Annotated
 
 import msgspec
 
@@ -37,23 +40,36 @@ from bench.bus.session import SessionOptions
 
 LAUNCHER = "launcher"
 ROUTER = "router"
+# A deployment names a few hosts: these bound what a file can make the loader hold.
+MAX_DEPLOYMENT_BYTES = 64 * 1024
+MAX_DEPLOYMENT_NESTING = 8      # hosts.NAME.endpoints[i] is 3 levels
+MAX_HOSTS = 64
 
 
 class DeploymentError(ValueError):
-    """A deployment that cannot be run, with the field and the problem in the message."""
+    """A deployment that cannot be run, with the field and the problem in the message (one line)."""
+
+    def __init__(self, message: str):
+        # What a file put in a key or value (a newline, an escape sequence) shown escaped.
+        text = "".join(c if c.isprintable() else repr(c)[1:-1] for c in str(message))
+        super().__init__(text if len(text) <= 1000 else text[:997] + "...")
+
+
+Name = Annotated[str, msgspec.Meta(min_length=1, max_length=64)]
+Endpoint = Annotated[str, msgspec.Meta(max_length=256)]
 
 
 class Host(msgspec.Struct, forbid_unknown_fields=True):
-    endpoints: list[str] = msgspec.field(default_factory=list)
-    nodes: list[str] = msgspec.field(default_factory=list)
+    endpoints: Annotated[list[Endpoint], msgspec.Meta(max_length=16)] = msgspec.field(default_factory=list)
+    nodes: Annotated[list[Name], msgspec.Meta(max_length=16)] = msgspec.field(default_factory=list)
 
 
 class Deployment(msgspec.Struct, forbid_unknown_fields=True):
-    name: str
-    hosts: dict[str, Host]
-    certs: str = "certs"
-    launcher: str | None = None
-    router: str | None = None
+    name: Name
+    hosts: Annotated[dict[Name, Host], msgspec.Meta(max_length=MAX_HOSTS)]
+    certs: Annotated[str, msgspec.Meta(max_length=4096)] = "certs"
+    launcher: Name | None = None
+    router: Name | None = None
     secure: bool | None = None
     # Filled in by load_deployment (not in the file): the directory the file is in.
     base_dir: str = "."
@@ -159,7 +175,8 @@ def _check(d: Deployment) -> None:
         for endpoint in host.endpoints:
             proto, sep, address = endpoint.partition("/")
             host_part, colon, port = address.rpartition(":")
-            if not sep or not colon or not host_part or not port.isdigit() or not 0 <= int(port) < 65536:
+            valid_port = port.isascii() and port.isdigit() and len(port) <= 5 and int(port) < 65536
+            if not sep or not colon or not host_part or not valid_port:
                 raise DeploymentError(f"hosts.{name}.endpoints: {endpoint!r} is not of the form {protocol}/ADDRESS:PORT")
             if proto != protocol:
                 raise DeploymentError(f"hosts.{name}.endpoints: {endpoint!r} must use {protocol}/ "
@@ -183,20 +200,64 @@ def _check(d: Deployment) -> None:
                               f"{d.rendezvous!r} needs a fixed port (the other hosts connect to it)")
 
 
+def _deeper_than(value, limit: int) -> str | None:
+    """Path of the first value nested deeper than `limit` tables and arrays, else None."""
+    stack = [("", value, 0)]
+    while stack:
+        where, item, depth = stack.pop()
+        if isinstance(item, (dict, list)):
+            if depth >= limit:
+                return where.lstrip(".") or "<root>"
+            items = item.items() if isinstance(item, dict) else enumerate(item)
+            stack.extend((f"{where}.{k}" if isinstance(item, dict) else f"{where}[{k}]", v, depth + 1) for k, v in items)
+    return None
+
+
+def _read(path: Path) -> dict:
+    """The file parsed by tomllib, whose limits (a syntax error, a nesting that exhausts its
+    recursion) and ours (size, depth) become one-line DeploymentErrors."""
+    where = f"deployment file {str(path)!r}"
+    try:
+        if not path.is_file():
+            raise DeploymentError(f"{where} does not exist")
+        size = path.stat().st_size
+        if size > MAX_DEPLOYMENT_BYTES:
+            raise DeploymentError(f"{where}: {size} bytes; a deployment file may hold at most {MAX_DEPLOYMENT_BYTES}")
+        raw = tomllib.loads(path.read_text(errors="replace"))
+    except (OSError, ValueError) as exc:   # unreadable, a NUL in the name, TOMLDecodeError
+        if isinstance(exc, DeploymentError):
+            raise
+        raise DeploymentError(f"{where}: {exc}") from None
+    except RecursionError:
+        raise DeploymentError(f"{where}: nested deeper than {MAX_DEPLOYMENT_NESTING} levels (too deep for the "
+                              "TOML parser)") from None
+    deep = _deeper_than(raw, MAX_DEPLOYMENT_NESTING)
+    if deep is not None:
+        raise DeploymentError(f"{where}: {deep}: nested deeper than {MAX_DEPLOYMENT_NESTING} levels")
+    return raw
+
+
 def load_deployment(path: str | Path) -> Deployment:
     """Read and validate a deployment file; DeploymentError names the field."""
     path = Path(path)
-    try:
-        raw = tomllib.loads(path.read_text())
-    except FileNotFoundError as exc:
-        raise DeploymentError(f"deployment file {str(path)!r} does not exist") from exc
-    except tomllib.TOMLDecodeError as exc:
-        raise DeploymentError(f"deployment file {str(path)!r}: {exc}") from exc
+    raw = _read(path)
     raw["base_dir"] = str(path.resolve().parent)
-    try:
-        deployment = msgspec.convert(raw, Deployment)
-    except msgspec.ValidationError as exc:
-        raise DeploymentError(f"deployment file {str(path)!r}: {exc}") from exc
+
+    def convert(value, kind, prefix: str):
+        try:
+            return msgspec.convert(value, kind, strict=True)
+        except msgspec.ValidationError as exc:
+            # msgspec says "Expected `str` - at `$.nodes[0]`"; lead with the field.
+            problem, at, where = str(exc).rpartition(" - at `$")
+            field = prefix + where.rstrip("`") if at else prefix.rstrip(".")
+            raise DeploymentError(f"deployment file {str(path)!r}: {field or '<root>'}: {problem if at else exc}") from None
+
+    hosts = raw.get("hosts")
+    if isinstance(hosts, dict) and len(hosts) <= MAX_HOSTS:
+        # One host at a time, so that a message names the host (msgspec says hosts[...]).
+        for name, host in hosts.items():
+            convert(host, Host, f"hosts.{name}")
+    deployment = convert(raw, Deployment, "")
     _check(deployment)
     return deployment
 

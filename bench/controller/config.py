@@ -92,8 +92,11 @@ class ControllerConfig(msgspec.Struct, forbid_unknown_fields=True):
 
 
 # ---- [attitude_control] (issue 11) ------------------------------------------------------------
-Vec4 = Annotated[list[float], msgspec.Meta(min_length=4, max_length=4)]
-PositiveGain = Annotated[float, msgspec.Meta(gt=0)]
+# A unit quaternion's components are within [-1, 1]; the unit-norm check names a wrong one.
+Vec4 = Annotated[list[Annotated[float, msgspec.Meta(ge=-1.5, le=1.5)]], msgspec.Meta(min_length=4, max_length=4)]
+# Gains span decades (kp 1e-5 N m, B-dot 1e4 A m^2 s/T); 1e12 is far above any that flies.
+PositiveGain = Annotated[float, msgspec.Meta(gt=0, le=1e12)]
+Angle180 = Annotated[float, msgspec.Meta(gt=0, le=180.0)]
 
 # Attitude laws by the scenario's name: "module:builder", the builder taking the scenario and
 # returning an object with eval(AttitudeControlInput) -> (dipole_am2, info). Strings, so the
@@ -127,33 +130,35 @@ class AttitudePlannerConfig(msgspec.Struct, forbid_unknown_fields=True):
     """[attitude_control.planner] (issue 12): MILQR planning in `bench node planner`, TVLQR tracking
     in the controller (law "tvlqr_plan"). The target is [attitude_control.target] (inertial only:
     MILQR's goal is one attitude at rest)."""
-    plan_step_s: PositiveGain = 20.0                 # MILQR step; the dipole is held over it
+    # MILQR step; the dipole is held over it. max_horizon_s / plan_step_s is at most 1e4 steps (bench.scenario).
+    plan_step_s: Annotated[float, msgspec.Meta(gt=0, le=3600.0)] = 20.0
     # cond(W) tolerance of the Gramian horizon (bench.gnc.attitude_planning: 3 is its reasoned
     # default, ~27 min on the bench's orbits); a larger one gives a shorter horizon.
-    gramian_condition_tolerance: Annotated[float, msgspec.Meta(gt=1)] = 3.0
-    max_horizon_s: PositiveGain = 5400.0             # the horizon if the tolerance is never met
-    max_iterations: Annotated[int, msgspec.Meta(ge=1)] = 200
+    gramian_condition_tolerance: Annotated[float, msgspec.Meta(gt=1, le=1e12)] = 3.0
+    max_horizon_s: Annotated[float, msgspec.Meta(gt=0, le=86400.0)] = 5400.0   # the horizon if the tolerance is never met
+    max_iterations: Annotated[int, msgspec.Meta(ge=1, le=10_000)] = 200
     # Real-time only: MILQR's wall-time cap (returns its best iterate). Lock-step ignores it so that
     # a run does not depend on how busy the machine was (the iteration cap still holds).
-    max_planning_wall_s: PositiveGain = 60.0
+    max_planning_wall_s: Annotated[float, msgspec.Meta(gt=0, le=3600.0)] = 60.0
     # No first plan before this (s of simulated time): the smoother's gyro-bias estimate converges
     # first. A plan flown on a rate still off by the initial bias (1.8e-3 rad/s at t = 0, 5e-5 rad/s
     # at 30 s on attitude_slew_milqr) left the plan by 10 deg within 75 s; the replans that follow
     # keep the arrival time on ever shorter horizons the body cannot follow.
     first_plan_after_s: Annotated[float, msgspec.Meta(ge=0, le=86400.0)] = 0.0
-    replan_period_s: PositiveGain = 600.0            # replan this long after the current plan's start
-    replan_error_deg: PositiveGain = 10.0            # ... or when the estimate is this far off the plan
+    replan_period_s: Annotated[float, msgspec.Meta(gt=0, le=1e6)] = 600.0   # replan this long after the current plan's start
+    replan_error_deg: Angle180 = 10.0                # ... or when the estimate is this far off the plan
     min_replan_interval_s: Seconds = 30.0            # no error-triggered replan sooner than this
     # Until the first plan arrives (real-time: planning takes seconds) the controller commands
     # zero, or this law of the registry, and counts the cycles.
     fallback_law: Literal["zero", "pd", "sliding_mode"] = "zero"
     # Control cycles of planned feed-forward each command carries for the "shifted_plan" fallback.
-    feedforward_cycles: Annotated[int, msgspec.Meta(ge=1)] = 100
+    # At most 1000: each cycle is three floats in every command message (the recorder keeps 256 kB a message).
+    feedforward_cycles: Annotated[int, msgspec.Meta(ge=1, le=1000)] = 100
     # Lock-step: how long the controller waits for the plan it knows is due before going on without.
-    plan_wait_timeout_s: PositiveGain = 300.0
+    plan_wait_timeout_s: Annotated[float, msgspec.Meta(gt=0, le=3600.0)] = 300.0
     # Tracker weights (Bryson's rule): tolerated attitude and rate deviation, and terminal factor.
-    tracking_attitude_deviation_deg: PositiveGain = 1.0
-    tracking_rate_deviation_radps: PositiveGain = 5e-4
+    tracking_attitude_deviation_deg: Angle180 = 1.0
+    tracking_rate_deviation_radps: Annotated[float, msgspec.Meta(gt=0, le=100.0)] = 5e-4
     # Every plan ends with a hold of the target at rest this long after the arrival, tracked with
     # TVLQR gains designed along the field of the hold (without it the tracker held the arrival
     # with the last step's gain: 1.04 deg drifted to 3.8 deg in 220 s on attitude_slew_milqr).
@@ -161,10 +166,13 @@ class AttitudePlannerConfig(msgspec.Struct, forbid_unknown_fields=True):
 
 
 class AttitudeControlConfig(msgspec.Struct, forbid_unknown_fields=True):
-    law: str = "bdot"                       # a key of ATTITUDE_LAWS above
-    # Not constrained here so that a zero or negative limit gets the scenario's own message.
-    dipole_limit_am2: float | None = None   # default: [can.board] max_dipole_am2
-    inertia_kgm2: list[float] | None = None  # believed; default: [attitude] inertia_kgm2
+    law: Annotated[str, msgspec.Meta(max_length=64)] = "bdot"   # a key of ATTITUDE_LAWS above
+    # No lower bound here so that a zero or negative limit gets the scenario's own message; at most
+    # 100 A m^2 (the board's own limit, 3.2 in the DBC, applies when there is a [can] section).
+    dipole_limit_am2: Annotated[float, msgspec.Meta(le=100.0)] | None = None   # default: [can.board] max_dipole_am2
+    # Believed; default: [attitude] inertia_kgm2 (kg m^2, 3 moments or 9 entries).
+    inertia_kgm2: Annotated[list[Annotated[float, msgspec.Meta(ge=-1e9, le=1e9)]],
+                            msgspec.Meta(min_length=3, max_length=9)] | None = None
     target: AttitudeTargetConfig = msgspec.field(default_factory=AttitudeTargetConfig)
     # B-dot: m = -k dB/dt. Avanzini & Giulietti (2012) give k = 2 n (1 + sin xi) J_min / |B|^2,
     # ~1e4 A m^2 s / T for the default body at 500 km. Measured here: 5e5 (too high) locks the spin
@@ -176,7 +184,8 @@ class AttitudeControlConfig(msgspec.Struct, forbid_unknown_fields=True):
     handover_rate_dps: PositiveGain = 0.5    # bdot_then_rate_damping: B-dot above, rate damping below
     # The spacecraft's residual dipole as calibrated (A m^2, body axes); every law's command is
     # offset by minus this (bench.gnc.attitude_law.ResidualDipoleCompensation). Zero: none.
-    residual_dipole_compensation_am2: Annotated[list[float], msgspec.Meta(min_length=3, max_length=3)] = \
+    residual_dipole_compensation_am2: Annotated[list[Annotated[float, msgspec.Meta(ge=-100.0, le=100.0)]],
+                                                msgspec.Meta(min_length=3, max_length=3)] = \
         msgspec.field(default_factory=lambda: [0.0, 0.0, 0.0])
     # Round the law's dipole to the board's step in the law and carry the rounding error to the next
     # cycle (bench.gnc.attitude_law.QuantisationErrorFeedback): without it the board's rounding

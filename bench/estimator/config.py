@@ -15,7 +15,9 @@ NonNegative = Annotated[float, msgspec.Meta(ge=0, le=1e15)]
 # Window lengths and decimations: the smoother keeps lag_steps states, so bounded by memory.
 PositiveInt = Annotated[int, msgspec.Meta(ge=1, le=10_000)]
 Probability = Annotated[float, msgspec.Meta(gt=0, lt=1)]
-Vec3 = Annotated[list[float], msgspec.Meta(min_length=3, max_length=3)]
+# Magnetometer bias beliefs (T; the Earth's field is at most 6.5e-5 T) and the boresight direction.
+FieldBias3 = Annotated[list[Annotated[float, msgspec.Meta(ge=-1e-2, le=1e-2)]], msgspec.Meta(min_length=3, max_length=3)]
+Direction3 = Annotated[list[Annotated[float, msgspec.Meta(ge=-1e3, le=1e3)]], msgspec.Meta(min_length=3, max_length=3)]
 
 
 class TranslationSmootherConfig(msgspec.Struct, forbid_unknown_fields=True):
@@ -84,7 +86,7 @@ class AttitudeSmootherConfig(msgspec.Struct, forbid_unknown_fields=True):
     # Magnetometer calibration believed: measured = scale * B_body + bias + noise. With
     # estimate_magnetometer_calibration the bias and scale are estimated (one constant variable)
     # from these as the prior mean with the prior sigmas below.
-    magnetometer_bias_t: Vec3 = msgspec.field(default_factory=lambda: [0.0, 0.0, 0.0])
+    magnetometer_bias_t: FieldBias3 = msgspec.field(default_factory=lambda: [0.0, 0.0, 0.0])
     magnetometer_scale: Positive = 1.0
     estimate_magnetometer_calibration: bool = False
     magnetometer_bias_prior_std_t: Positive = 5.0e-6
@@ -92,7 +94,7 @@ class AttitudeSmootherConfig(msgspec.Struct, forbid_unknown_fields=True):
     # Star tracker: error across the boresight (per axis) and about it, boresight in body axes.
     star_tracker_noise_std_rad: Positive = 1.0e-4
     star_tracker_boresight_noise_std_rad: Positive = 8.0e-4
-    star_tracker_boresight_body: Vec3 = msgspec.field(default_factory=lambda: [0.0, 0.0, 1.0])
+    star_tracker_boresight_body: Direction3 = msgspec.field(default_factory=lambda: [0.0, 0.0, 1.0])
     # Innovation gate on each keyframe's measurements together (chi-square quantile of this
     # probability, 3 dof per sensor); None: no gate.
     gate_probability: Probability | None = None

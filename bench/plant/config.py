@@ -22,7 +22,6 @@ import numpy as np
 from bench.data import load_reference
 
 MODEL = load_reference()["model"]     # the defaults below are the reference's (seed 003)
-Positive = Annotated[float, msgspec.Meta(gt=0, le=1e12)]
 NonNegative = Annotated[float, msgspec.Meta(ge=0, le=1e9)]
 # 1e9 m is 2.5 times the Moon's distance: no relative-motion scenario starts farther out.
 StateValue = Annotated[float, msgspec.Meta(ge=-1e9, le=1e9)]
@@ -63,10 +62,13 @@ class PlantConfig(msgspec.Struct, forbid_unknown_fields=True):
     # A name from the reference (A, B, C) or an explicit state in m and m/s.
     initial_condition: Annotated[str, msgspec.Meta(max_length=32)] = "A"
     initial_state_m_mps: State6 | None = None
-    mass_kg: Annotated[float, msgspec.Meta(gt=0, le=1e9)] = MODEL["mass_kg"]
-    gravitational_parameter_m3ps2: Annotated[float, msgspec.Meta(gt=0, le=1e21)] = MODEL["gravitational_parameter"]
-    target_radius_m: Annotated[float, msgspec.Meta(gt=0, le=1e12)] = MODEL["target_radius_m"]
-    time_step_s: Annotated[float, msgspec.Meta(gt=0, le=86_400)] = MODEL["time_step_s"]
+    # Lower bounds too: 5e-324 kg made B = dt/m infinite. 1 g is a chip satellite; mu = 1 m^3/s^2
+    # a small asteroid; 1 m and 1 ms are the least that are still a radius and a step. What the
+    # mean motion makes of a step (n dt) is bounded in bench.scenario.
+    mass_kg: Annotated[float, msgspec.Meta(ge=1e-3, le=1e9)] = MODEL["mass_kg"]
+    gravitational_parameter_m3ps2: Annotated[float, msgspec.Meta(ge=1.0, le=1e21)] = MODEL["gravitational_parameter"]
+    target_radius_m: Annotated[float, msgspec.Meta(ge=1.0, le=1e12)] = MODEL["target_radius_m"]
+    time_step_s: Annotated[float, msgspec.Meta(ge=1e-3, le=86_400)] = MODEL["time_step_s"]
     relpos_sensor: RelativePositionSensorConfig = msgspec.field(default_factory=RelativePositionSensorConfig)
     range_bearing_sensor: RangeBearingSensorConfig = msgspec.field(default_factory=RangeBearingSensorConfig)
     command_acceptance: CommandAcceptanceConfig = msgspec.field(default_factory=CommandAcceptanceConfig)
@@ -83,9 +85,21 @@ class PlantConfig(msgspec.Struct, forbid_unknown_fields=True):
 
 
 # ---- [attitude] (issue 11) ----------------------------------------------------------------------
-Vec3 = Annotated[list[float], msgspec.Meta(min_length=3, max_length=3)]
-Vec4 = Annotated[list[float], msgspec.Meta(min_length=4, max_length=4)]
+def _vector(length: int, bound: float):
+    return Annotated[list[Annotated[float, msgspec.Meta(ge=-bound, le=bound)]],
+                     msgspec.Meta(min_length=length, max_length=length)]
+
+
+# A unit quaternion's components are within [-1, 1]; the unit-norm check names a wrong one.
+Quaternion = _vector(4, 1.5)
+# Residual dipoles (A m^2): the board's coils give 0.2, a bad CubeSat 0.1; 100 is no spacecraft.
+Dipole3 = _vector(3, 100.0)
+# Magnetometer biases (T): the Earth's field is at most 6.5e-5 T; 1e-2 T is 150 times that.
+FieldBias3 = _vector(3, 1e-2)
+# Inertia entries (kg m^2): the ISS is ~1e8; off-diagonal products may be negative.
+InertiaEntries = Annotated[list[Annotated[float, msgspec.Meta(ge=-1e9, le=1e9)]], msgspec.Meta(min_length=3, max_length=9)]
 Window = Annotated[list[NonNegative], msgspec.Meta(min_length=2, max_length=2)]
+Degrees = Annotated[float, msgspec.Meta(ge=-360.0, le=360.0)]
 
 
 class AttitudeConfigError(ValueError):
@@ -95,52 +109,57 @@ class AttitudeConfigError(ValueError):
 class OrbitConfig(msgspec.Struct, forbid_unknown_fields=True):
     # "sgp4": propagate `tle` (two lines); "circular": the fast option below.
     model: Literal["sgp4", "circular"] = "circular"
-    tle: list[str] | None = None
+    tle: Annotated[list[Annotated[str, msgspec.Meta(max_length=80)]], msgspec.Meta(max_length=2)] | None = None
     # The run's start (UTC, ISO 8601); also the IGRF date. Default for sgp4: the TLE's epoch.
-    epoch_utc: str | None = None
-    altitude_m: Positive = 500e3
+    epoch_utc: Annotated[str, msgspec.Meta(max_length=64)] | None = None
+    # Up to 1e9 m (2.5 times the Moon's distance), as the relative state.
+    altitude_m: Annotated[float, msgspec.Meta(gt=0, le=1e9)] = 500e3
     inclination_deg: Annotated[float, msgspec.Meta(ge=0, le=180)] = 97.4
-    raan_deg: float = 0.0
-    initial_argument_of_latitude_deg: float = 0.0
+    raan_deg: Degrees = 0.0
+    initial_argument_of_latitude_deg: Degrees = 0.0
 
 
 class FieldConfig(msgspec.Struct, forbid_unknown_fields=True):
     # "igrf": IGRF-14 along the orbit, tabulated every grid_s and splined; "dipole": tilted dipole.
     model: Literal["igrf", "dipole"] = "dipole"
-    grid_s: Annotated[float, msgspec.Meta(gt=0, le=60)] = 10.0
+    # The table holds (run + planner horizon) / grid_s points, at most 1e6 (bench.scenario).
+    grid_s: Annotated[float, msgspec.Meta(ge=1e-3, le=60)] = 10.0
 
 
 class DisturbanceConfig(msgspec.Struct, forbid_unknown_fields=True):
     gravity_gradient: bool = True
     # The spacecraft's own magnetic moment (body axes); 1e-3 A m^2 is a tidy CubeSat.
-    residual_dipole_am2: Vec3 = msgspec.field(default_factory=lambda: [0.0, 0.0, 0.0])
+    residual_dipole_am2: Dipole3 = msgspec.field(default_factory=lambda: [0.0, 0.0, 0.0])
 
 
 class AttitudeSensorsConfig(msgspec.Struct, forbid_unknown_fields=True):
     """Rates and true noise levels (bench.plant.attitude.AttitudeSensorSpec)."""
-    gyro_rate_hz: Positive = 10.0            # the plant's step rate
+    # The plant's step rate; at most 1 kHz (a fast MEMS gyro), at least one step per 1000 s.
+    gyro_rate_hz: Annotated[float, msgspec.Meta(ge=1e-3, le=1000.0)] = 10.0
     gyro_noise_density_radps_per_rthz: NonNegative = 1.0e-4
     gyro_bias_random_walk_radps2_per_rthz: NonNegative = 1.0e-6
     initial_gyro_bias_std_radps: NonNegative = 1.0e-3
-    magnetometer_period_s: Positive = 1.0
+    magnetometer_period_s: Annotated[float, msgspec.Meta(gt=0, le=1e6)] = 1.0
     # "schedule": every magnetometer_period_s. "coil_blanking": once per coil-blanking window of the
     # magnetorquer board ([can.board] mag_window_*), on the first gyro tick at which the board
     # reports its coils off (real-time runs: the windows are wall-clock).
     magnetometer_sampling: Literal["schedule", "coil_blanking"] = "schedule"
     magnetometer_noise_std_t: NonNegative = 1.0e-7
-    magnetometer_bias_t: Vec3 = msgspec.field(default_factory=lambda: [0.0, 0.0, 0.0])
-    star_tracker_period_s: Positive = 1.0
+    magnetometer_bias_t: FieldBias3 = msgspec.field(default_factory=lambda: [0.0, 0.0, 0.0])
+    star_tracker_period_s: Annotated[float, msgspec.Meta(gt=0, le=1e6)] = 1.0
     star_tracker_noise_std_rad: NonNegative = 1.0e-4
-    star_tracker_boresight_noise_factor: Annotated[float, msgspec.Meta(ge=1)] = 8.0
-    star_tracker_outages_s: list[Window] = []
+    star_tracker_boresight_noise_factor: Annotated[float, msgspec.Meta(ge=1, le=1e6)] = 8.0
+    star_tracker_outages_s: Annotated[list[Window], msgspec.Meta(max_length=1000)] = []
 
 
 class AttitudePlantConfig(msgspec.Struct, forbid_unknown_fields=True):
-    duration_s: Positive = 60.0               # run.steps overrides (steps at the gyro rate)
+    # run.steps overrides (steps at the gyro rate); duration x rate is at most 1e5 steps (bench.scenario).
+    duration_s: Annotated[float, msgspec.Meta(gt=0, le=1e8)] = 60.0
     # Principal moments [Jxx, Jyy, Jzz] or a full row-major 3x3 matrix, kg m^2.
-    inertia_kgm2: list[float] = msgspec.field(default_factory=lambda: [2.2e-3, 2.3e-3, 2.0e-3])
-    initial_q_wxyz: Vec4 = msgspec.field(default_factory=lambda: [1.0, 0.0, 0.0, 0.0])   # body to inertial
-    initial_rate_dps: Vec3 = msgspec.field(default_factory=lambda: [0.0, 0.0, 0.0])       # body axes
+    inertia_kgm2: InertiaEntries = msgspec.field(default_factory=lambda: [2.2e-3, 2.3e-3, 2.0e-3])
+    initial_q_wxyz: Quaternion = msgspec.field(default_factory=lambda: [1.0, 0.0, 0.0, 0.0])   # body to inertial
+    # Body axes; 3600 deg/s (10 turns a second) is beyond any tumble a detumble starts from.
+    initial_rate_dps: _vector(3, 3600.0) = msgspec.field(default_factory=lambda: [0.0, 0.0, 0.0])
     orbit: OrbitConfig = msgspec.field(default_factory=OrbitConfig)
     field: FieldConfig = msgspec.field(default_factory=FieldConfig)
     disturbances: DisturbanceConfig = msgspec.field(default_factory=DisturbanceConfig)

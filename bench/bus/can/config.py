@@ -25,7 +25,7 @@ Vec3 = Annotated[list[Annotated[float, msgspec.Meta(ge=-1e3, le=1e3)]], msgspec.
 
 class BoardConfig(msgspec.Struct, forbid_unknown_fields=True):
     max_dipole_am2: Annotated[float, msgspec.Meta(gt=0, le=3.2)] = 0.2   # per axis; DBC holds +-3.27
-    dipole_resolution_am2: Annotated[float, msgspec.Meta(ge=1e-4)] = 1e-3  # coil driver DAC step
+    dipole_resolution_am2: Annotated[float, msgspec.Meta(ge=1e-4, le=3.2)] = 1e-3  # coil driver DAC step
     coil_time_constant_s: PositiveS = 0.005          # L/R of a coil
     coil_gain_am2_per_a: PositiveS = 2.0             # turns x area: dipole per ampere
     command_timeout_s: PositiveS = 0.1               # no valid command this long: coils off
@@ -80,8 +80,8 @@ class SecurityConfig(msgspec.Struct, forbid_unknown_fields=True):
 class DriverConfig(msgspec.Struct, forbid_unknown_fields=True):
     command_period_s: PositiveS = _dbc_cycle_s(CMD)                  # 0.02 s in mtq.dbc
     # A board is lost when its heartbeat is this many heartbeat periods late (CANopen consumer time).
-    heartbeat_timeout_periods: Annotated[float, msgspec.Meta(ge=1.0)] = 2.5
-    telemetry_timeout_periods: Annotated[float, msgspec.Meta(ge=1.0)] = 3.0
+    heartbeat_timeout_periods: Annotated[float, msgspec.Meta(ge=1.0, le=1000.0)] = 2.5
+    telemetry_timeout_periods: Annotated[float, msgspec.Meta(ge=1.0, le=1000.0)] = 3.0
     max_delta_counter: Annotated[int, msgspec.Meta(ge=1, le=15)] = 1
     # Plausibility of the applied dipole against the command: beyond tolerance for longer than
     # mismatch_time_s (after the coils had settle_s to follow) is a stuck or corrupted actuator.

@@ -86,13 +86,16 @@ FAULTS: dict[str, FaultKind] = {f.name: f for f in (
 
 
 class FaultSpec(msgspec.Struct, forbid_unknown_fields=True):
-    name: str
-    frames: list[str] = []
-    start_s: Annotated[float, msgspec.Meta(ge=0)] = 0.0
-    duration_s: Annotated[float, msgspec.Meta(gt=0)] | None = None
-    count: Annotated[int, msgspec.Meta(ge=0)] = 0
-    every: Annotated[int, msgspec.Meta(ge=1)] = 1
-    params: dict[str, bool | int | float] = {}
+    # Bounded like every scenario number (docs/run_safety.md): times to 1e6 s (11.6 days; times
+    # become integer nanoseconds, which 1e300 s overflowed), counts to 1e9 frames (a saturated bus
+    # carries ~8000 frames/s), parameters by their own ranges (Param.check).
+    name: Annotated[str, msgspec.Meta(max_length=64)]
+    frames: Annotated[list[Annotated[str, msgspec.Meta(max_length=64)]], msgspec.Meta(max_length=64)] = []
+    start_s: Annotated[float, msgspec.Meta(ge=0, le=1e6)] = 0.0
+    duration_s: Annotated[float, msgspec.Meta(gt=0, le=1e6)] | None = None
+    count: Annotated[int, msgspec.Meta(ge=0, le=1_000_000_000)] = 0
+    every: Annotated[int, msgspec.Meta(ge=1, le=1_000_000_000)] = 1
+    params: Annotated[dict[Annotated[str, msgspec.Meta(max_length=64)], bool | int | float], msgspec.Meta(max_length=16)] = {}
 
     def __post_init__(self):
         kind = FAULTS.get(self.name)
