@@ -104,3 +104,34 @@ def reference_mpc_solution(model, Q, R, N, x0, *, P=None, terminal_equality=Fals
         return None, None, np.nan, f"infeasible: {exc}"
     objective = float(0.5 * y @ Pm @ y + q @ y)
     return y[iu(0)], (y[ix(0)] if tube is not None else None), objective, "solved"
+
+
+def reference_condensed_solution(qp, x0):
+    """(y, objective without the constant x'Wx) of a bench.gnc.mpc.CondensedQP at state x0 on
+    quadprog, or (None, nan) if quadprog finds it infeasible. The same QP as the controller's (not
+    its formulation's independent check: that is reference_mpc_solution), fast enough for hundreds
+    of states; y, not just u_0, so the tube's input v_0 + K (x - z_0) can be formed."""
+    x0 = np.asarray(x0, float)
+    n = qp.H.shape[0]
+    g = qp.G @ x0 + qp.g0
+    lo, hi = qp.l0 + qp.Dl @ x0, qp.u0 + qp.Du @ x0
+    rows, rhs, n_eq = [], [], 0
+    if qp.A is not None:
+        rows.append(qp.A)
+        rhs.append(qp.E @ x0)
+        n_eq = qp.A.shape[0]
+    if qp.C is not None:
+        fl, fu = np.isfinite(lo), np.isfinite(hi)
+        rows += [qp.C[fl], -qp.C[fu]]
+        rhs += [lo[fl], -hi[fu]]
+    eye = np.eye(n)
+    fl, fu = np.isfinite(qp.l_box), np.isfinite(qp.u_box)
+    rows += [eye[fl], -eye[fu]]
+    rhs += [qp.l_box[fl], -qp.u_box[fu]]
+    # quadprog needs H > 0: variables without curvature (soft constraints' t_i) get 1e-9.
+    H = qp.H + 1e-9 * np.diag(np.diag(qp.H) == 0)
+    try:
+        y = quadprog.solve_qp(H, -g, np.vstack(rows).T, np.concatenate(rhs), n_eq)[0]
+    except ValueError:                          # "constraints are inconsistent, no solution"
+        return None, np.nan
+    return y, float(0.5 * y @ qp.H @ y + g @ y)

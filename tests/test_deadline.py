@@ -89,6 +89,33 @@ def test_shifted_plan_replays_the_last_on_time_plan_then_holds():
     assert outcomes[5].fallback is None and outcomes[5].thrust_n[0] == 5.0
 
 
+def test_shifted_plan_is_shifted_by_the_cycles_elapsed_since_the_plan_not_by_the_misses():
+    """Issue 27: an on-time cycle without a plan (an infeasible MPC cycle publishes none) between
+    the plan and the miss still moves time on: the miss replays the plan's entry for the number of
+    cycles since the plan was made."""
+    clock = FakeClock()
+    times_s = [0.001, 0.001, 0.05, 0.001, 0.05, 0.05]
+    plan_cycles = {0}                      # cycle 0 plans; cycle 1 and 3 are on time without one
+    calls = iter(range(len(times_s)))
+
+    def evaluate(x):
+        i = next(calls)
+        clock.now_ns += int(times_s[i] * 1e9)
+        info = {"ctrl_feas": i in plan_cycles, "solve_time": times_s[i], "iterations": 10, "status": "s"}
+        if i in plan_cycles:
+            info["u_plan"] = [[i, k, 0.0] for k in range(5)]
+        return np.array([float(i), 0.0, 0.0]), info
+
+    monitor = DeadlineMonitor(DeadlineConfig(budget_s=BUDGET_S, fallback="shifted_plan"), clock_ns=clock)
+    outcomes = run(monitor, evaluate, len(times_s))
+    assert [o.missed for o in outcomes] == [False, False, True, False, True, True]
+    # Plan of cycle 0 is [[0,k,0] for k in 0..4]: cycle c replays entry c (the count of misses
+    # would give entries 1, 2, 3), and past the end (cycle 5 of a 5-entry plan) it holds.
+    assert [o.thrust_n.tolist() for o in outcomes[2:5]] == [[0, 2, 0], [3, 0, 0], [0, 4, 0]]
+    assert [o.fallback for o in outcomes] == [None, None, "shifted_plan", None, "shifted_plan", "hold"]
+    assert outcomes[5].thrust_n.tolist() == [0, 4, 0]
+
+
 def test_lqr_fallback_uses_the_scenarios_lqr_gain():
     scenario = parse_scenario({"name": "t", "controller": {"deadline": {"budget_s": BUDGET_S, "fallback": "lqr"}}})
     params = scenario.params()

@@ -64,11 +64,12 @@ class StressInjector:
 # --- fallbacks --------------------------------------------------------------------------------
 @dataclass
 class _LastGood:
-    """What the fallbacks replay: the last command sent and the last plan that was on time."""
+    """What the fallbacks replay: the last command sent, the last plan that was on time and the
+    index of the cycle that made it (entry k of the plan is the input for k cycles later)."""
 
     command: np.ndarray
     plan: np.ndarray | None = None
-    cycles_since_plan: int = 0
+    plan_cycle_index: int = 0
 
 
 class DeadlineMonitor:
@@ -138,11 +139,11 @@ class DeadlineMonitor:
         self.counter.record(cycle_time_s, missed)
         self.cycle_times_s.append(cycle_time_s)
         if missed and (self.apply_fallback or result is None):
-            u, fallback = self._fallback(x)
+            u, fallback = self._fallback(x, cycle_index)
             self.fallbacks_applied[fallback] = self.fallbacks_applied.get(fallback, 0) + 1
         else:
             fallback = None
-            self._accept(info)
+            self._accept(info, cycle_index)
         self._last.command = np.asarray(u, dtype=float)
         return CycleOutcome(
             thrust_n=self._last.command.copy(),
@@ -156,22 +157,24 @@ class DeadlineMonitor:
             recovered=was_missing and not missed,
         )
 
-    def _accept(self, info: dict) -> None:
-        """An on-time result: remember its plan."""
+    def _accept(self, info: dict, cycle_index: int) -> None:
+        """An on-time result: remember its plan and when it was made."""
         plan = info.get(PLAN_INFO_KEY)
         if plan is not None:
             self._last.plan = np.atleast_2d(np.asarray(plan, dtype=float))
-            self._last.cycles_since_plan = 0
+            self._last.plan_cycle_index = cycle_index
 
-    def _fallback(self, x: np.ndarray) -> tuple[np.ndarray, str]:
+    def _fallback(self, x: np.ndarray, cycle_index: int) -> tuple[np.ndarray, str]:
         """The command the configured fallback gives. "shifted_plan" replays entry k of the last
-        on-time plan after k missed cycles; with no plan, or past its end, LQR acts if a law was
-        given, else "hold". The name returned says which one acted."""
+        on-time plan k cycles after the cycle that made it: k counts every cycle since, missed or
+        on time without a plan (an infeasible MPC cycle publishes none), since the plan's entry k
+        is the input for that time; with no plan, or past its end, LQR acts if a law was given,
+        else "hold". The name returned says which one acted."""
         policy = self.config.fallback
         if policy == "shifted_plan" and self._last.plan is not None:
-            self._last.cycles_since_plan += 1
-            if self._last.cycles_since_plan < len(self._last.plan):
-                return self._last.plan[self._last.cycles_since_plan].copy(), "shifted_plan"
+            elapsed_cycles = cycle_index - self._last.plan_cycle_index
+            if elapsed_cycles < len(self._last.plan):
+                return self._last.plan[elapsed_cycles].copy(), "shifted_plan"
         if policy in ("lqr", "shifted_plan") and self.lqr_law is not None:
             return np.asarray(self.lqr_law(x), dtype=float), "lqr"
         return self._last.command.copy(), "hold"

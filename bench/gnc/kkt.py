@@ -26,9 +26,16 @@ import numpy as np
 from scipy.linalg import LinAlgWarning, lu_factor, lu_solve
 
 # Relative tolerances of the certificate (constraint values in this bench's scaled units are
-# ~1e-4 to 1; rounding of the KKT solve leaves ~1e-13).
-PRIMAL_TOL = 1e-9
+# ~1e-4 to 1; rounding of the KKT solve leaves ~1e-13). Primal 1e-10, not 1e-9: on the tube MPC a
+# point 8.8e-10 outside one of two nearly parallel tube facets passed at 1e-9 with z_0 1.5e-6 off
+# along them, its first input 7.2e-4 N from quadprog's (issue 27); at 1e-11 a closed-loop cycle
+# of the 100 sampled-disturbance runs (tests/test_controller_tube.py) could not be certified.
+PRIMAL_TOL = 1e-10
 DUAL_SIGN_TOL = 1e-9
+# Stationarity residual H y + g + A'lam + C'z + z_box, relative to the largest of its terms: the
+# exact solve leaves ~1e-15 of them; an ill-conditioned active set (nearly parallel tube facets)
+# can leave far more.
+STATIONARITY_TOL = 1e-9
 # Cached factorisations per solver: closed loops revisit a handful of active sets.
 MAX_CACHED_FACTORS = 64
 
@@ -133,14 +140,20 @@ class ActiveSetQP:
             return None
         return KKTPoint(y, lam, z, z_box, active)
 
-    def certify(self, point: KKTPoint | None, l, u) -> bool:
-        """True if `point` satisfies every KKT condition not imposed by construction."""
+    def certify(self, point: KKTPoint | None, l, u, g=None, b=None) -> bool:
+        """True if `point` satisfies the KKT conditions within tolerance: primal feasibility of
+        every constraint, the sign of every multiplier and, given g (and b), stationarity, the
+        equality rows and complementarity (active bounds held), which the exact solve on the
+        active set imposes up to its rounding: checked so that an ill-conditioned active set
+        cannot pass a point its LU solve got wrong."""
         if point is None:
             return False
         y, a = point.y, point.active
         cy = self.C @ y
         tol_in = PRIMAL_TOL * (1.0 + np.abs(cy))
         if np.any(cy > u + tol_in) or np.any(cy < l - tol_in):
+            return False
+        if g is not None and not self._residuals_small(point, cy, g, b, l, u):
             return False
         tol_box = PRIMAL_TOL * (1.0 + np.abs(y))
         if np.any(y > self.u_box + tol_box) or np.any(y < self.l_box - tol_box):
@@ -149,6 +162,22 @@ class ActiveSetQP:
         tol_z = DUAL_SIGN_TOL * scale
         return bool(np.all(point.z[a.upper] >= -tol_z) and np.all(point.z[a.lower] <= tol_z)
                     and np.all(point.z_box[a.box_upper] >= -tol_z) and np.all(point.z_box[a.box_lower] <= tol_z))
+
+    def _residuals_small(self, point: KKTPoint, cy, g, b, l, u) -> bool:
+        y, a = point.y, point.active
+        hy, a_lam, c_z = self.H @ y, self.A.T @ point.lam, self.C.T @ point.z
+        scale = 1.0 + max(np.max(np.abs(t), initial=0.0) for t in (g, hy, a_lam, c_z, point.z_box))
+        if np.max(np.abs(hy + g + a_lam + c_z + point.z_box), initial=0.0) > STATIONARITY_TOL * scale:
+            return False
+        if self.A.shape[0]:
+            ay = self.A @ y
+            b = np.asarray(b, float).reshape(-1)
+            if np.any(np.abs(ay - b) > PRIMAL_TOL * (1.0 + np.abs(b))):
+                return False
+        held = np.concatenate([(cy - u)[a.upper], (cy - l)[a.lower],
+                               (y - self.u_box)[a.box_upper], (y - self.l_box)[a.box_lower]])
+        value = np.concatenate([cy[a.upper], cy[a.lower], y[a.box_upper], y[a.box_lower]])
+        return bool(np.all(np.abs(held) <= PRIMAL_TOL * (1.0 + np.abs(value))))
 
     def guess_active_set(self, y, z, z_box, l, u, slack_tol: float = 1e-7) -> ActiveSet:
         """Active set read off an approximate primal-dual point: a bound is a candidate when the
@@ -184,7 +213,7 @@ class ActiveSetQP:
             point = self.solve_on_active_set(g, b, l, u, active)
             if point is None:
                 return None
-            if self.certify(point, l, u):
+            if self.certify(point, l, u, g, b):
                 return point
             active = self._next_guess(point, l, u)
             if active is None:

@@ -361,7 +361,9 @@ class CondensedMPC:
         self._u_lo, self._u_hi = box_bounds(model.H_u, model.h_u)
         self.qp_data = condensed_qp(model, self.Q, self.R, self.horizon, **formulation)
         d = self.qp_data
-        self.solver = DenseBoxQP(d.H, d.A, d.C, d.l_box, d.u_box, **(solver_options or {}))
+        # The nominal active set also starts the solver's exact fallback when it has no last one.
+        self.solver = DenseBoxQP(d.H, d.A, d.C, d.l_box, d.u_box, start_active=self._nominal_active_set(),
+                                 **(solver_options or {}))
         # g, b, l, u are all affine in x: one stacked product per cycle.
         n_eq = 0 if d.A is None else d.A.shape[0]
         self._vector_map = np.vstack([d.G, d.E if d.E is not None else np.zeros((0, model.nx)), d.Dl, d.Du])
@@ -402,7 +404,7 @@ class CondensedMPC:
         sol = self.solver.solve(vectors[:i_b], vectors[i_b:i_l], vectors[i_l:i_u], vectors[i_u:])
         self.last_solution = sol
         if not sol.solved:
-            return self._failed(self.safe_action(x), sol.status, sol.iterations, start)
+            return self._failed(self.safe_action(x), sol.status, sol.iterations, start, sol.path)
         return self._explicit.result(sol.y, x, sol.objective, sol.iterations, sol.status, sol.path, start)
 
     def _input_from(self, y: np.ndarray, x: np.ndarray) -> np.ndarray:
@@ -449,14 +451,17 @@ class CondensedMPC:
             state_H=self.model.H_x if self._check_initial_state else None,
             state_h=self.model.h_x if self._check_initial_state else None)
 
-    def _failed(self, u, status, iterations, start) -> tuple[np.ndarray, dict]:
-        return u, {
+    def _failed(self, u, status, iterations, start, path: str | None = None) -> tuple[np.ndarray, dict]:
+        info = {
             "ctrl_feas": False,
             "objective": float("nan"),
             "solve_time": time.perf_counter() - start,
             "iterations": iterations,
             "status": status,
         }
+        if path is not None:
+            info["path"] = path      # how the solver failed (bench.gnc.qp.QPSolution.path)
+        return u, info
 
 
 class MPC(CondensedMPC):

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import proxsuite
+from scipy.optimize import linprog
 
 from bench.gnc.kkt import ActiveSet, ActiveSetQP
 
@@ -45,6 +46,10 @@ INFEASIBILITY_EPS = 1e-9
 ACTIVE_SET_CHANGES = 4
 # ... and when proxsuite has failed from warm and cold starts.
 ACTIVE_SET_WALK = 200
+# The last resort before "not solved": a cold proxsuite solve with residuals and duality gap at
+# this tolerance and this many iterations.
+TIGHT_EPS_ABS = 1e-11
+TIGHT_MAX_ITER = 1000
 
 
 @dataclass
@@ -56,10 +61,13 @@ class QPSolution:
     objective: float          # 1/2 y'Hy + g'y, without the caller's constant
     # The KKT conditions were checked on y (bench.gnc.kkt): y is the optimum to rounding.
     certified: bool = False
-    # How y was found: "active_set" (last cycle's active set, certified, no iterative solve),
-    # "proxsuite" (warm start, then exact on its active set), "proxsuite_cold" (the warm-started
-    # result failed the certificate; cold solve), "proxsuite_uncertified" (proxsuite says solved,
-    # no certificate could be had), "failed".
+    # How y was found, certified unless said otherwise: "active_set" (last cycle's active set, no
+    # iterative solve), "proxsuite" (warm start, then exact on its active set), "proxsuite_cold"
+    # (the warm-started result failed the certificate; cold solve), "active_set_walk" (proxsuite
+    # failed from both starts; active-set steps from the last, proxsuite's or the nominal active
+    # set), "proxsuite_tight" (a cold solve at tighter settings); not solved: "uncertified"
+    # (proxsuite said solved, nothing certified), "failed" (proxsuite did not solve either),
+    # "infeasible" (proxsuite did not solve from its warm start and a simplex proved infeasibility).
     path: str = "proxsuite"
 
 
@@ -70,7 +78,8 @@ class DenseBoxQP:
                  l_box: np.ndarray, u_box: np.ndarray,
                  eps_abs: float = DEFAULT_EPS_ABS, max_iter: int = DEFAULT_MAX_ITER,
                  max_iter_in: int = DEFAULT_MAX_ITER_IN, precondition: bool = False,
-                 duality_gap_eps: float | None = DUALITY_GAP_EPS, infeasibility_eps: float = INFEASIBILITY_EPS):
+                 duality_gap_eps: float | None = DUALITY_GAP_EPS, infeasibility_eps: float = INFEASIBILITY_EPS,
+                 start_active: ActiveSet | None = None):
         self.n = H.shape[0]
         self.n_eq = 0 if A is None else A.shape[0]
         self.n_in = 0 if C is None else C.shape[0]
@@ -82,7 +91,17 @@ class DenseBoxQP:
         self._infeasibility_eps = infeasibility_eps
         self.kkt = ActiveSetQP(H, A, C, self._l_box, self._u_box)
         self._last_active: ActiveSet | None = None
+        # Where the exact fallback walk starts when nothing better is known (cold: no last
+        # active set): the caller's nominal active set, else nothing active.
+        self._start_active = start_active if start_active is not None else ActiveSet.empty(self.n_in, self.n)
         self.paths: dict[str, int] = {}
+        self._fresh(np.zeros(self.n), np.zeros(self.n_eq), np.full(self.n_in, -np.inf), np.full(self.n_in, np.inf))
+
+    def reset(self) -> None:
+        """Forget the warm start and the last active set: the state of a freshly built solver (a
+        worker start, restart or model update). Cached factorisations are kept: they depend on the
+        matrices only."""
+        self._last_active = None
         self._fresh(np.zeros(self.n), np.zeros(self.n_eq), np.full(self.n_in, -np.inf), np.full(self.n_in, np.inf))
 
     def _fresh(self, g: np.ndarray, b: np.ndarray, l: np.ndarray, u: np.ndarray) -> None:
@@ -115,9 +134,14 @@ class DenseBoxQP:
 
     def solve(self, g: np.ndarray, b: np.ndarray, l: np.ndarray, u: np.ndarray,
               active_guess: ActiveSet | None = None) -> QPSolution:
-        """The optimum for vectors (g, b, l, u). First the exact solution on `active_guess` (default
-        the last certified active set); proxsuite only when that fails its KKT certificate, and
-        proxsuite's answer is made exact on its own active set and certified in turn."""
+        """The certified optimum for vectors (g, b, l, u), or a solution marked not solved.
+
+        First the exact solution on `active_guess` (default the last certified active set);
+        proxsuite only when that fails its KKT certificate, and proxsuite's answer is made exact
+        on its own active set and certified in turn. Every answer returned as solved has passed
+        the certificate (bench.gnc.kkt); when nothing certifies, whatever proxsuite's status,
+        the result is not solved (path "uncertified": proxsuite said solved; "failed": it did not).
+        """
         guess = active_guess if active_guess is not None else self._last_active
         if guess is not None:
             point = self.kkt.solve_and_certify(g, b, l, u, guess, max_changes=ACTIVE_SET_CHANGES)
@@ -126,32 +150,84 @@ class DenseBoxQP:
         # proxsuite's iterate seeds the guess even when it stopped on its iteration limit: the
         # certificate, not proxsuite's status, decides.
         sol = self._proxsuite(g, b, l, u, cold=False)
-        point = self._polish(g, b, l, u)
+        point, proxsuite_guess = self._polish(g, b, l, u)
         if point is not None:
             return self._certified(point, g, "proxsuite", sol.iterations)
+        # Not solved from the warm start: before the expensive part (a cold solve that runs to its
+        # iteration limit on an infeasible problem, 0.3 to 8 s on the tube MPC, and the walks),
+        # ask an exact simplex whether any point satisfies the constraints.
+        if not sol.solved and not self._feasible(b, l, u):
+            self._last_active = None
+            return self._count(QPSolution(y=sol.y, solved=False, status="INFEASIBLE", iterations=sol.iterations,
+                                          objective=float("nan"), path="infeasible"))
         # A warm start that fails the certificate: the multipliers carried over from the last
         # cycle were wrong (see bench.gnc.kkt). Solve from a fresh init and certify again.
         cold = self._proxsuite(g, b, l, u, cold=True)
-        point = self._polish(g, b, l, u)
+        iterations = sol.iterations + cold.iterations
+        point, cold_guess = self._polish(g, b, l, u)
         if point is not None:
-            return self._certified(point, g, "proxsuite_cold", sol.iterations + cold.iterations)
+            return self._certified(point, g, "proxsuite_cold", iterations)
         # proxsuite failed from both starts (on the tube MPC: false infeasibility certificates,
-        # 6 cycles in 360). Walk the active set from the last certified one, as an active-set
-        # solver would; the certificate still decides.
-        if guess is not None:
-            point = self.kkt.solve_and_certify(g, b, l, u, guess, max_changes=ACTIVE_SET_WALK)
+        # 6 cycles in 360; from a fresh controller, "solved" points off the optimum whose active
+        # set did not certify, 10 states in 202, issue 27). Walk the active set as an active-set
+        # solver would, from the last certified set, from proxsuite's, and from the nominal one
+        # (nothing active: no previous set is needed); the certificate still decides.
+        # From a start other than the last certified set, at most n changes (one per variable:
+        # enough to reach any vertex from nothing; on the tube MPC the walks that certified took
+        # 6 to 26): on an infeasible problem each walk runs to its limit.
+        starts = [(guess, ACTIVE_SET_WALK)] + [(a, min(ACTIVE_SET_WALK, self.n))
+                                                for a in (cold_guess, proxsuite_guess, self._start_active)]
+        tried: set[bytes] = set()
+        for start, max_changes in starts:
+            if start is None or start.key in tried:
+                continue
+            tried.add(start.key)
+            point = self.kkt.solve_and_certify(g, b, l, u, start, max_changes=max_changes)
             if point is not None:
-                return self._certified(point, g, "active_set_walk", sol.iterations + cold.iterations)
+                return self._certified(point, g, "active_set_walk", iterations)
+        # Last: proxsuite from a fresh init with tighter settings (residuals and duality gap at
+        # TIGHT_EPS_ABS, more iterations), its active set certified as before.
+        # Only when proxsuite claims an optimum: on an infeasible problem this solve ran to its
+        # iteration limit (up to 30 s on the tube MPC) for nothing.
+        tight_solved = False
+        if cold.solved:
+            tight = self._proxsuite_tight(g, b, l, u)
+            iterations += tight.iterations
+            tight_solved = tight.solved
+            point, _ = self._polish(g, b, l, u)
+            if point is not None:
+                return self._certified(point, g, "proxsuite_tight", iterations)
         self._last_active = None
-        return self._count(cold)
+        proxsuite_said_solved = cold.solved or tight_solved
+        return self._count(QPSolution(
+            y=cold.y, solved=False,
+            status="UNCERTIFIED" if proxsuite_said_solved else cold.status,
+            iterations=iterations, objective=cold.objective,
+            path="uncertified" if proxsuite_said_solved else "failed"))
+
+    def _feasible(self, b, l, u) -> bool:
+        """False only if HiGHS's simplex proves that no y meets A y = b, l <= C y <= u and the box
+        (to its feasibility tolerance, 1e-7: lenient, so a barely feasible problem is not thrown
+        away); proxsuite's own infeasibility certificates were false on feasible tube problems."""
+        kkt = self.kkt
+        fu, fl = np.isfinite(u), np.isfinite(l)
+        a_ub = np.vstack([kkt.C[fu], -kkt.C[fl]])
+        b_ub = np.concatenate([u[fu], -l[fl]])
+        bounds = np.column_stack([np.where(np.isfinite(kkt.l_box), kkt.l_box, None),
+                                  np.where(np.isfinite(kkt.u_box), kkt.u_box, None)])
+        res = linprog(np.zeros(self.n), A_ub=a_ub if a_ub.size else None, b_ub=b_ub if a_ub.size else None,
+                      A_eq=kkt.A if self.n_eq else None, b_eq=np.asarray(b, float) if self.n_eq else None,
+                      bounds=bounds, method="highs")
+        return res.status != 2                      # 2: infeasible; anything else is not a proof
 
     def _polish(self, g, b, l, u):
+        """(certified point or None, the active set read off proxsuite's iterate or None)."""
         res = self._qp.results
-        if not np.all(np.isfinite(res.x)):
-            return None
+        if not np.all(np.isfinite(res.x)) or not np.all(np.isfinite(res.z)):
+            return None, None
         z = np.asarray(res.z)
         guess = self.kkt.guess_active_set(res.x, z[:self.n_in], z[self.n_in:], l, u)
-        return self.kkt.solve_and_certify(g, b, l, u, guess, max_changes=ACTIVE_SET_CHANGES)
+        return self.kkt.solve_and_certify(g, b, l, u, guess, max_changes=ACTIVE_SET_CHANGES), guess
 
     def _certified(self, point, g, path: str, iterations: int) -> QPSolution:
         self._last_active = point.active
@@ -161,6 +237,19 @@ class DenseBoxQP:
 
     def _count(self, sol: QPSolution) -> QPSolution:
         self.paths[sol.path] = self.paths.get(sol.path, 0) + 1
+        return sol
+
+    def _proxsuite_tight(self, g, b, l, u) -> QPSolution:
+        """A cold proxsuite solve at tighter settings; the next cycle starts from a fresh init."""
+        saved = (self._eps_abs, self._max_iter, self._duality_gap_eps)
+        self._eps_abs = min(self._eps_abs, TIGHT_EPS_ABS)
+        self._max_iter = max(self._max_iter, TIGHT_MAX_ITER)
+        self._duality_gap_eps = TIGHT_EPS_ABS
+        try:
+            sol = self._proxsuite(g, b, l, u, cold=True)
+        finally:
+            self._eps_abs, self._max_iter, self._duality_gap_eps = saved
+        self._needs_fresh = True
         return sol
 
     def _proxsuite(self, g, b, l, u, cold: bool) -> QPSolution:
