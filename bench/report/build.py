@@ -165,7 +165,9 @@ def estimation_section(run: RunData, plot_dir: Path) -> tuple[Section | None, di
     section = Section("Estimator", [
         f"Fraction of errors inside ±3σ: {fmt(m['fraction_within_3sigma'])}. RMS over the samples after the "
         f"first {m['converged_after_samples']} (the first carry the initial velocity prior); mean NIS "
-        f"{fmt(m['mean_nis'])} ({m['nis_dof']} expected); measurements rejected by the gate: {m['rejected_measurements']}."],
+        f"{fmt(m['mean_nis'])} ({m['nis_dof']} expected; {fmt(m.get('mean_nis_accepted'))} over the fixes used); measurements "
+        f"rejected by the gate: {m['rejected_measurements']}, in {m.get('rejection_runs', 0)} runs (longest "
+        f"{m.get('longest_rejection_run', 0)}); re-acquisitions after a long run: {m.get('reacquisitions', 0)}."],
         [Table(["component", "RMS error after convergence (m, m/s)", "median |error| (m, m/s)"], rows)],
         [Figure(Path(PLOTS_DIR) / path.name, "Estimator error with bounds")])
     if result.nis is not None and np.isfinite(result.nis).any():
