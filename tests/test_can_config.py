@@ -79,11 +79,15 @@ def test_periods_come_from_the_dbc_cycle_times_and_send_types():
     from bench.bus.can import protocol as p
     from bench.bus.can.config import CanConfig
     db = cantools.database.load_file(str(p.DBC_PATH))     # read here with cantools, not through protocol.py
-    cycle_ms = {m.name: m.cycle_time for m in db.messages if m.send_type == "Cyclic"}
+    cycle_ms = {m.name: m.cycle_time for m in db.messages if m.send_type in ("Cyclic", "CyclicAndSpontaneous")}
     assert cycle_ms == {"MTQ_CMD": 20, "MTQ_CMD_AUTH": 20, "MTQ_TLM_DIPOLE": 50, "MTQ_TLM_COIL": 50,
                         "MTQ_HEARTBEAT": 100}
     assert {m.name for m in db.messages if m.send_type == "Spontaneous"} == {"MTQ_EMCY", "NMT"}
+    # the commands are sent on change and every cycle (AUTOSAR COM's mixed mode): the driver's default
+    assert {m.name for m in db.messages if m.send_type == "CyclicAndSpontaneous"} == {"MTQ_CMD", "MTQ_CMD_AUTH"}
+    assert p.transmission_mode(p.CMD) == "mixed" and p.transmission_mode(p.TLM_DIPOLE) == "cyclic"
     config = CanConfig()
+    assert config.driver.transmission == "mixed"
     assert config.driver.command_period_s == cycle_ms["MTQ_CMD"] / 1000
     assert config.board.telemetry_period_s == cycle_ms["MTQ_TLM_DIPOLE"] / 1000
     assert config.board.heartbeat_period_s == cycle_ms["MTQ_HEARTBEAT"] / 1000

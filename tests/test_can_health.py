@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import can
 import numpy as np
+import pytest
 
 from bench.bus.can import errors
 from bench.bus.can import protocol as p
@@ -113,11 +114,11 @@ def test_command_loop_counts_its_own_late_periods_as_host_overruns():
         real_poll = rig.driver.poll
         calls = {"n": 0}
 
-        def poll(timeout_s=0.0, max_frames=1000):
+        def poll(timeout_s=0.0, max_frames=1000, lock=None):
             calls["n"] += 1
             rig.clock.t += 0.045 if calls["n"] == 20 else 0.001   # one stall of 45 ms
             rig.board.step(rig.clock.t)
-            return real_poll(0.0, max_frames)
+            return real_poll(0.0, max_frames, lock)
 
         rig.driver.poll = poll
         heard = []
@@ -128,5 +129,41 @@ def test_command_loop_counts_its_own_late_periods_as_host_overruns():
         assert [e.kind for e in heard] == ["host_overrun"]        # whoever listens to the loop hears it
         assert loop.health.host_overruns == 1
         assert np.allclose(rig.board.state.target_dipole_am2, 0.0)   # the loop's default dipole
+    finally:
+        rig.close()
+
+
+@pytest.mark.parametrize("transmission, sent_at_once", [("cyclic", False), ("on_change", True), ("mixed", True)])
+def test_a_new_dipole_goes_out_at_once_in_the_on_change_modes(transmission, sent_at_once):
+    """On simulated time (the rig's clock, 1 ms per poll): the law's dipole arrives at 50 ms, while
+    the loop waits for frames. cyclic: it waits for the next period; on_change and mixed: it is on
+    the bus before set_dipole returns. mixed keeps the periodic keep-alive, on_change sends nothing
+    else."""
+    rig = Rig()
+    try:
+        sent: list[tuple[float, list[float]]] = []
+        loop = CommandLoop(rig.driver, 0.02, transmission=transmission,
+                           on_command=lambda counter, dipole, ns: sent.append((rig.clock.t, list(dipole))))
+        real_poll = rig.driver.poll
+        went_at_once, polls = [], [0]
+
+        def poll(timeout_s=0.0, max_frames=1000, lock=None):
+            rig.clock.t += 0.001
+            polls[0] += 1
+            if polls[0] == 50:                               # the law's new dipole, between two polls
+                before = len(sent)
+                loop.set_dipole([0.05, 0.0, 0.0])
+                went_at_once.append(len(sent) > before and sent[-1] == (rig.clock.t, [0.05, 0.0, 0.0]))
+            rig.board.step(rig.clock.t)
+            return real_poll(0.0, max_frames, lock)
+
+        rig.driver.poll = poll
+        loop.run(duration_s=0.2)
+        assert went_at_once == [sent_at_once]
+        assert sent[-1][1] == [0.05, 0.0, 0.0]               # whatever the mode, the new dipole went out
+        if transmission == "on_change":
+            assert len(sent) == 1                            # the change, nothing else
+        else:
+            assert len(sent) >= 9                            # every 20 ms over 0.2 s
     finally:
         rig.close()

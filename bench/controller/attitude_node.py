@@ -7,7 +7,8 @@ reads:  estimate/attitude (AttitudeEstimate)
 writes: command/dipole (DipoleCommand: the law's dipole and the alive counter of the first CAN
         frame that carried it), event/deadline; CAN command frames through the driver
 The driver's command loop (its own thread) sends the newest dipole every command period, so the
-board never times out between plant steps; the law only swaps the dipole it sends.
+board never times out between plant steps; in the "mixed" transmission mode (the default) the
+law's dipole also goes out the moment the law gives it.
 Summary: deadline_controller.json; the driver's view of the bus: can/driver.json.
 """
 from __future__ import annotations
@@ -39,10 +40,9 @@ class DipoleSender:
         """(alive counter, can_sent ns) of the first frame with this dipole; (-1, None) on timeout."""
         dipole = [float(x) for x in dipole_am2]
         done, result = threading.Event(), []
-        requested_ns = time.monotonic_ns()
+        with self._lock:   # before the dipole is set: in the on-change modes it goes out within set_dipole
+            self._pending = (dipole, done, result, time.monotonic_ns())
         self.link.loop.set_dipole(dipole)
-        with self._lock:
-            self._pending = (dipole, done, result, requested_ns)
         if not done.wait(timeout_s):
             with self._lock:
                 self._pending = None

@@ -10,7 +10,7 @@ from typing import Annotated, Literal
 import msgspec
 
 from bench.bus.can.faults import FaultSpec
-from bench.bus.can.protocol import CMD, HEARTBEAT, TLM_DIPOLE, cycle_time_s
+from bench.bus.can.protocol import CMD, HEARTBEAT, TLM_DIPOLE, cycle_time_s, transmission_mode
 
 
 def _dbc_cycle_s(name: str):
@@ -79,6 +79,11 @@ class SecurityConfig(msgspec.Struct, forbid_unknown_fields=True):
 
 class DriverConfig(msgspec.Struct, forbid_unknown_fields=True):
     command_period_s: PositiveS = _dbc_cycle_s(CMD)                  # 0.02 s in mtq.dbc
+    # How commands go out (AUTOSAR COM): "cyclic" every command period with the newest dipole;
+    # "on_change" the moment the law gives one (and never otherwise: the board's command timeout
+    # then needs a law at least that fast); "mixed" both, on change and every period as a
+    # keep-alive. Default: the DBC's GenMsgSendType of MTQ_CMD (CyclicAndSpontaneous: mixed).
+    transmission: Literal["cyclic", "on_change", "mixed"] = msgspec.field(default_factory=lambda: transmission_mode(CMD))
     # A board is lost when its heartbeat is this many heartbeat periods late (CANopen consumer time).
     heartbeat_timeout_periods: Annotated[float, msgspec.Meta(ge=1.0, le=1000.0)] = 2.5
     telemetry_timeout_periods: Annotated[float, msgspec.Meta(ge=1.0, le=1000.0)] = 3.0

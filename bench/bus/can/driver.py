@@ -31,6 +31,8 @@ corrupted, repeated or out-of-sequence telemetry frame.
 """
 from __future__ import annotations
 
+import contextlib
+import threading
 import time
 from collections import Counter, deque
 from dataclasses import dataclass, field
@@ -173,23 +175,25 @@ class MagnetorquerDriver:
         return counter
 
     # --- receiving ------------------------------------------------------------------------
-    def poll(self, timeout_s: float = 0.0, max_frames: int = 1000) -> list[FaultEvent]:
+    def poll(self, timeout_s: float = 0.0, max_frames: int = 1000, lock=None) -> list[FaultEvent]:
         """Handle the frames that arrived (waiting up to timeout_s for the first), check deadlines.
 
         Returns the events detected since the previous call (during it, and in between: a host
-        overrun the command loop reported).
+        overrun the command loop reported). lock: held while frames are handled, not while waiting
+        for the first (CommandLoop: another thread may send a command meanwhile).
         """
         msg = self.bus.recv(timeout=timeout_s)
-        handled = 0
-        while msg is not None:
-            self.handle(msg)
-            handled += 1
-            if handled >= max_frames:
-                break  # a flood must not starve the deadline checks below
-            msg = self.bus.recv(timeout=0.0)
-        self.frames_in_last_poll = handled
-        self.check_deadlines(self.clock())
-        events, self._new_events = self._new_events, []
+        with lock if lock is not None else contextlib.nullcontext():
+            handled = 0
+            while msg is not None:
+                self.handle(msg)
+                handled += 1
+                if handled >= max_frames:
+                    break  # a flood must not starve the deadline checks below
+                msg = self.bus.recv(timeout=0.0)
+            self.frames_in_last_poll = handled
+            self.check_deadlines(self.clock())
+            events, self._new_events = self._new_events, []
         return events
 
     def handle(self, msg: can.Message) -> None:
@@ -378,61 +382,83 @@ class MagnetorquerDriver:
 
 
 class CommandLoop:
-    """Commands the board every command period with the current dipole, polling in between.
+    """Commands the board with the current dipole, polling in between, in one of AUTOSAR COM's
+    transmission modes: "cyclic" (every command period), "on_change" (at once when `set_dipole`
+    gives a dipole), or "mixed" (both: at once, and every period as a keep-alive).
 
     The board goes to its safe state when commands stop for command_timeout_s (0.1 s by default),
     so the flight side must command at its own rate, whatever the rate of the law that decides the
     dipole: run this on its own thread and hand it the dipole with `set_dipole`, or give it
     `dipole_at(t_s)` (seconds since the first command; a scenario's `CanConfig.dipole_at`).
     `health` is a snapshot other threads may read; `on_command(counter, dipole_am2, sent_ns)` and
-    `on_events(events)` run on the loop's thread.
+    `on_events(events)` run on the thread that sent (the loop's, or the caller of `set_dipole` in
+    the on-change modes). The driver itself is not thread-safe: every use of it takes `_lock`, and
+    the loop waits for frames outside it, so a change goes out without waiting for the loop.
     """
 
     def __init__(self, driver: MagnetorquerDriver, period_s: float,
                  dipole_at: Callable[[float], list[float]] | None = None,
                  on_command: Callable[[int, list[float], int], None] | None = None,
-                 on_events: Callable[[list[FaultEvent]], None] | None = None):
+                 on_events: Callable[[list[FaultEvent]], None] | None = None,
+                 transmission: str = "cyclic"):
+        if transmission not in ("cyclic", "on_change", "mixed"):
+            raise ValueError(f"transmission must be cyclic, on_change or mixed, not {transmission!r}")
         self.driver = driver
         self.period_s = period_s
         self.dipole_at = dipole_at
         self.on_command = on_command
         self.on_events = on_events
+        self.transmission = transmission
         self.health: BoardHealth = driver.health()
         self.started_s: float | None = None
         self._dipole_am2 = [0.0, 0.0, 0.0]
+        self._lock = threading.Lock()
+        self._running = False
+        self._next_command_s = 0.0
 
     def set_dipole(self, dipole_am2) -> None:
         self._dipole_am2 = [float(x) for x in dipole_am2]   # one reference swap: safe across threads
+        if self.transmission != "cyclic" and self._running:
+            with self._lock:
+                now = self.driver.clock()
+                self._command(now)
+                self._next_command_s = now + self.period_s   # the keep-alive counts from the change
 
     def run(self, stop=None, duration_s: float | None = None, commanding: bool = True) -> None:
         """Until `stop` is set or `duration_s` has passed; commanding=False only listens."""
         clock = self.driver.clock
         now = clock()
         end = now + duration_s if duration_s is not None else float("inf")
-        next_command_s = now
+        cyclic = commanding and self.transmission != "on_change"
+        self._next_command_s = now
+        self._running = commanding
         wake_by_s = None      # when the last poll should have returned at the latest
-        while now < end and not (stop is not None and stop.is_set()):
-            late_s = 0.0
-            if commanding and now >= next_command_s:
-                late_s = now - next_command_s
-            elif wake_by_s is not None and self.driver.frames_in_last_poll == 0:
-                # A poll that handled no frame returned this late: the scheduler, not frame work.
-                late_s = now - wake_by_s
-            if late_s > 0.5 * self.period_s:
-                self.driver.host_overrun(late_s)   # our thread was late: the host, not the bus
-            if commanding and now >= next_command_s:
-                self._command(now)
-                next_command_s += self.period_s
-                if next_command_s < now:   # woke late: skip the missed slots rather than burst
-                    next_command_s = now + self.period_s
-            until = min(next_command_s, end) if commanding else end
-            timeout_s = max(0.0, min(until - clock(), 0.01))
-            wake_by_s = clock() + timeout_s
-            events = self.driver.poll(timeout_s=timeout_s)
-            if events and self.on_events is not None:
-                self.on_events(events)
-            self.health = self.driver.health()
-            now = clock()
+        try:
+            while now < end and not (stop is not None and stop.is_set()):
+                with self._lock:
+                    late_s = 0.0
+                    if cyclic and now >= self._next_command_s:
+                        late_s = now - self._next_command_s
+                    elif wake_by_s is not None and self.driver.frames_in_last_poll == 0:
+                        # A poll that handled no frame returned this late: the scheduler, not frame work.
+                        late_s = now - wake_by_s
+                    if late_s > 0.5 * self.period_s:
+                        self.driver.host_overrun(late_s)   # our thread was late: the host, not the bus
+                    if cyclic and now >= self._next_command_s:
+                        self._command(now)
+                        self._next_command_s += self.period_s
+                        if self._next_command_s < now:   # woke late: skip the missed slots rather than burst
+                            self._next_command_s = now + self.period_s
+                    until = min(self._next_command_s, end) if cyclic else end
+                    timeout_s = max(0.0, min(until - clock(), 0.01))
+                    wake_by_s = clock() + timeout_s
+                events = self.driver.poll(timeout_s=timeout_s, lock=self._lock)
+                if events and self.on_events is not None:
+                    self.on_events(events)
+                self.health = self.driver.health()
+                now = clock()
+        finally:
+            self._running = False
 
     def _command(self, now_s: float) -> None:
         if self.started_s is None:

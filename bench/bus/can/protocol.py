@@ -122,12 +122,22 @@ def e2e_crc_ok(payload: bytes, data_ids: tuple[int, ...]) -> bool:
     return bool(check_profile2_crc(head, data_ids[head[1] & 0x0F]))
 
 
+# The DBC's GenMsgSendType as a transmission mode (AUTOSAR COM): periodic only, on change only,
+# or mixed (on change, and periodically as a keep-alive).
+TRANSMISSION_MODES = {"Cyclic": "cyclic", "Spontaneous": "on_change", "CyclicAndSpontaneous": "mixed"}
+
+
 def cycle_time_s(name: str) -> float | None:
-    """The DBC's GenMsgCycleTime of a cyclic frame in seconds (None for a spontaneous one)."""
+    """The DBC's GenMsgCycleTime of a cyclic (or mixed) frame in seconds (None for a spontaneous one)."""
     message = database().get_message_by_name(name)
-    if message.send_type != "Cyclic" or not message.cycle_time:
+    if transmission_mode(name) == "on_change" or not message.cycle_time:
         return None
     return message.cycle_time / 1000.0
+
+
+def transmission_mode(name: str) -> str:
+    """"cyclic", "on_change" or "mixed", from the frame's GenMsgSendType."""
+    return TRANSMISSION_MODES.get(database().get_message_by_name(name).send_type, "on_change")
 
 
 def secoc_data_id(name: str) -> int | None:
