@@ -231,7 +231,8 @@ def _forward_pass(model, cost, x0, X, U, l, K, alpha, lower, upper):
             Xn[k + 1] = model.step(Xn[k], Un[k], k)
             if not np.all(np.isfinite(Xn[k + 1])):
                 return Xn, Un, np.inf
-    return Xn, Un, cost.total(Xn, Un)
+        total = cost.total(Xn, Un)          # a wild trial's rates may overflow the final cost: rejected as inf
+    return Xn, Un, total if np.isfinite(total) else np.inf
 
 
 def cost_gradient(cost, X, U, A, B) -> np.ndarray:
