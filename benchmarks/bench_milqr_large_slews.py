@@ -11,7 +11,7 @@ tests/milqr_reference.py (500 km orbit, tilted dipole, Gramian horizon, 0.2 A m^
 Per row: costs (MILQR's relative to IPOPT's best), iterations and wall time of each, MILQR's stop
 reason and winning start, and the largest |dipole| over the limit (box respected when <= 1).
 
-    PYTHONPATH=$PWD .venv/bin/python benchmarks/bench_milqr_large_slews.py [--dt 60] [--angles 30,60,...] [--bodies 3U,6U]
+    PYTHONPATH=$PWD .venv/bin/python benchmarks/bench_milqr_large_slews.py [--dt 120] [--angles 30,60,...] [--bodies 3U,6U-elongated]
 """
 from __future__ import annotations
 
@@ -37,7 +37,8 @@ def timed_milqr(model, cost, options):
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--dt", type=float, default=60.0, help="planning step, s (IPOPT's time grows fast with the steps)")
+    ap.add_argument("--dt", type=float, default=120.0,
+                    help="planning step, s (IPOPT's time grows fast with the steps: at 60 s a row takes minutes)")
     ap.add_argument("--angles", default=",".join(str(a) for a in ANGLES_DEG), help="slew angles, deg")
     ap.add_argument("--bodies", default=",".join(BODIES), help=f"from {list(BODIES)}")
     ap.add_argument("--ipopt-max-cpu-s", type=float, default=600.0, help="IPOPT CPU cap per start")
