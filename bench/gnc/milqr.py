@@ -4,13 +4,22 @@ One iteration, as the seed lays it out:
 1. the nominal trajectory (X, U) and its discrete Jacobians in error coordinates dx = [phi; d_omega]
    (phi = Rodrigues parameters of the error quaternion; `bench.gnc.attitude_planning`);
 2. backward pass: the quadratic model of Q at each step, Q_uu regularised Levenberg-Marquardt
-   style (Q_uu + lambda I, lambda raised whenever a Cholesky factorisation fails), the feed-forward
+   style (Q_uu + lambda I, lambda raised on Tassa, Erez and Todorov's 2012 schedule whenever a
+   Cholesky factorisation or a line search fails, lowered after a success), the feed-forward
    from the box QP on (Q_uu, Q_u) with the box shifted by the nominal control, warm-started from the
    neighbouring step's solution, and the feedback rows of clamped controls zeroed;
 3. forward pass: roll out u = clamp(u_bar + alpha l + K dx) for alpha = 1, 1/2, ... and accept the
    first alpha whose actual cost decrease is at least `armijo` times the expected one.
-It stops when the feed-forward is small, when the accepted cost change is small, or on the
-iteration/wall-time caps (then returning the best trajectory so far); `info["stop_reason"]` says which.
+It converges when the feed-forward or the accepted cost change is small and the projected gradient
+of the total cost (exact, by the adjoint recursion) vanishes; it stops unconverged when it stalls far
+from stationarity, or on the iteration/wall-time caps (returning the best trajectory so far);
+`info["stop_reason"]` says which (issue 27: a small feed-forward under a large lambda had ended a
+160-degree slew 42 % above the optimum, reported converged).
+
+Large slews have several local minima (paths round the two ways, with or without extra turns), and
+from zero dipoles the descent starts next to the geodesic cost's kink (q_g'q = 0). `milqr` therefore
+runs several descents within one wall-time budget (continuation along the short and the long way,
+and the given start; `MilqrOptions.rotation_starts`) and returns the lowest cost.
 
 Sign convention: this module writes the step as du = l + K dx (Tassa et al.); seed 004 writes
 du = -l - K dx. The returned `feedback_gains` use the tracking convention of seed 000,
@@ -132,7 +141,7 @@ class GeodesicAttitudeCost:
 
 @dataclass(frozen=True)
 class MilqrOptions:
-    max_iterations: int = 200           # per descent (each start and its guide has its own count)
+    max_iterations: int = 200           # per descent (each continuation stage and each start has its own)
     max_wall_time_s: float = np.inf     # the whole call, all starts together
     feedforward_tol: float = 1e-5       # max_k |l_k| / (1 + |u_k|) below this (and stationary): converged
     cost_change_tol: float = 1e-9       # accepted relative cost decrease below this (and stationary): converged
@@ -158,8 +167,8 @@ class MilqrOptions:
     regularisation_factor: float = 1.6
     armijo: float = 1e-4                # accept when actual / expected decrease exceeds this
     line_search_steps: int = 12         # alpha = 1, 1/2, ..., 1/2^(steps-1)
-    # Continuation starts (issue 27: from zero dipoles a 175-degree slew stopped in a local minimum
-    # 30-60 % above IPOPT's): the slew is solved for a sequence of growing rotations about the same
+    # Continuation starts (issue 27: from zero dipoles a 175-degree slew stopped in local minima
+    # 30-63 % above IPOPT's): the slew is solved for a sequence of growing rotations about the same
     # axis, each from the previous answer, on the signed cost of that lift of the goal; the last one is
     # polished with the geodesic cost. "short": the rotation of at most 180 degrees; "long": the other
     # way round (360 degrees minus it), tried only for slews of at least long_way_min_slew_deg. The
