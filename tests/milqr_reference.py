@@ -23,6 +23,9 @@ LIMIT_AM2 = 0.2
 ORBIT = CircularOrbit(radius_m=EARTH_RADIUS_M + 500e3)     # 500 km, 51.6 deg
 GOAL = qt.exp(np.deg2rad(90.0) * np.array([0.0, 0.0, 1.0]))
 X0 = np.array([1.0, 0, 0, 0, 0, 0, 0])
+# The second body of the large-slew study (issue 27): an elongated 6U-class body, long axis z,
+# about three times the 3U's transverse inertia with the same 0.2 A m^2 torquers.
+INERTIA_ELONGATED = np.diag([0.10, 0.12, 0.03])
 
 
 def slew_cost(goal=GOAL):
@@ -31,9 +34,9 @@ def slew_cost(goal=GOAL):
                                 final_rate_weight=1e7 * np.eye(3))   # ends at rest (1e5 left 3e-4 rad/s)
 
 
-def slew_problem(dt_s):
+def slew_problem(dt_s, inertia_kgm2=INERTIA):
     horizon = gramian_horizon(field_along_orbit_t(ORBIT, TiltedDipole(), 0.0, dt_s, int(6000 / dt_s)), dt_s)
-    model = MagnetorquerAttitudeModel(INERTIA, field_along_orbit_t(ORBIT, TiltedDipole(), 0.0, dt_s, horizon.steps), dt_s)
+    model = MagnetorquerAttitudeModel(inertia_kgm2, field_along_orbit_t(ORBIT, TiltedDipole(), 0.0, dt_s, horizon.steps), dt_s)
     return horizon, model
 
 
@@ -68,40 +71,78 @@ def discrete_step(inertia, dt_s):
     return ca.Function("F", [x, u, b], [ca.vertcat(xt[:4] / ca.norm_2(xt[:4]), xt[4:])])
 
 
-def solve_with_ipopt(model, cost, x0, dipole_limit_am2, max_iter=500, max_cpu_time_s=240.0, print_level=0):
-    """Returns (objective, U (N,3), X (N+1,7), ipopt status, wall time).
+class IpoptSlew:
+    """The discretised slew as a casadi NLP for IPOPT, built once and solved from any start.
 
     Single shooting: the dipoles are the only variables and the states are the step map applied N
     times. (Multiple shooting with free state variables diverged here: the step normalises q, so a
     state's scale along q is free in the constraints while the cost, linear in q near the goal,
     rewards growing it; IPOPT's first step went to |q| ~ 1e4.)
     """
-    N, F = model.horizon_steps, discrete_step(model.inertia_kgm2, model.dt_s)
-    U = ca.SX.sym("U", 3, N)
-    qg, wg = ca.DM(cost.q_goal_wxyz), ca.DM(cost.omega_goal_radps)
-    Q, R, Qf = ca.DM(cost.rate_weight), ca.DM(cost.dipole_weight), ca.DM(cost.final_rate_weight)
-    x = ca.DM(x0)
-    obj = 0
-    states = [x]
-    for k in range(N):
+
+    def __init__(self, model, cost, x0, dipole_limit_am2, max_iter=500, max_cpu_time_s=240.0, print_level=0):
+        N, F = model.horizon_steps, discrete_step(model.inertia_kgm2, model.dt_s)
+        U = ca.SX.sym("U", 3, N)
+        qg, wg = ca.DM(cost.q_goal_wxyz), ca.DM(cost.omega_goal_radps)
+        Q, R, Qf = ca.DM(cost.rate_weight), ca.DM(cost.dipole_weight), ca.DM(cost.final_rate_weight)
+        x = ca.DM(x0)
+        obj = 0
+        states = [x]
+        for k in range(N):
+            dw = x[4:] - wg
+            obj += cost.attitude_weight * (1 - ca.fabs(ca.dot(qg, x[:4]))) + 0.5 * ca.bilin(Q, dw, dw) \
+                + 0.5 * ca.bilin(R, U[:, k], U[:, k])
+            x = F(x, U[:, k], ca.DM(model.field_inertial_t[k]))
+            states.append(x)
         dw = x[4:] - wg
-        obj += cost.attitude_weight * (1 - ca.fabs(ca.dot(qg, x[:4]))) + 0.5 * ca.bilin(Q, dw, dw) \
-            + 0.5 * ca.bilin(R, U[:, k], U[:, k])
-        x = F(x, U[:, k], ca.DM(model.field_inertial_t[k]))
-        states.append(x)
-    dw = x[4:] - wg
-    obj += cost.final_attitude_weight * (1 - ca.fabs(ca.dot(qg, x[:4]))) + 0.5 * ca.bilin(Qf, dw, dw)
-    solver = ca.nlpsol("slew", "ipopt", {"x": ca.vec(U), "f": obj},
-                       {"print_time": False,
-                        "ipopt": {"print_level": print_level, "max_iter": max_iter, "max_cpu_time": max_cpu_time_s,
-                                  "tol": 1e-10, "sb": "yes"}})
-    t = time.perf_counter()
-    # Start from zero dipole: nothing of MILQR's answer is given to IPOPT.
-    sol = solver(x0=np.zeros(3 * N), lbx=-dipole_limit_am2, ubx=dipole_limit_am2)
-    wall = time.perf_counter() - t
-    u_opt = np.array(sol["x"]).reshape(N, 3)          # vec() is column-major: U[:, k] contiguous
-    X = np.array(ca.Function("X", [U], [ca.horzcat(*states)])(u_opt.T)).T
-    return float(sol["f"]), u_opt, X, solver.stats()["return_status"], wall
+        obj += cost.final_attitude_weight * (1 - ca.fabs(ca.dot(qg, x[:4]))) + 0.5 * ca.bilin(Qf, dw, dw)
+        self.steps, self.limit_am2 = N, dipole_limit_am2
+        self._solver = ca.nlpsol("slew", "ipopt", {"x": ca.vec(U), "f": obj},
+                                 {"print_time": False,
+                                  "ipopt": {"print_level": print_level, "max_iter": max_iter,
+                                            "max_cpu_time": max_cpu_time_s, "tol": 1e-10, "sb": "yes"}})
+        self._states = ca.Function("X", [U], [ca.horzcat(*states)])
+
+    def solve(self, dipoles_init_am2=None):
+        """(objective, U (N,3), X (N+1,7), ipopt status, wall time, iterations) from the given start
+        (zero dipole when None: nothing of MILQR's answer is given to IPOPT)."""
+        start = np.zeros((self.steps, 3)) if dipoles_init_am2 is None else np.asarray(dipoles_init_am2, dtype=float)
+        t = time.perf_counter()
+        # vec() is column-major: U[:, k] contiguous, i.e. the row-major flattening of (N, 3)
+        sol = self._solver(x0=start.reshape(-1), lbx=-self.limit_am2, ubx=self.limit_am2)
+        wall = time.perf_counter() - t
+        u_opt = np.array(sol["x"]).reshape(self.steps, 3)
+        X = np.array(self._states(u_opt.T)).T
+        stats = self._solver.stats()
+        return float(sol["f"]), u_opt, X, stats["return_status"], wall, int(stats.get("iter_count", -1))
+
+
+def solve_with_ipopt(model, cost, x0, dipole_limit_am2, max_iter=500, max_cpu_time_s=240.0, print_level=0,
+                     dipoles_init_am2=None):
+    """Returns (objective, U (N,3), X (N+1,7), ipopt status, wall time), started from zero dipole
+    unless `dipoles_init_am2` (N, 3) is given."""
+    nlp = IpoptSlew(model, cost, x0, dipole_limit_am2, max_iter, max_cpu_time_s, print_level)
+    return nlp.solve(dipoles_init_am2)[:5]
+
+
+def ipopt_best_of_starts(model, cost, x0, dipole_limit_am2, starts, max_iter=3000, max_cpu_time_s=240.0):
+    """IPOPT from each named start {name: (N, 3) dipoles}; returns (best, all) where each entry is a
+    dict (name, cost, dipoles, status, wall_s, iterations). The cost is the planning model's roll-out of
+    IPOPT's dipoles clipped to the box (IPOPT's barrier leaves them a few 1e-8 inside it anyway)."""
+    nlp = IpoptSlew(model, cost, x0, dipole_limit_am2, max_iter, max_cpu_time_s)
+    runs = []
+    for name, U0 in starts.items():
+        objective, U, _, status, wall, iterations = nlp.solve(np.clip(U0, -dipole_limit_am2, dipole_limit_am2))
+        U = np.clip(U, -dipole_limit_am2, dipole_limit_am2)
+        runs.append(dict(name=name, cost=cost.total(model.rollout(x0, U), U), objective=objective, dipoles=U,
+                         status=status, wall_s=wall, iterations=iterations))
+    return min(runs, key=lambda r: r["cost"]), runs
+
+
+def slew_goal(angle_deg, seed):
+    """A rotation of angle_deg from the identity about a random axis drawn with `seed`."""
+    axis = np.random.default_rng(seed).normal(size=3)
+    return qt.exp(np.deg2rad(angle_deg) * axis / np.linalg.norm(axis))
 
 
 def projected_gradient_fd(model, cost, x0, dipoles_am2, dipole_limit_am2, eps=1e-6):
