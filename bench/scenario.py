@@ -292,11 +292,12 @@ def _check_lqr_design(s: Scenario) -> None:
     seed's weights: the scaled input is too weak) are refused here, not in the controller process."""
     import numpy as np
 
-    from bench.controller.factory import weights_from_config
     from bench.gnc.lqr import dlqr
 
     model = s.onboard_params().scaled
-    q, r = weights_from_config(s.controller)
+    # the controller's weights (bench.controller.factory.weights_from_config), read here without
+    # importing the controller: the scenario sits below every process
+    q, r = np.diag(np.asarray(s.controller.q_diag, float)), np.diag(np.asarray(s.controller.r_diag, float))
     try:
         with np.errstate(all="ignore"):
             gain, cost = dlqr(model.A, model.B, q, r)
