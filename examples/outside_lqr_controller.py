@@ -24,9 +24,10 @@ The law is the bench's LQR: u = K V x with K from the DARE on the scaled CWH mod
 flight side believes (seed 003: V scales metres to Mm and m/s to km/s; Q and R from the scenario's
 [controller] weights, on that scaled state), saturated at the thrusters' limit per axis.
 
-`--break MODE` makes a deliberately broken variant for `bench contract check` (tests/test_contract.py):
-wrong-key (the command of step --break-step goes to a wrong key), bad-field (it carries a field the
-schema does not have), skip-seq (it carries the next step's sequence number).
+`--break MODE:STEP` (repeatable) makes a deliberately broken variant for `bench contract check`
+(tests/test_contract.py): the command of step STEP goes to a wrong key (wrong-key), carries a field
+the schema does not have (bad-field), or carries the next step's sequence number (skip-seq); modes
+given for the same step all apply to its command.
 """
 from __future__ import annotations
 
@@ -109,9 +110,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--run-id", required=True)
     parser.add_argument("--scenario", required=True, type=Path, help="the run directory's scenario.json")
     parser.add_argument("--wait-s", type=float, default=60.0, help="how long to wait for the scenario and the hub")
-    parser.add_argument("--break", dest="break_mode", choices=BREAKS, help="break the contract (for the check's tests)")
-    parser.add_argument("--break-step", type=int, default=2, help="the step whose command is broken")
+    parser.add_argument("--break", dest="breaks", action="append", default=[], metavar="MODE:STEP",
+                        help=f"break the contract at a step, MODE one of {', '.join(BREAKS)} (for the check's tests)")
     args = parser.parse_args(argv)
+    breaks: dict[int, set[str]] = {}
+    for item in args.breaks:
+        mode, _, step = item.partition(":")
+        if mode not in BREAKS or not step.isdigit():
+            parser.error(f"--break {item!r}: expected MODE:STEP with MODE one of {', '.join(BREAKS)}")
+        breaks.setdefault(int(step), set()).add(mode)
 
     scenario = wait_for_file(args.scenario, args.wait_s)
     gain = lqr_gain(scenario, SEED_SCALING)
@@ -144,7 +151,7 @@ def main(argv: list[str] | None = None) -> int:
                                              reliability=zenoh.Reliability.RELIABLE)
 
         commands = publisher("command/thrust")
-        wrong = publisher("command/thrust_cmd") if args.break_mode == "wrong-key" else None
+        wrong = publisher("command/thrust_cmd")          # used by --break wrong-key only
         while not commands.matching_status.matching:     # the plant's subscriber
             if time.monotonic() > deadline or launcher_gone.is_set():
                 raise SystemExit("no subscriber for command/thrust: is the plant running?")
@@ -168,19 +175,19 @@ def main(argv: list[str] | None = None) -> int:
             solve_time_s = time.perf_counter() - start
             stamps = dict(header.get("stamps_ns", {}), controller_received=received_ns)
             seq = header["seq"]
-            broken = args.break_mode is not None and seq == args.break_step
+            broken = breaks.get(seq, set())
             command = {
                 "type": "thrust",
                 "header": {"schema_version": SCHEMA_VERSION, "run_id": args.run_id,
-                           "seq": seq + 1 if broken and args.break_mode == "skip-seq" else seq,
+                           "seq": seq + 1 if "skip-seq" in broken else seq,
                            "sim_time_s": header["sim_time_s"], "stamps_ns": stamps},
                 "thrust_n": [float(u) for u in thrust_n],
                 "ctrl_feasible": True, "status": "solved", "solve_time_s": solve_time_s, "iterations": 0,
             }
-            if broken and args.break_mode == "bad-field":
+            if "bad-field" in broken:
                 command["thrust_vec"] = command["thrust_n"]
             stamps["commanded"] = time.monotonic_ns()
-            (wrong if broken and wrong is not None else commands).put(json.dumps(command).encode())
+            (wrong if "wrong-key" in broken else commands).put(json.dumps(command).encode())
     finally:
         session.close()
     return 0
