@@ -94,6 +94,18 @@ def nodes_for(scenario: Scenario) -> list[str]:
     return names
 
 
+EXTERNAL_HOST = "external"   # the "host" of a part provided from outside (docs/contract.md)
+
+
+def external_parts(scenario: Scenario) -> dict[str, str]:
+    """[run] external: node -> EXTERNAL_HOST. They join as nodes on other hosts do (not spawned,
+    waited for and watched by their liveliness token), so they reuse the `remote` placement."""
+    if scenario.run.external and (scenario.kind != "rendezvous" or scenario.can is not None):
+        raise ScenarioError("run.external: an external controller is supported in the rendezvous loop without [can] "
+                            "only (the attitude controller also drives the magnetorquer's CAN bus)")
+    return {name: EXTERNAL_HOST for name in scenario.run.external}
+
+
 # ------------------------------------------------------------------------------------------------
 # Processes
 # ------------------------------------------------------------------------------------------------
@@ -241,6 +253,8 @@ def _apply_overrides(scenario: Scenario, args) -> Scenario:
     run = scenario.run
     if args.mode:
         run = msgspec.structs.replace(run, mode=args.mode)
+    if getattr(args, "external", None):
+        run = msgspec.structs.replace(run, external=sorted(set(run.external) | set(args.external)))
     if args.steps is not None:
         from bench.scenario import MAX_STEPS
 
@@ -283,8 +297,8 @@ def _follow_run(session, run_id: str, children: list[Child], n_steps: int, show_
 
     def on_token(sample) -> None:
         name = str(sample.key_expr).rsplit("/", 1)[-1]
-        if sample.kind == zenoh.SampleKind.DELETE and name in pids:
-            state = process_state(pids[name])
+        if sample.kind == zenoh.SampleKind.DELETE and (name in pids or name in (remote or {})):
+            state = process_state(pids[name]) if name in pids else None
             lost.setdefault(name, TokenLoss(time.monotonic(), state.cpu_ticks if state else None))
         else:
             lost.pop(name, None)    # back: it was slow, not hung
@@ -547,13 +561,14 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
 
     placement: where the sessions are (default: this host, loopback, plain TCP).
     """
+    external = external_parts(scenario)      # bad input: before anything is opened
     placement = placement or local_placement(port, zenoh_config)
     hub = placement.hub_endpoint
     # The session first: a taken port must fail before anything is written or started.
     lease_ms = int(round(scenario.run.liveliness.lease_s * 1000))
     session = open_session(dataclasses.replace(placement.hub, lease_ms=lease_ms))
     launcher_token = session.liveliness().declare_token(keys.key(run_id, f"{keys.ALIVE}/{LAUNCHER}"))
-    remote = placement.remote
+    remote = {**placement.remote, **external}
     run_dir = runs_dir / run_id
     try:
         claim = RunDirClaim(run_dir)
@@ -577,6 +592,9 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
                 if show_progress:
                     print(f"bench: run {run_id}: starting {', '.join(n for n in names if n not in remote)}",
                           file=sys.stderr)
+                for name in scenario.run.external:
+                    print(f"bench: waiting for the external {name}: connect to {hub}, run id {run_id}, "
+                          f"scenario {scenario_path}", file=sys.stderr)
                 loop_peers = [n for n in names if n != "plant"]
                 for name in names:
                     if name in remote:
@@ -732,6 +750,8 @@ def add_commands(subparsers) -> None:
                      help="mutual TLS and access control on loopback, with certificates made for this run")
     run.add_argument("--cert-dir", help="with --secure: certificates to use (default: new ones in the run directory)")
     run.add_argument("--deployment", help="deployment TOML: which node runs on which host (see docs/security.md)")
+    run.add_argument("--external", action="append", choices=["controller"],
+                     help="a part provided from outside: not started, waited for under its name (docs/contract.md)")
     run.add_argument("--no-progress", action="store_true", help="no progress bar")
     run.add_argument("--no-report", action="store_true", help="skip report.html/report.md (bench report RUN_DIR later)")
     run.set_defaults(func=cmd_run)

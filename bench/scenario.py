@@ -106,6 +106,9 @@ class RunConfig(msgspec.Struct, forbid_unknown_fields=True):
     # lock-step: how long the plant waits for a command before it declares the loop broken.
     command_timeout_s: Annotated[float, msgspec.Meta(gt=0, le=3600.0)] = 10.0
     liveliness: LivelinessConfig = msgspec.field(default_factory=LivelinessConfig)
+    # Zenoh-side parts provided from outside the bench (docs/contract.md): the launcher starts no
+    # such node and waits for one to join under its name. Only the rendezvous loop's controller so far.
+    external: Annotated[list[Literal["controller"]], msgspec.Meta(max_length=1)] = msgspec.field(default_factory=list)
 
 
 class OnboardConfig(msgspec.Struct, forbid_unknown_fields=True):

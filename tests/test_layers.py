@@ -36,6 +36,8 @@ LAYERS: list[dict[str, list[str]]] = [
     {"report": ["bench.report", "bench.report.*"]},
     {"sim": ["bench.sim"],                                # the whole loop in one process
      "launcher": ["bench.launcher"]},
+    # The message contract: its check runs the bench (the launcher) against an outside node.
+    {"contract": ["bench.contract", "bench.contract.*"]},
     {"cli": ["bench.cli", "bench.__main__"]},
 ]
 

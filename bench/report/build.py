@@ -131,6 +131,8 @@ def deadline_section(result: DeadlineResult, plot_dir: Path) -> Section:
         ["host late to wake the controller after a worker timeout, max [ms]", ms(m["host_wake_late_max_s"])],
         ["controller cycle p99 less that lateness [ms]", ms(m["cycle_time_less_host_p99_s"])],
     ]
+    if result.external:
+        rows.insert(0, ["provided from outside (not measured: cycle time, stamps)", ", ".join(result.external)])
     if "planner" in m:
         planner = m["planner"]
         rows += [["planner: plans", fmt(planner["plans"])],

@@ -40,6 +40,9 @@ class DeadlineResult:
     plan_time_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
     plan_wall_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
     plan_budget_s: float | None = None
+    # Parts provided from outside the bench ([run] external): their cycle time and stamps are
+    # their own claims, not measured here, so no cycle time is taken from them.
+    external: list[str] = field(default_factory=list)
 
     @property
     def plant_misses_controller_slow(self) -> int:
@@ -64,6 +67,7 @@ class DeadlineResult:
             "solve_time_p99_ms": _p(self.solve_time_s, 99),
             "host_wake_late_max_s": self.host_wake_late_max_s,
             "cycle_time_less_host_p99_s": self.cycle_time_less_host_p99_s,
+            "external": self.external,
             **({"planner": {"plans": int(self.plan_wall_s.size), "budget_s": self.plan_budget_s,
                             "wall_time_p50_s": float(np.median(self.plan_wall_s)),
                             "worst_wall_time_s": float(self.plan_wall_s.max()),
@@ -96,9 +100,12 @@ def deadlines(run: RunData) -> DeadlineResult:
     controller_misses = sorted({e["header"]["seq"] for e in events if e["process"] == "controller" and e["missed"]})
 
     attitude = run.scenario is not None and run.scenario.kind == "attitude"
+    external = list(run.scenario.run.external) if run.scenario is not None else []
     seqs, cycle_s, solve_s, fallbacks = [], [], [], {}
     for m in run.on(keys.COMMAND_DIPOLE if attitude else keys.COMMAND_THRUST):
         stamps, body = m.stamps_ns, m.body
+        if "controller" in external:
+            continue     # its stamps and solve times are its own claims: not a measured cycle
         if "controller_received" in stamps and "commanded" in stamps:
             seqs.append(m.seq)
             cycle_s.append((stamps["commanded"] - stamps["controller_received"]) / 1e9)
@@ -122,7 +129,7 @@ def deadlines(run: RunData) -> DeadlineResult:
         events_by_process=events_by_process,
         host_wake_late_max_s=summary.get("host_wake_late_max_s"),
         cycle_time_less_host_p99_s=summary.get("cycle_time_less_host_p99_s"),
-        plan_time_s=plan_time_s, plan_wall_s=plan_wall_s, plan_budget_s=plan_budget_s,
+        plan_time_s=plan_time_s, plan_wall_s=plan_wall_s, plan_budget_s=plan_budget_s, external=external,
     )
 
 

@@ -1,0 +1,310 @@
+"""`bench contract check controller`: run the bench's plant and estimator against an outside
+controller and judge what it published.
+
+The run is an ordinary `bench run` with `[run] external = ["controller"]` (the launcher starts no
+controller and waits for one to join under that name). The outside controller is started by the
+check from `--command` (with {connect}, {run_id}, {scenario}, {run_dir} filled in) or by the user,
+who is told where to connect. The verdict comes afterwards from the run's recording: the recorder
+keeps every sample under `bench/<run_id>/**`, valid or not, with its arrival time on the recorder's
+clock, so the check needs nothing from the outside node but what it put on the bus:
+
+- keys: every topic is one of the contract's (bench.contract.table);
+- schemas: everything on the controller's topics decodes as its message (bench.bus.schemas), of
+  this run and schema version;
+- sequence numbers: one command per estimate, `header.seq` = the estimate's, none skipped, none
+  repeated, in order; the header carried (same sim_time_s, upstream stamps unchanged);
+- deadlines, on the recorder's clock (the outside node's own stamps are its claims): lock-step, a
+  command later than the plant's command timeout broke the loop; the budget is reported. Real
+  time, a step the plant integrated on a held command is a miss.
+"""
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import shlex
+import subprocess
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import msgspec
+import numpy as np
+from mcap.exceptions import McapError
+from mcap.reader import NonSeekingReader
+
+from bench.bus import keys
+from bench.bus.schemas import SCHEMA_VERSION, MalformedMessage, ThrustCommand, TranslationEstimate, decode
+from bench.bus.session import free_loopback_port, loopback_endpoint
+from bench.contract.table import RENDEZVOUS, publications_of, topic_of
+from bench.launcher import run_bench
+from bench.recorder import MALFORMED_PREFIX, RECORDING_FILE
+from bench.scenario import Scenario, ScenarioError, load_scenario, parse_scenario
+
+UPSTREAM_STAGES = ("sensed", "estimator_received", "estimated")   # the stamps a command carries on
+MAX_LISTED = 5            # per kind of problem, the first few are named
+OUTSIDE_LOG = "outside.log"
+
+
+@dataclass
+class Verdict:
+    problems: list[str] = field(default_factory=list)
+    summary: str = ""
+
+    @property
+    def passed(self) -> bool:
+        return not self.problems
+
+    def text(self, node: str) -> str:
+        if self.passed:
+            return f"contract check {node}: pass ({self.summary})"
+        lines = [f"contract check {node}: FAIL ({len(self.problems)} problem{'s' * (len(self.problems) > 1)}; {self.summary})"]
+        return "\n".join(lines + [f"  - {p}" for p in self.problems])
+
+
+def check_scenario(scenario: Scenario, steps: int, mode: str | None, command_timeout_s: float) -> Scenario:
+    """The scenario the check runs: the controller external, short, a short command timeout."""
+    if scenario.kind != "rendezvous" or scenario.can is not None:
+        raise ScenarioError(f"contract check controller: scenario {scenario.name!r} is not the rendezvous loop "
+                            f"without [can]")
+    run = msgspec.structs.replace(scenario.run, steps=steps, external=["controller"],
+                                  command_timeout_s=command_timeout_s, mode=mode or scenario.run.mode)
+    return parse_scenario(msgspec.to_builtins(msgspec.structs.replace(scenario, run=run)), "contract check")
+
+
+# --- the run ----------------------------------------------------------------------------------
+class Outside:
+    """The outside node's process, started once the launcher has written scenario.json (its hub is
+    listening by then) and stopped at the end if it has not stopped by itself."""
+
+    def __init__(self, command: str, hub: str, run_id: str, run_dir: Path):
+        self.argv = [a.format(connect=hub, run_id=run_id, scenario=str(run_dir / "scenario.json"), run_dir=str(run_dir))
+                     for a in shlex.split(command)]
+        self.run_dir = run_dir
+        self.process: subprocess.Popen | None = None
+        self.error: str | None = None
+        self._thread = threading.Thread(target=self._start, name="outside-start", daemon=True)
+        self._stop = threading.Event()
+        self._thread.start()
+
+    def _start(self) -> None:
+        scenario_file = self.run_dir / "scenario.json"
+        while not scenario_file.is_file():
+            if self._stop.wait(0.02):
+                return
+        try:
+            log = open(self.run_dir / "logs" / OUTSIDE_LOG, "w")
+            self.process = subprocess.Popen(self.argv, stdout=log, stderr=subprocess.STDOUT)
+        except OSError as exc:
+            self.error = f"could not start the outside node ({' '.join(self.argv)}): {exc}"
+
+    def stop(self, grace_s: float = 5.0) -> int | None:
+        self._stop.set()
+        self._thread.join(timeout=1.0)
+        if self.process is None:
+            return None
+        try:
+            return self.process.wait(timeout=grace_s)
+        except subprocess.TimeoutExpired:
+            self.process.kill()            # only the process this check started, by its handle
+            self.process.wait(timeout=5.0)
+            return None
+
+
+def run_check(scenario: Scenario, run_id: str, runs_dir: Path, command: str | None, port: int | None = None,
+              allowed_misses: int = 0) -> Verdict:
+    port = port or free_loopback_port()
+    run_dir = Path(runs_dir) / run_id
+    outside = Outside(command, loopback_endpoint(port), run_id, run_dir) if command else None
+    try:
+        with contextlib.redirect_stdout(io.StringIO()):        # the run's summary table
+            code, run_dir = run_bench(scenario, run_id, Path(runs_dir), port, show_progress=command is None,
+                                      write_report=False)
+    finally:
+        outside_code = outside.stop() if outside else None
+    verdict = judge(run_dir, scenario, code, allowed_misses)
+    if outside is not None and outside.error:
+        verdict.problems.insert(0, outside.error)
+    elif outside is not None and outside_code not in (0, None):
+        verdict.problems.append(f"the outside node exited with code {outside_code} "
+                                f"(its output: {run_dir / 'logs' / OUTSIDE_LOG})")
+    return verdict
+
+
+# --- the verdict ------------------------------------------------------------------------------
+@dataclass
+class Sample:
+    topic: str
+    payload: bytes
+    received_ns: int      # the recorder's wall clock at arrival
+
+
+def read_samples(path: Path) -> list[Sample]:
+    """Every sample of the recording, valid or not, in arrival order (malformed ones under their topic)."""
+    samples = []
+    with open(path, "rb") as f:
+        try:
+            for _schema, channel, message in NonSeekingReader(f).iter_messages(log_time_order=False):
+                topic = channel.topic.removeprefix(MALFORMED_PREFIX)
+                samples.append(Sample(topic, bytes(message.data), int(message.publish_time)))
+        except (McapError, EOFError, ValueError):
+            pass       # a recording cut short: what was written is judged
+    return samples
+
+
+def judge(run_dir: Path, scenario: Scenario, exit_code: int, allowed_misses: int = 0) -> Verdict:
+    verdict = Verdict()
+    problems = verdict.problems
+    run_id = run_dir.name
+    if exit_code != 0:
+        problems.append(f"the run did not finish: exit code {exit_code}{_plant_error(run_dir)}")
+    recording = run_dir / RECORDING_FILE
+    if not recording.is_file():
+        problems.append(f"no recording ({recording}): nothing to judge")
+        verdict.summary = "no recording"
+        return verdict
+    samples = read_samples(recording)
+
+    # Keys.
+    unknown: dict[str, int] = {}
+    for s in samples:
+        if topic_of(s.topic) is None:
+            unknown[s.topic] = unknown.get(s.topic, 0) + 1
+    for topic, n in sorted(unknown.items()):
+        problems.append(f"wrong key: {n} message(s) on {keys.key(run_id, topic)}, which is not a key of the contract "
+                        f"(the controller publishes on "
+                        f"{', '.join(t.topic.replace('<process>', 'controller') for t in publications_of('controller', RENDEZVOUS))})")
+
+    # Schemas of what the controller publishes.
+    commands: list[tuple[ThrustCommand, int]] = []
+    own = {t.topic: t.messages[0] for t in publications_of("controller", RENDEZVOUS)}
+    invalid: dict[str, list[str]] = {}
+    for s in samples:
+        entry = topic_of(s.topic)
+        kind = own.get(entry.topic) if entry is not None else _claimed_type(s.payload, own)
+        if kind is None or (entry is not None and entry.topic.endswith("<process>")
+                            and s.topic != f"{keys.STATUS_STATS}/controller"):
+            continue
+        try:
+            message = decode(s.payload, kind)
+        except MalformedMessage as exc:
+            invalid.setdefault(s.topic, []).append(str(exc))
+            continue
+        if message.header.run_id != run_id:
+            invalid.setdefault(s.topic, []).append(f"{kind.__name__}: header.run_id {message.header.run_id!r}, "
+                                                   f"expected {run_id!r}")
+        elif isinstance(message, ThrustCommand) and s.topic == keys.COMMAND_THRUST:
+            commands.append((message, s.received_ns))
+    for topic, errors in sorted(invalid.items()):
+        problems.append(f"schema-invalid: {len(errors)} message(s) on {topic}; first: {errors[0]}")
+
+    # Sequence numbers and headers, against the estimates the controller was given.
+    estimates: dict[int, tuple[TranslationEstimate, int]] = {}
+    for s in samples:
+        if s.topic == keys.ESTIMATE_TRANSLATION:
+            try:
+                e = decode(s.payload, TranslationEstimate)
+            except MalformedMessage:
+                continue
+            estimates.setdefault(e.header.seq, (e, s.received_ns))
+    seqs = [c.header.seq for c, _ in commands]
+    _sequence_problems(seqs, sorted(estimates), problems)
+    carried = []
+    for command, _ in commands:
+        e = estimates.get(command.header.seq)
+        if e is None:
+            continue
+        h, eh = command.header, e[0].header
+        if h.sim_time_s != eh.sim_time_s:
+            carried.append(f"seq {h.seq}: sim_time_s {h.sim_time_s!r}, the estimate's is {eh.sim_time_s!r}")
+        lost = [st for st in UPSTREAM_STAGES if st in eh.stamps_ns and h.stamps_ns.get(st) != eh.stamps_ns[st]]
+        if lost:
+            carried.append(f"seq {h.seq}: stamps {', '.join(lost)} not carried from the estimate")
+    if carried:
+        problems.append(f"header not carried from the estimate in {len(carried)} command(s): "
+                        + "; ".join(carried[:MAX_LISTED]))
+
+    # Deadlines, on the recorder's clock.
+    first_arrival: dict[int, int] = {}
+    for command, received_ns in commands:
+        k = command.header.seq
+        if k in estimates and received_ns >= estimates[k][1]:     # an answer to estimate k, not a guess ahead
+            first_arrival.setdefault(k, received_ns)
+    response_s = np.array([(first_arrival[k] - estimates[k][1]) / 1e9 for k in sorted(first_arrival) if k in estimates])
+    run = scenario.run
+    budget_s = scenario.controller.deadline.budget_s
+    late = int(np.sum(response_s > run.command_timeout_s)) if response_s.size else 0
+    if run.mode == "lock-step" and late:
+        problems.append(f"deadline: {late} command(s) came after the plant's command timeout of {run.command_timeout_s:g} s")
+    if run.mode == "real-time":
+        missed = _plant_missed_steps(run_dir)
+        if missed is not None and missed > allowed_misses:
+            problems.append(f"deadline: {missed} real-time step(s) integrated on a held command (the command for step k "
+                            f"must arrive before step k+1 starts; {allowed_misses} allowed)")
+    over = int(np.sum(response_s > budget_s)) if response_s.size else 0
+    timing = (f"response at the recorder p50 {np.median(response_s) * 1e3:.2f} ms, worst {response_s.max() * 1e3:.2f} ms, "
+              f"{over} over the {budget_s * 1e3:g} ms budget" if response_s.size else "no responses")
+    verdict.summary = (f"{scenario.name}, {run.mode}, {len(estimates)} estimates, {len(commands)} valid commands"
+                       f"{f' seq {min(seqs)}-{max(seqs)}' if seqs else ''} on {keys.COMMAND_THRUST}; {timing}")
+    return verdict
+
+
+def _claimed_type(payload: bytes, own: dict) -> type | None:
+    """On a key that is not the contract's: the controller's message type the payload's "type" tag
+    names, so a command sent to a wrong key is judged for its schema too."""
+    try:
+        tag = json.loads(payload).get("type")
+    except (ValueError, AttributeError, UnicodeDecodeError):
+        return None
+    return next((kind for kind in own.values() if kind.__struct_config__.tag == tag), None)
+
+
+def _sequence_problems(seqs: list[int], estimate_seqs: list[int], problems: list[str]) -> None:
+    counts: dict[int, int] = {}
+    for k in seqs:
+        counts[k] = counts.get(k, 0) + 1
+    repeated = sorted(k for k, n in counts.items() if n > 1)
+    skipped = [k for k in estimate_seqs if k not in counts]
+    unknown = sorted(k for k in counts if k not in set(estimate_seqs))
+    disordered = [b for a, b in zip(seqs, seqs[1:]) if b < a]
+
+    def listed(values) -> str:
+        return ", ".join(map(str, values[:MAX_LISTED])) + (" ..." if len(values) > MAX_LISTED else "")
+
+    if skipped:
+        problems.append(f"sequence: no command with header.seq {listed(skipped)} (skipped: step k's command must carry seq k)")
+    if repeated:
+        problems.append(f"sequence: header.seq {listed(repeated)} repeated (one command per step)")
+    if unknown:
+        problems.append(f"sequence: header.seq {listed(unknown)} answers no estimate (a step the plant had not sampled)")
+    if disordered:
+        problems.append(f"sequence: seq went back in {len(disordered)} place(s), first to {disordered[0]}")
+
+
+def _plant_error(run_dir: Path) -> str:
+    """The plant's last error line, if any (why the loop broke)."""
+    try:
+        lines = (run_dir / "logs" / "plant.log").read_text(errors="replace").splitlines()
+    except OSError:
+        return ""
+    errors = [line.split(" ERROR ", 1)[1] for line in lines if " ERROR " in line]
+    return f" (plant: {errors[-1]})" if errors else ""
+
+
+def _plant_missed_steps(run_dir: Path) -> int | None:
+    try:
+        with np.load(run_dir / "trajectory.npz") as data:
+            return int(data["plant_missed_steps"]) if "plant_missed_steps" in data.files else None
+    except (OSError, ValueError, KeyError):
+        return None
+
+
+def load_check_scenario(name: str, steps: int, mode: str | None, command_timeout_s: float) -> Scenario:
+    return check_scenario(load_scenario(name), steps, mode, command_timeout_s)
+
+
+def write_verdict(run_dir: Path, verdict: Verdict) -> None:
+    (run_dir / "contract_check.json").write_text(json.dumps({"passed": verdict.passed, "problems": verdict.problems,
+                                                             "summary": verdict.summary, "schema_version": SCHEMA_VERSION},
+                                                            indent=2) + "\n")

@@ -1,0 +1,197 @@
+"""An outside controller for the bench's rendezvous loop: the proof that the message contract is enough.
+
+It imports nothing from `bench`: only Zenoh, json, numpy and scipy (scipy for the discrete
+algebraic Riccati equation and the matrix exponential, the same routines the built-in LQR uses, so
+the two trajectories agree to rounding). Everything it knows comes from the published contract
+(`bench contract export DIR`, docs/contract.md) and from the scenario.json the launcher writes into
+the run directory.
+
+    bench run rendezvous_lqr --external controller --run-id demo --port 7447
+    python examples/outside_lqr_controller.py --connect tcp/127.0.0.1:7447 --run-id demo \
+        --scenario runs/demo/scenario.json
+
+What it does, per the contract:
+- opens its Zenoh session with multicast scouting off and the launcher's hub as its only connect
+  endpoint (never Zenoh's default configuration);
+- declares the liveliness token `bench/<run>/alive/controller` (the launcher waits for it), then
+  `ready/controller` once its command publisher is matched by the plant's subscriber;
+- for each TranslationEstimate on `estimate/translation`, publishes one ThrustCommand on
+  `command/thrust` whose header is the estimate's (same seq, same sim_time_s, the upstream stamps
+  carried) plus its own `controller_received` and `commanded` stamps;
+- stops when the launcher's token `alive/launcher` goes.
+
+The law is the bench's LQR: u = K V x with K from the DARE on the scaled CWH model of the orbit the
+flight side believes (seed 003: V scales metres to Mm and m/s to km/s; Q and R from the scenario's
+[controller] weights, on that scaled state), saturated at the thrusters' limit per axis.
+
+`--break MODE:STEP` (repeatable) makes a deliberately broken variant for `bench contract check`
+(tests/test_contract.py): the command of step STEP goes to a wrong key (wrong-key), carries a field
+the schema does not have (bad-field), or carries the next step's sequence number (skip-seq); modes
+given for the same step all apply to its command.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import queue
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import zenoh
+from scipy.linalg import expm, solve_discrete_are
+
+SCHEMA_VERSION = 1
+NAME = "controller"
+# Seed 003's state scaling V (metres -> Mm, m/s -> km/s) and the thrusters' limit per axis.
+SEED_SCALING = (1e-6, 1e-6, 1e-6, 1e-3, 1e-3, 1e-3)
+SEED_MAX_ABS_THRUST_N = 1.0
+BREAKS = ("wrong-key", "bad-field", "skip-seq")
+
+
+# --- the law ----------------------------------------------------------------------------------
+def lqr_gain(scenario: dict, scaling) -> np.ndarray:
+    """K (3x6, scaled units) of the infinite-horizon discrete LQR on the believed CWH model."""
+    plant, onboard, controller = scenario["plant"], scenario.get("onboard", {}), scenario["controller"]
+    if controller.get("type", "lqr") != "lqr":
+        raise SystemExit(f"this example flies [controller] type = 'lqr' only, not {controller['type']!r}")
+    radius_m = plant["target_radius_m"] * (1.0 + onboard.get("believed_radius_error", 0.0))
+    n = float(np.sqrt(plant["gravitational_parameter_m3ps2"] / radius_m**3))
+    a_c = np.zeros((6, 6))
+    a_c[0:3, 3:6] = np.eye(3)
+    a_c[3, 0], a_c[3, 4], a_c[4, 3], a_c[5, 2] = 3.0 * n**2, 2.0 * n, -2.0 * n, -(n**2)
+    b_c = np.zeros((6, 3))
+    b_c[3:6, :] = np.eye(3) / plant["mass_kg"]
+    block = np.zeros((9, 9))                      # exact zero-order hold: expm([[A, B], [0, 0]] dt)
+    block[:6, :6], block[:6, 6:] = a_c, b_c
+    phi = expm(block * plant["time_step_s"])
+    v = np.diag(np.asarray(scaling, dtype=float))
+    a = v @ phi[:6, :6] @ np.diag(1.0 / np.asarray(scaling, dtype=float))
+    b = v @ phi[:6, 6:]
+    q = np.diag(np.asarray(controller["q_diag"], dtype=float))
+    r = np.diag(np.asarray(controller["r_diag"], dtype=float))
+    p = solve_discrete_are(a, b, q, r)
+    return -np.linalg.solve(r + b.T @ p @ b, b.T @ p @ a)
+
+
+# --- Zenoh ------------------------------------------------------------------------------------
+def session_config(connect: str, lease_s: float) -> zenoh.Config:
+    """Built explicitly: no multicast scouting, listen on loopback, the hub as the connect endpoint."""
+    config = zenoh.Config()
+    for key, value in {
+        "mode": '"peer"',
+        "scouting/multicast/enabled": "false",
+        "scouting/gossip/enabled": "true",     # meet the run's other peers through the hub
+        "listen/endpoints": json.dumps(["tcp/127.0.0.1:0"]),
+        "connect/endpoints": json.dumps([connect]),
+        "transport/link/tx/lease": str(int(round(lease_s * 1000))),
+        "transport/shared_memory/enabled": "false",
+        "adminspace/enabled": "false",
+    }.items():
+        config.insert_json5(key, value)
+    return config
+
+
+def wait_for_file(path: Path, timeout_s: float) -> dict:
+    deadline = time.monotonic() + timeout_s
+    while not path.is_file():
+        if time.monotonic() > deadline:
+            raise SystemExit(f"no scenario file {path} after {timeout_s} s (is `bench run` started?)")
+        time.sleep(0.05)
+    time.sleep(0.05)    # the launcher writes it in one go; let the write finish
+    return json.loads(path.read_text())
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--connect", required=True, help="the launcher's hub endpoint, e.g. tcp/127.0.0.1:7447")
+    parser.add_argument("--run-id", required=True)
+    parser.add_argument("--scenario", required=True, type=Path, help="the run directory's scenario.json")
+    parser.add_argument("--wait-s", type=float, default=60.0, help="how long to wait for the scenario and the hub")
+    parser.add_argument("--break", dest="breaks", action="append", default=[], metavar="MODE:STEP",
+                        help=f"break the contract at a step, MODE one of {', '.join(BREAKS)} (for the check's tests)")
+    args = parser.parse_args(argv)
+    breaks: dict[int, set[str]] = {}
+    for item in args.breaks:
+        mode, _, step = item.partition(":")
+        if mode not in BREAKS or not step.isdigit():
+            parser.error(f"--break {item!r}: expected MODE:STEP with MODE one of {', '.join(BREAKS)}")
+        breaks.setdefault(int(step), set()).add(mode)
+
+    scenario = wait_for_file(args.scenario, args.wait_s)
+    gain = lqr_gain(scenario, SEED_SCALING)
+    scaling = np.asarray(SEED_SCALING)
+    lease_s = scenario["run"]["liveliness"]["lease_s"]
+    prefix = f"bench/{args.run_id}/"
+
+    deadline = time.monotonic() + args.wait_s
+    while True:      # the hub may not listen yet
+        try:
+            session = zenoh.open(session_config(args.connect, lease_s))
+            break
+        except Exception as exc:   # noqa: BLE001 - zenoh raises its own error type
+            if time.monotonic() > deadline:
+                raise SystemExit(f"cannot open a Zenoh session to {args.connect}: {exc}")
+            time.sleep(0.2)
+
+    estimates: queue.Queue = queue.Queue()
+    launcher_gone = threading.Event()
+    try:
+        keep = [session.liveliness().declare_token(prefix + f"alive/{NAME}")]
+        keep.append(session.declare_subscriber(prefix + "estimate/translation",
+                                               lambda sample: estimates.put(sample.payload.to_bytes())))
+        keep.append(session.liveliness().declare_subscriber(
+            prefix + "alive/launcher",
+            lambda sample: launcher_gone.set() if sample.kind == zenoh.SampleKind.DELETE else None))
+
+        def publisher(topic: str):
+            return session.declare_publisher(prefix + topic, congestion_control=zenoh.CongestionControl.BLOCK,
+                                             reliability=zenoh.Reliability.RELIABLE)
+
+        commands = publisher("command/thrust")
+        wrong = publisher("command/thrust_cmd")          # used by --break wrong-key only
+        while not commands.matching_status.matching:     # the plant's subscriber
+            if time.monotonic() > deadline or launcher_gone.is_set():
+                raise SystemExit("no subscriber for command/thrust: is the plant running?")
+            time.sleep(0.005)
+        keep.append(session.liveliness().declare_token(prefix + f"ready/{NAME}"))
+
+        while not launcher_gone.is_set():
+            try:
+                payload = estimates.get(timeout=0.2)
+            except queue.Empty:
+                continue
+            received_ns = time.monotonic_ns()
+            estimate = json.loads(payload)
+            header = estimate.get("header", {})
+            if estimate.get("type") != "estimate_translation" or header.get("run_id") != args.run_id:
+                print(f"ignored a message that is not this run's estimate: {payload[:80]!r}", file=sys.stderr)
+                continue
+            start = time.perf_counter()
+            thrust_n = np.clip(gain @ (scaling * np.asarray(estimate["state_m_mps"], dtype=float)),
+                               -SEED_MAX_ABS_THRUST_N, SEED_MAX_ABS_THRUST_N)
+            solve_time_s = time.perf_counter() - start
+            stamps = dict(header.get("stamps_ns", {}), controller_received=received_ns)
+            seq = header["seq"]
+            broken = breaks.get(seq, set())
+            command = {
+                "type": "thrust",
+                "header": {"schema_version": SCHEMA_VERSION, "run_id": args.run_id,
+                           "seq": seq + 1 if "skip-seq" in broken else seq,
+                           "sim_time_s": header["sim_time_s"], "stamps_ns": stamps},
+                "thrust_n": [float(u) for u in thrust_n],
+                "ctrl_feasible": True, "status": "solved", "solve_time_s": solve_time_s, "iterations": 0,
+            }
+            if "bad-field" in broken:
+                command["thrust_vec"] = command["thrust_n"]
+            stamps["commanded"] = time.monotonic_ns()
+            (wrong if "wrong-key" in broken else commands).put(json.dumps(command).encode())
+    finally:
+        session.close()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
