@@ -25,7 +25,6 @@ import json
 import shlex
 import subprocess
 import threading
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
