@@ -6,6 +6,7 @@ and a test is deterministic and independent of host load. Times are in ns from T
 """
 from __future__ import annotations
 
+import random
 from collections import deque
 from dataclasses import dataclass
 
@@ -14,7 +15,7 @@ import can
 from bench.bus.can import protocol as p
 from bench.bus.can.board import AppliedCommand, MagnetorquerBoard
 from bench.bus.can.busmodel import BOARD, FLIGHT, BusModel
-from bench.bus.can.config import BENCH_KEY_HEX, BoardConfig, DriverConfig, SecurityConfig
+from bench.bus.can.config import BoardConfig, DriverConfig, SecurityConfig
 from bench.bus.can.driver import MagnetorquerDriver
 from bench.bus.can.faults import FaultSpec
 from bench.bus.can.injector import FaultInjector
@@ -63,7 +64,8 @@ class SimBench:
                  security: SecurityConfig | None = None, seed: int = 1):
         self.clock = SimClock()
         self.security = security or SecurityConfig(profile=profile)
-        key = bytes.fromhex(BENCH_KEY_HEX)
+        # The run's key: drawn per bench, as the launcher draws one per run (seeded: deterministic).
+        self.key = key = random.Random(seed).randbytes(16)
         outsider = p.Protocol(profile=profile)                      # the injector has no key
         self.model = BusModel(FaultInjector(list(faults), outsider, seed=seed), outsider, T0_NS,
                               to_wall_s=lambda t_ns: t_ns / 1e9)

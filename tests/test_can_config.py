@@ -82,7 +82,7 @@ def test_periods_come_from_the_dbc_cycle_times_and_send_types():
     cycle_ms = {m.name: m.cycle_time for m in db.messages if m.send_type == "Cyclic"}
     assert cycle_ms == {"MTQ_CMD": 20, "MTQ_CMD_AUTH": 20, "MTQ_TLM_DIPOLE": 50, "MTQ_TLM_COIL": 50,
                         "MTQ_HEARTBEAT": 100}
-    assert {m.name for m in db.messages if m.send_type == "Spontaneous"} == {"MTQ_EMCY", "NMT"}
+    assert {m.name for m in db.messages if m.send_type == "Spontaneous"} == {"MTQ_EMCY", "NMT", "MTQ_NMT_AUTH"}
     config = CanConfig()
     assert config.driver.command_period_s == cycle_ms["MTQ_CMD"] / 1000
     assert config.board.telemetry_period_s == cycle_ms["MTQ_TLM_DIPOLE"] / 1000
