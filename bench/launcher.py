@@ -30,6 +30,7 @@ import msgspec
 import zenoh
 
 from bench.bus import acl, keys
+from bench.bus.can import run_key
 from bench.bus.schemas import ProcessStats, StepDone, decode, MalformedMessage
 from bench.bus.certs import CertificateError, identity_files, write_deployment_certs
 from bench.bus.deployment import LAUNCHER, Deployment, DeploymentError, load_deployment
@@ -577,7 +578,10 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
         raise
     (run_dir / "logs").mkdir()
     scenario_path = run_dir / "scenario.json"
-    scenario_path.write_bytes(msgspec.json.format(msgspec.json.encode(scenario)))
+    # The CAN bus's SecOC key (the deployment's, else new per run) reaches the nodes only here (0600).
+    identity = placement.hub.identity
+    scenario = run_key.with_run_key(scenario, identity.ca_path.parent if identity else None)
+    run_key.write_private(scenario_path, msgspec.json.format(msgspec.json.encode(scenario)))
     children: list[Child] = []
     group = ProcessGroup()
     started = time.monotonic()

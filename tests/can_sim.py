@@ -6,6 +6,7 @@ and a test is deterministic and independent of host load. Times are in ns from T
 """
 from __future__ import annotations
 
+import random
 from collections import deque
 from dataclasses import dataclass
 
@@ -14,7 +15,7 @@ import can
 from bench.bus.can import protocol as p
 from bench.bus.can.board import AppliedCommand, MagnetorquerBoard
 from bench.bus.can.busmodel import BOARD, FLIGHT, BusModel
-from bench.bus.can.config import BENCH_KEY_HEX, BoardConfig, DriverConfig, SecurityConfig
+from bench.bus.can.config import BoardConfig, DriverConfig, SecurityConfig
 from bench.bus.can.driver import MagnetorquerDriver
 from bench.bus.can.faults import FaultSpec
 from bench.bus.can.injector import FaultInjector
@@ -60,20 +61,25 @@ class SimBench:
     command it came from (and when that command was sent)."""
 
     def __init__(self, *faults: FaultSpec, profile: str = "secoc", board_config: BoardConfig | None = None,
-                 security: SecurityConfig | None = None, seed: int = 1):
+                 security: SecurityConfig | None = None, seed: int = 1, driver_config: DriverConfig | None = None):
         self.clock = SimClock()
         self.security = security or SecurityConfig(profile=profile)
-        key = bytes.fromhex(BENCH_KEY_HEX)
+        profile = self.security.profile
+        # The run's key: the scenario's, else drawn per bench as the launcher draws one per run
+        # (seeded here: deterministic).
+        self.key = key = self.security.key or random.Random(seed).randbytes(16)
         outsider = p.Protocol(profile=profile)                      # the injector has no key
         self.model = BusModel(FaultInjector(list(faults), outsider, seed=seed), outsider, T0_NS,
                               to_wall_s=lambda t_ns: t_ns / 1e9)
         self.buses = {FLIGHT: SimBus(self.model, FLIGHT, self.clock), BOARD: SimBus(self.model, BOARD, self.clock)}
         self.board_config = board_config or BoardConfig()
-        self.driver_config = DriverConfig()
+        self.driver_config = driver_config or DriverConfig()
         self.applied: list[tuple[float, AppliedCommand]] = []
+        self.coils_off_s: list[float] = []   # when the board entered its safe state (timeout or NMT)
         self.board = MagnetorquerBoard(self.buses[BOARD], self.board_config, p.Protocol(profile=profile, key=key),
                                        clock=self.clock, security=self.security,
-                                       on_applied=lambda a: self.applied.append((self.clock(), a)))
+                                       on_applied=lambda a: self.applied.append((self.clock(), a)),
+                                       on_coils_changed=lambda s: self.coils_off_s.extend([self.clock()] * s.safe_state))
         self.driver = MagnetorquerDriver(self.buses[FLIGHT], self.driver_config, self.board_config,
                                          p.Protocol(profile=profile, key=key), clock=self.clock, wall_clock=self.clock)
         self.sent: list[Sent] = []

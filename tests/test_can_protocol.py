@@ -96,7 +96,8 @@ def test_bad_frames_are_counted_by_reason_never_raised(proto):
 def test_node_id_moves_every_identifier_like_canopen():
     proto = p.Protocol(node_id=0x22)
     assert proto.frame_ids == {p.CMD: 0x222, p.CMD_AUTH: 0x322, p.TLM_DIPOLE: 0x1A2, p.TLM_COIL: 0x2A2,
-                               p.HEARTBEAT: 0x722, p.EMCY: 0xA2, p.NMT: 0x000}   # NMT: 0 for every node
+                               p.HEARTBEAT: 0x722, p.EMCY: 0xA2, p.NMT: 0x000,   # NMT: 0 for every node
+                               p.NMT_AUTH: 0x422}
     assert proto.decode(proto.command([0, 0, 0], counter=1)).crc_ok
     with pytest.raises(ValueError):
         p.Protocol(node_id=0x80)

@@ -6,6 +6,8 @@
     ca.key              the CA's private key (mode 0600; keep it off the bench hosts)
     <identity>.pem      one certificate per identity, CN = the identity (node name, launcher, router)
     <identity>.key      its private key (mode 0600; only the host that runs the identity needs it)
+    secoc.key           the deployment's CAN SecOC key, 32 hex digits (mode 0600; the launcher's
+                        host needs it: it hands it to the CAN nodes in each run's scenario.json)
 
 The common name is what Zenoh's access control matches (`cert_common_names`), so the CN of a
 certificate *is* the node's identity on the bus: whoever holds `controller.key` may command.
@@ -31,6 +33,7 @@ from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 CA_NAME = "ca"
 DEFAULT_VALIDITY_DAYS = 365
 PRIVATE_KEY_MODE = 0o600
+SECOC_KEY_NAME = "secoc.key"
 
 
 class CertificateError(ValueError):
@@ -61,6 +64,36 @@ def _write_private_key(path: Path, key: ec.EllipticCurvePrivateKey) -> None:
     fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, PRIVATE_KEY_MODE)
     with os.fdopen(fd, "wb") as f:
         f.write(data)
+
+
+def write_secoc_key(cert_dir: Path) -> Path:
+    """A new random AES-128 key for the deployment's CAN bus (SecOC), mode 0600 from the start."""
+    import secrets
+    path = Path(cert_dir) / SECOC_KEY_NAME
+    Path(cert_dir).mkdir(parents=True, exist_ok=True)
+    if path.exists():
+        path.unlink()
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, PRIVATE_KEY_MODE)
+    with os.fdopen(fd, "w") as f:
+        f.write(secrets.token_hex(16) + "\n")
+    return path
+
+
+def read_secoc_key(cert_dir: Path) -> str | None:
+    """The deployment's SecOC key (hex), None if it has none; refused if others can read it."""
+    path = Path(cert_dir) / SECOC_KEY_NAME
+    if not path.is_file():
+        return None
+    mode = stat.S_IMODE(path.stat().st_mode)
+    if mode & 0o077:
+        raise CertificateError(f"SecOC key {str(path)!r} is readable by others (mode {mode:04o}); chmod 600 it")
+    text = path.read_text().strip()
+    try:
+        if len(bytes.fromhex(text)) != 16:
+            raise ValueError
+    except ValueError:
+        raise CertificateError(f"SecOC key {str(path)!r} must hold 32 hexadecimal digits (AES-128)") from None
+    return text
 
 
 def _name(common_name: str, deployment: str) -> x509.Name:
@@ -144,6 +177,7 @@ def write_deployment_certs(cert_dir: Path, deployment: str, identities: dict[str
                            days: int = DEFAULT_VALIDITY_DAYS) -> dict[str, Identity]:
     """A new CA and one certificate per identity (name -> addresses it listens on)."""
     ca = make_ca(cert_dir, deployment, days)
+    write_secoc_key(cert_dir)
     return {name: issue(cert_dir, name, ca, addresses, days) for name, addresses in identities.items()}
 
 

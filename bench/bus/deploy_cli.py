@@ -28,7 +28,8 @@ def cmd_certs(args) -> int:
         print(f"bench certs: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
     print(f"{cert_dir}: ca.pem, ca.key (keep it off the bench hosts) and "
-          f"{', '.join(acl.identities())} (.pem, .key mode 0600); copy ca.pem and each host's own pairs to it")
+          f"{', '.join(acl.identities())} (.pem, .key mode 0600), secoc.key (the CAN bus key, mode 0600, for the launcher's host); "
+          f"copy ca.pem and each host's own pairs to it")
     return 0
 
 

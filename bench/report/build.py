@@ -201,6 +201,11 @@ def can_section(run: RunData, plot_dir: Path) -> tuple[Section | None, dict | No
     m = load.to_metrics()
     rows = [["frames", fmt(m["frames"])], ["bitrate [bit/s]", fmt(m["bitrate_bps"])],
             ["mean load [%]", fmt(m["mean_load"] * 100)], ["peak load [%]", fmt(m["peak_load"] * 100)]]
+    can = getattr(run.scenario, "can", None)
+    m["authenticated"] = can.security.authenticated if can is not None else None
+    rows.append(["authentication", {True: "SecOC: commands and NMT carry an AES-CMAC (the run's key)", None: "unknown",
+                                    False: "NONE (e2e profile): the bus is unauthenticated, anyone on it can command "
+                                           "the coils or stop the board"}[m["authenticated"]]])
     rows += [[f"fault {f['name']} (simulated time)", f"{fmt(f['start_sim_s'])} s to {fmt(f['end_sim_s'])} s"]
              for f in m["faults"]]
     rows += [[f"injected {what}", fmt(n)] for what, n in sorted(m["injections"].items())]

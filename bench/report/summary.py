@@ -153,6 +153,8 @@ def _bus_rows(bus: dict | None) -> list[tuple[str, str]]:
     if not isinstance(bus, dict):
         return []
     rows = [("CAN frames / peak load", f"{bus.get('frames', 0)} / {100 * bus.get('peak_load', 0.0):.0f} %")]
+    if bus.get("authenticated") is False:
+        rows.append(("CAN bus authentication", "NONE (e2e profile): anyone on the bus can command the coils"))
     driver = bus.get("driver") or {}
     if driver:
         events = driver.get("events", {})

@@ -22,9 +22,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import can
+import msgspec
 
 from bench.bus import keys
 from bench.bus.can import protocol as p
+from bench.bus.can import run_key
 from bench.bus.can.config import CanConfig
 from bench.bus.can.driver import CommandLoop, FaultEvent, MagnetorquerDriver
 from bench.bus.can.nodes import ACCOUNTING_NAME, BOARD_NAME, CAPTURE_NAME, INJECTIONS_NAME, REPORT_NAME
@@ -103,8 +105,13 @@ class CanBench:
 
     def __post_init__(self):
         self.scenario = load_scenario(self.scenario_path)
-        self.config: CanConfig = self.scenario.can
         self.run_dir.mkdir(parents=True, exist_ok=True)
+        if run_key.needs_key(self.scenario):
+            # As the launcher does: a key for this run, handed to the nodes in their scenario.json (0600).
+            self.scenario = run_key.with_run_key(self.scenario)
+            self.scenario_path = self.run_dir / "scenario.json"
+            run_key.write_private(self.scenario_path, msgspec.json.format(msgspec.json.encode(self.scenario)))
+        self.config: CanConfig = self.scenario.can
         self.hub = loopback_endpoint(free_loopback_port())
         self.session = open_session(SessionOptions(listen=(self.hub,)))
         self.mtq_applied: list[MtqApplied] = []   # what the board published for the plant

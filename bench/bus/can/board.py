@@ -14,7 +14,11 @@ by the next one, with the running count of rejected frames.
 As a CANopen node (CiA 301) it boots into pre-operational (boot-up heartbeat, then heartbeats
 carrying its NMT state) and processes commands and sends telemetry only once an NMT master has
 started it (operational); stop and enter-pre-operational turn the coils off, reset node and
-reset communication boot it again. A cleared error (commands back after a timeout) is announced
+reset communication boot it again. On the "e2e" profile it obeys plain NMT (identifier 0) from
+anyone, as CiA 301 says. On "secoc" it changes its NMT state only on MTQ_NMT_AUTH whose MAC and
+freshness verify (its own SecOC data id and newer-than-last, the same age window as commands):
+a plain NMT frame is refused (rejected as NMT_NOT_AUTHENTICATED, reported by EMCY), so a node
+without the key can neither stop nor reset the board to switch its coils off. A cleared error (commands back after a timeout) is announced
 by an error-reset EMCY (code 0x0000).
 
 `step(now_s)` handles what arrived and what is due at `now_s`; `run(stop)` is the process loop.
@@ -95,13 +99,17 @@ class MagnetorquerBoard:
         self.command_name = protocol.command_name
         self.command_period_s = p.cycle_time_s(self.command_name)
         self.freshness: secoc.FreshnessVerifier | None = None
+        self.nmt_freshness: secoc.FreshnessVerifier | None = None
+        self.nmt_name = p.NMT_FRAMES[protocol.profile]   # the only NMT frame this board obeys
         if protocol.profile == "secoc":
             security = security or SecurityConfig(profile="secoc")
             if protocol.key is None:
-                raise ValueError("the secoc profile needs the key in the board's Protocol")
-            self.freshness = secoc.FreshnessVerifier(
-                protocol.key, p.secoc_data_id(self.command_name),
-                max_age_s=self.command_period_s + security.freshness_margin_s, max_future_s=security.max_future_s)
+                raise ValueError("the secoc profile needs the key in the board's Protocol "
+                                 "(can.security.key_hex is empty: run it from the launcher's scenario.json)")
+            window = dict(max_age_s=self.command_period_s + security.freshness_margin_s,
+                          max_future_s=security.max_future_s)
+            self.freshness = secoc.FreshnessVerifier(protocol.key, p.secoc_data_id(self.command_name), **window)
+            self.nmt_freshness = secoc.FreshnessVerifier(protocol.key, p.secoc_data_id(p.NMT_AUTH), **window)
         self.last_command_age_s: float | None = None
         self.rejected: Counter = Counter()     # by E2E status name or "wrong_length"
         self.accepted = 0
@@ -163,6 +171,25 @@ class MagnetorquerBoard:
             self._pending_emcy.clear()
             self.start(now_s)                       # boot-up heartbeat, pre-operational
 
+    def _nmt_authentic(self, frame: p.Frame, msg: can.Message, now_s: float) -> bool:
+        """Whether an NMT frame may change the NMT state: on "e2e" any plain NMT frame; on "secoc"
+        only MTQ_NMT_AUTH with a verified MAC and freshness value. Refusals are counted and
+        reported (EMCY) like rejected commands; they change no state."""
+        if frame.name != self.nmt_name:
+            if self.nmt_freshness is None:
+                return False    # MTQ_NMT_AUTH on an e2e bus: not this board's protocol
+            status = p.E2EStatus.NOT_AUTHENTICATED
+        else:
+            if self.nmt_freshness is None:
+                return True
+            verdict, freshness, _ = self.nmt_freshness.verify(bytes(msg.data), now_s)
+            if verdict is secoc.Verdict.OK:
+                self.nmt_freshness.accept(freshness)
+                return True
+            status = p.E2EStatus[verdict.value]
+        self._reject(f"NMT_{status.name}", None, p.EMCY_E2E_CHECK_FAILED, int(status), now_s)
+        return False
+
     def _coils_off(self, now_s: float) -> None:
         """Leaving operational: no commands will come, the coils must not hold the last one."""
         s = self.state
@@ -209,8 +236,9 @@ class MagnetorquerBoard:
                 and len(msg.data) != self.protocol.db.get_message_by_name(self.command_name).length):
             self._reject("wrong_length", None, p.EMCY_PDO_LENGTH, 0, now_s)
         frame = self.protocol.decode(msg)
-        if frame is not None and frame.name == p.NMT:
-            self._on_nmt(frame, now_s)
+        if frame is not None and frame.name in (p.NMT, p.NMT_AUTH):
+            if self._nmt_authentic(frame, msg, now_s):
+                self._on_nmt(frame, now_s)
             return
         if frame is None or frame.name not in p.COMMANDS:
             return  # other nodes' frames (our own telemetry echoed, a babbler) are not for us

@@ -50,21 +50,25 @@ class BoardConfig(msgspec.Struct, forbid_unknown_fields=True):
             raise ValueError("mag_window_s must be shorter than mag_window_period_s")
 
 
-# A bench key, so that a scenario without one still runs; a scenario that names a threat sets its own.
-BENCH_KEY_HEX = "2b7e151628aed2a6abf7158809cf4f3c"
-
-
 class SecurityConfig(msgspec.Struct, forbid_unknown_fields=True):
-    """How commands are protected: "e2e" (integrity: MTQ_CMD) or "secoc" (authenticity and
-    freshness: MTQ_CMD_AUTH, CAN FD). Under "secoc" the board applies a command only if its age,
-    from the freshness value, is at most one command period (the DBC cycle time) plus
-    freshness_margin_s, and at most max_future_s ahead of the board's clock."""
-    profile: Literal["e2e", "secoc"] = "e2e"
-    key_hex: str = BENCH_KEY_HEX
+    """How the bus is protected: "secoc" (the default: authenticity and freshness, MTQ_CMD_AUTH and
+    MTQ_NMT_AUTH, CAN FD) or "e2e" (integrity only: MTQ_CMD and plain NMT; anyone on the bus can
+    command the coils or stop the board). Under "secoc" the board applies a command or an NMT
+    state change only if its MAC verifies and its age, from the freshness value, is at most one
+    command period (the DBC cycle time) plus freshness_margin_s and at most max_future_s ahead of
+    the board's clock.
+
+    key_hex: the AES-128 key, 32 hex digits. Empty (the default) means the run's key: the launcher
+    generates one per run (or takes the deployment's, secoc.key beside the certificates) and hands
+    it to the nodes in the run's scenario.json (mode 0600). There is no built-in key."""
+    profile: Literal["e2e", "secoc"] = "secoc"
+    key_hex: Annotated[str, msgspec.Meta(max_length=64)] = ""
     freshness_margin_s: PositiveS = 0.02
     max_future_s: NonNegS = 0.005
 
     def __post_init__(self):
+        if not self.key_hex:
+            return
         try:
             key = bytes.fromhex(self.key_hex)
         except ValueError:
@@ -73,8 +77,13 @@ class SecurityConfig(msgspec.Struct, forbid_unknown_fields=True):
             raise ValueError(f"security.key_hex must hold 16 bytes (AES-128), not {len(key)}")
 
     @property
-    def key(self) -> bytes:
-        return bytes.fromhex(self.key_hex)
+    def key(self) -> bytes | None:
+        """The key, or None when none was handed over yet (key_hex empty)."""
+        return bytes.fromhex(self.key_hex) if self.key_hex else None
+
+    @property
+    def authenticated(self) -> bool:
+        return self.profile == "secoc"
 
 
 class DriverConfig(msgspec.Struct, forbid_unknown_fields=True):
@@ -135,9 +144,10 @@ class CanConfig(msgspec.Struct, forbid_unknown_fields=True):
             raise ValueError("dipole_profile steps must be in increasing t_s")
 
     def protocol(self):
-        """The protocol of this bus: node id, command profile and key."""
+        """The protocol of this bus: node id, command profile and key (None if not handed over:
+        such a Protocol decodes but cannot send an authenticated frame; board and driver refuse it)."""
         from bench.bus.can.protocol import Protocol
-        return Protocol(self.node_id, self.security.profile, self.security.key)
+        return Protocol(self.node_id, self.security.profile, self.security.key if self.security.authenticated else None)
 
     def dipole_at(self, t_s: float) -> list[float]:
         """The scripted dipole at time t_s since the start of commanding."""

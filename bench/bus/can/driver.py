@@ -8,13 +8,15 @@ from when it was on the bus, a rejected command from when the driver sent it.
 
 What the driver detects, and from what evidence:
 - board lost / back: heartbeat (CANopen consumer) and telemetry deadlines; as the NMT master it
-  starts the board (NMT start) whenever a heartbeat says boot-up or pre-operational;
+  starts the board (NMT start; MTQ_NMT_AUTH on the secoc profile) whenever a heartbeat says
+  boot-up or pre-operational;
 - corrupted, repeated, out-of-sequence or lost telemetry: the E2E check of each telemetry frame;
 - commands the board rejected (corrupted, repeated, out of sequence, re-synchronising, forged,
   stale, wrong length), commands lost on the way (the board's E2E check saw the counter jump) and
   its command timeout: the board's emergency frames;
 - spoofed or replayed commands: a frame with the command identifier that this driver did not
   send (a CAN controller never receives its own frames, so any such frame has another source);
+  likewise an NMT frame (plain or authenticated): the driver is the bus's only NMT master;
 - stuck actuator or a command corrupted before protection: applied dipole against commanded;
 - its own controller's error-passive, bus-off and restart: SocketCAN error frames; back from
   bus-off also when the board is heard again after the ISO 11898 recovery time (128 x 11
@@ -116,6 +118,9 @@ class MagnetorquerDriver:
     def __init__(self, bus: can.BusABC, config: DriverConfig, board: BoardConfig, protocol: p.Protocol,
                  clock: Callable[[], float] = time.monotonic, wall_clock: Callable[[], float] = time.time,
                  bitrate_bps: int = 1_000_000):
+        if protocol.profile == "secoc" and protocol.key is None:
+            raise ValueError("the secoc profile needs the key in the driver's Protocol "
+                             "(can.security.key_hex is empty: run it from the launcher's scenario.json)")
         self.bus = bus
         self.config = config
         self.board = board
@@ -131,6 +136,7 @@ class MagnetorquerDriver:
         self._counter = 0
         self._sent: deque[_Sent] = deque(maxlen=RECENT_COMMANDS)
         self._command_ids = {protocol.frame_ids[name] for name in p.COMMANDS}
+        self._nmt_ids = {protocol.frame_ids[name] for name in (p.NMT, p.NMT_AUTH)}
         self._rx_e2e = {name: p.E2EReceiver(config.max_delta_counter) for name in (p.TLM_DIPOLE, p.TLM_COIL)}
         self._heartbeat = _Deadline(board.heartbeat_period_s, board.heartbeat_period_s * config.heartbeat_timeout_periods)
         self._telemetry = {name: _Deadline(board.telemetry_period_s, board.telemetry_period_s * config.telemetry_timeout_periods)
@@ -211,6 +217,11 @@ class MagnetorquerDriver:
             # Our own identifier, sent by someone else.
             self._event("spoofed_command", self._wire_age_s(msg), p.CMD, f"data {bytes(msg.data).hex()}")
             return
+        if msg.arbitration_id in self._nmt_ids and not msg.is_extended_id:
+            # NMT from another master: the board obeys it only if authentic (secoc), but it is an attack.
+            self._event("spoofed_command", self._wire_age_s(msg), p.frame_kind(self.protocol, msg),
+                        f"data {bytes(msg.data).hex()}")
+            return
         frame = self.protocol.decode(msg)
         if frame is None:
             return
@@ -233,7 +244,7 @@ class MagnetorquerDriver:
     def nmt(self, command: int) -> None:
         """Send a CiA 301 NMT command (p.NMT_START, ...) to this driver's board."""
         try:
-            self.bus.send(self.protocol.encode(p.NMT, {"Command": command, "NodeId": self.protocol.node_id}))
+            self.bus.send(self.protocol.nmt(command, sent_s=self.clock()))
             self.nmt_sent[command] += 1
         except can.CanError:
             self.nmt_sent["send_failed"] += 1

@@ -11,8 +11,10 @@ The DBC is the single definition of the protocol; this module adds what a DBC ca
   check (so lost and corrupted frames widen it), a receiver that lost the sequence re-synchronises
   only after a configured number of valid frames in a row, and `reset` starts it again (the board
   calls it when its command timeout expires);
-- the command profile: "e2e" (MTQ_CMD, classic CAN, integrity only) or "secoc" (MTQ_CMD_AUTH,
-  CAN FD, the same E2E plus a freshness value and a truncated CMAC, see secoc.py).
+- the command profile: "e2e" (MTQ_CMD and plain NMT, classic CAN, integrity only: anyone on the
+  bus can command the coils or stop the board) or "secoc" (the default: MTQ_CMD_AUTH, CAN FD, the
+  same E2E plus a freshness value and a truncated CMAC, and NMT only as MTQ_NMT_AUTH, the same
+  freshness value and CMAC on NMT's command; see secoc.py).
 
 Nothing here raises on a bad frame from the bus: `decode` returns None and counts why.
 """
@@ -45,6 +47,9 @@ TLM_COIL = "MTQ_TLM_COIL"
 HEARTBEAT = "MTQ_HEARTBEAT"
 EMCY = "MTQ_EMCY"
 NMT = "NMT"                  # CiA 301 module control: identifier 0 whatever the node id
+NMT_AUTH = "MTQ_NMT_AUTH"    # the same, authenticated (secoc profile): RPDO3 0x400 + node id
+NMT_FRAMES = {"e2e": NMT, "secoc": NMT_AUTH}   # command profile -> the NMT frame the board obeys
+SECURED = (CMD_AUTH, NMT_AUTH)   # frames that carry a freshness value and a MAC
 BOARD_FRAMES = (TLM_DIPOLE, TLM_COIL, HEARTBEAT, EMCY)
 AXES = ("X", "Y", "Z")
 
@@ -284,7 +289,7 @@ class Protocol:
                 raise ValueError(f"{name} is E2E protected: give its alive counter")
             values["AliveCounter"] = counter % COUNTER_MODULO
             values["Crc"] = 0
-        secured = name == CMD_AUTH
+        secured = name in SECURED
         if secured:
             if freshness is None or self.key is None:
                 raise ValueError(f"{name} is authenticated: give its freshness value, and the key to the Protocol")
@@ -302,6 +307,18 @@ class Protocol:
         signals = {"Mode": mode, **{f"Dipole{a}": float(v) for a, v in zip(AXES, dipole_am2)}}
         freshness = secoc.freshness_ticks(sent_s) if sent_s is not None else None
         return self.encode(self.command_name, signals, counter, freshness)
+
+    def nmt(self, command: int, node_id: int | None = None, *, sent_s: float | None = None) -> can.Message:
+        """The profile's NMT frame: plain NMT on "e2e", MTQ_NMT_AUTH on "secoc" (`sent_s`, the
+        sender's clock in s, is its freshness value). node_id defaults to this protocol's; 0 is
+        every node (plain NMT only: the authenticated frame is addressed by its identifier)."""
+        name = NMT_FRAMES[self.profile]
+        signals = {"Command": command, "NodeId": self.node_id if node_id is None else node_id}
+        if name == NMT_AUTH:
+            if sent_s is None:
+                raise ValueError(f"{name} is authenticated: give the time it is sent (sent_s)")
+            return self.encode(name, signals, freshness=secoc.freshness_ticks(sent_s))
+        return self.encode(name, signals)
 
     def reprotect(self, msg: can.Message, *, data_ids: tuple[int, ...] | None = None) -> can.Message:
         """The same frame with its CRC recomputed (fault injection: a frame that passes E2E; the
@@ -341,7 +358,7 @@ class Protocol:
         if message.name == HEARTBEAT and signals["NmtState"] not in NMT_STATES:
             self.bad.count("garbage")
             return None
-        if message.name == NMT and signals["Command"] not in NMT_COMMANDS:
+        if message.name in (NMT, NMT_AUTH) and signals["Command"] not in NMT_COMMANDS:
             self.bad.count("garbage")
             return None
         data_ids = self.data_ids[message.name]
