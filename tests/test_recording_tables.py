@@ -16,12 +16,15 @@ import pandas as pd
 import pytest
 from mcap.reader import make_reader
 
+from bench.scenario import load_scenario
 from conftest import REPO, run_bench_cli
 
 RENDEZVOUS_STEPS = 288          # rendezvous_lqr's own: 288 x 600 s = 48 h
 RENDEZVOUS_STEP_S = 600.0
-ATTITUDE_STEPS = 20             # attitude_quick steps 0.1 s: 2 s simulated
-ATTITUDE_STEP_S = 0.1
+ATTITUDE_STEPS = 20
+ATTITUDE_STEP_S = load_scenario("attitude_quick").step_s     # 1 s: 20 s simulated
+# the command frame of the default (SecOC) profile: the authenticated command
+COMMAND_FRAME = "MTQ_CMD_AUTH"
 DBC = "bench/bus/can/mtq.dbc"
 
 
@@ -102,7 +105,7 @@ def test_attitude_recording_decodes_can_frames_with_the_dbc(attitude_run):
     db = cantools.database.load_file(DBC)
     frames = bodies["can/flight"] + bodies["can/board"]
     names = {f["name"] for f in frames}
-    assert {"MTQ_CMD", "MTQ_TLM_DIPOLE", "MTQ_HEARTBEAT"} <= names
+    assert {COMMAND_FRAME, "MTQ_TLM_DIPOLE", "MTQ_HEARTBEAT"} <= names
     for frame in frames:
         expected = db.get_message_by_frame_id(frame["id"])
         assert frame["name"] == expected.name
@@ -110,7 +113,7 @@ def test_attitude_recording_decodes_can_frames_with_the_dbc(attitude_run):
         decoded = expected.decode(bytes.fromhex(frame["data"]), decode_choices=False)
         assert frame["signals"] == pytest.approx(decoded), frame
         assert 0.0 <= frame["sim_time_s"] <= ATTITUDE_STEPS * ATTITUDE_STEP_S
-    commands = [f for f in frames if f["name"] == "MTQ_CMD" and f["channel"] == "flight"]
+    commands = [f for f in frames if f["name"] == COMMAND_FRAME and f["channel"] == "flight"]
     assert any(abs(f["signals"]["DipoleX"]) > 0 for f in commands)    # B-dot commands a dipole
 
 
@@ -161,7 +164,7 @@ def test_attitude_steps_and_can_frames_tables(attitude_run):
     assert frames["id"].iloc[0] == int(frame_id, 16) and frames["data"].iloc[0] == data.lower()
     assert frames["name"].iloc[0] == db.get_message_by_frame_id(int(frame_id, 16)).name
     assert set(frames["direction"]) <= {"OBC->MTQ", "MTQ->OBC"}
-    assert (frames["name"] == "MTQ_CMD").sum() > 0
+    assert (frames["name"] == COMMAND_FRAME).sum() > 0
 
 
 # --- the Foxglove layout -------------------------------------------------------------------------
