@@ -39,6 +39,7 @@ from bench.controller.config import PLANNED_LAWS
 from bench.plant.divergence import EXIT_DIVERGED, read_divergence
 from bench.runtime.node import NODES
 from bench.runtime.ownership import CpuProgress, child_environment, kill_group, process_state
+from bench.runtime.reports import REPORT_KEY_ENV, is_signed_by, new_report_key
 from bench.runtime.process import start_node
 from bench.scenario import LivelinessConfig, Scenario, ScenarioError, builtin_names, load_scenario, parse_scenario
 
@@ -128,15 +129,21 @@ class ProcessGroup:
 
     def __init__(self):
         self.pgid: int | None = None
+        self.report_keys: dict[int, bytes] = {}    # pid -> the secret its reports are signed with
+        self._next_key: bytes | None = None
 
     def popen_kwargs(self) -> dict:
         # A group of their own: a terminal's Ctrl-C reaches the launcher only, which stops the
-        # nodes in order (the recorder last) instead of all at once.
-        return {"process_group": self.pgid or 0, "env": child_environment()}
+        # nodes in order (the recorder last) instead of all at once. Each node gets its own
+        # report key in its environment (bench/runtime/reports.py), never on its command line.
+        self._next_key = new_report_key()
+        return {"process_group": self.pgid or 0, "env": child_environment({REPORT_KEY_ENV: self._next_key.hex()})}
 
     def joined(self, process: subprocess.Popen) -> None:
         if self.pgid is None:
             self.pgid = process.pid
+        if self._next_key is not None:
+            self.report_keys[process.pid], self._next_key = self._next_key, None
 
     def kill(self) -> None:
         kill_group(self.pgid)
@@ -272,11 +279,14 @@ class RunEnding:
 
 
 def _follow_run(session, run_id: str, children: list[Child], n_steps: int, show_progress: bool,
-                liveliness: LivelinessConfig, run_dir: Path, on_finished=None,
+                liveliness: LivelinessConfig, run_dir: Path, reports: "StatsCollector",
                 remote: dict[str, str] | None = None) -> None:
     """Block until the plant finishes; raise NodeFailed if any process dies or hangs first,
     Diverged if the plant stopped on a diverged state.
 
+    The end of the run is the plant process's exit and its code, which nobody on the bus can fake;
+    the plant's StepDone messages only move the progress bar and open `reports`' window for the
+    stats of remote nodes, and count only when signed by the plant (`reports.genuine_step`).
     remote: node -> host of the nodes on other hosts; their liveliness token is all we see of them.
     """
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
@@ -288,9 +298,11 @@ def _follow_run(session, run_id: str, children: list[Child], n_steps: int, show_
             message = decode(sample.payload.to_bytes(), StepDone)
         except MalformedMessage:
             return   # garbage on the status topic must not stop the launcher
+        if message.header.run_id != run_id or not reports.genuine_step(message):
+            return   # not the plant's: counted as forged by `reports`
         steps.put(message.header.seq)
-        if message.finished and on_finished is not None:
-            on_finished()
+        if message.finished:
+            reports.accept()
 
     subscriber = session.declare_subscriber(keys.key(run_id, keys.STATUS_STEP), on_step)
     lost: dict[str, TokenLoss] = {}
@@ -369,21 +381,50 @@ def _stop_remote(session, run_id: str, launcher_token, remote: dict[str, str], g
 
 
 class StatsCollector:
-    """Each process's ProcessStats, which a node publishes once, as it stops.
+    """The reports the launcher takes from its processes: each one's ProcessStats (a node publishes
+    them once, as it stops) and the plant's StepDone (`genuine_step`).
 
-    Anyone on the bus can publish a ProcessStats, so: only for the run's own process names, only
-    once the plant has reported its last step or the launcher has started stopping the nodes
-    (earlier ones are counted as premature), and only the first per process (later ones are
-    counted as conflicting, not taken)."""
+    Anyone on the bus of a plain run can publish either, under any name. A process this launcher
+    started signs its reports with the secret handed to it at start (`trust`; bench/runtime/reports.py),
+    so a report naming it is taken only with a valid signature under that secret, its stats only
+    once (a replay of them is counted as `replayed`, not taken); any other report naming it is
+    dropped and counted under its `forged`. Reports naming no process of the run are ignored.
 
-    def __init__(self, session, run_id: str, names: set[str]):
+    A process on another host (`remote`, a deployment) was not started here and has no secret: in
+    a secure run, access control lets only its certificate publish its stats. They are taken only
+    once the plant has reported its last step or the launcher is stopping the nodes (earlier ones
+    are kept aside as premature), the first per process (later ones counted as conflicting)."""
+
+    def __init__(self, session, run_id: str, names: set[str], remote: set[str] | frozenset = frozenset()):
         self.run_id = run_id
         self.names = names
+        self.remote = set(remote)
+        self.report_keys: dict[str, bytes] = {}
         self.stats: dict = {}
+        self.forged: dict[str, int] = {}      # process -> reports naming it that it did not sign
         self.accepting = False
         self.premature = 0
         self._premature: dict = {}
+        self._lock = threading.Lock()        # Zenoh delivers on several threads
         self._subscriber = session.declare_subscriber(keys.key(run_id, f"{keys.STATUS_STATS}/*"), self._on_stats)
+
+    def trust(self, name: str, key: bytes) -> None:
+        """`name` is a process this launcher started with `key`."""
+        self.report_keys[name] = key
+
+    def _genuine(self, name: str, message) -> bool:
+        """A report naming `name`: signed with its key, or from a remote process (access control's)."""
+        if name in self.remote:
+            return True
+        key = self.report_keys.get(name)
+        if key is not None and is_signed_by(message, key):
+            return True
+        with self._lock:
+            self.forged[name] = self.forged.get(name, 0) + 1
+        return False
+
+    def genuine_step(self, message: StepDone) -> bool:
+        return self._genuine("plant", message)
 
     def _on_stats(self, sample) -> None:
         try:
@@ -392,26 +433,39 @@ class StatsCollector:
             return
         if message.header.run_id != self.run_id or message.process not in self.names:
             return
-        if not self.accepting:
-            # Kept aside, the latest per process: a node's own stats are the last it sends, and on
-            # a busy host they can overtake the plant's last-step message that opens the window.
-            self.premature += 1
-            self._premature[message.process] = {"published": message.published, "malformed": message.malformed}
+        if not self._genuine(message.process, message):
             return
-        if message.process in self.stats:
-            entry = self.stats[message.process]
-            entry["conflicting"] = entry.get("conflicting", 0) + 1
-            return
-        self.stats[message.process] = {"published": message.published, "malformed": message.malformed}
+        entry = {"published": message.published, "malformed": message.malformed}
+        with self._lock:
+            if message.process not in self.remote:
+                # Signed by the process itself, which sends its stats once: a second is a replay.
+                taken = self.stats.setdefault(message.process, entry)
+                if taken is not entry:
+                    taken["replayed"] = taken.get("replayed", 0) + 1
+                return
+            if not self.accepting:
+                # Kept aside, the latest per process: a node's own stats are the last it sends, and
+                # on a busy host they can overtake the plant's last-step message that opens the window.
+                self.premature += 1
+                self._premature[message.process] = entry
+                return
+            if message.process in self.stats:
+                taken = self.stats[message.process]
+                taken["conflicting"] = taken.get("conflicting", 0) + 1
+                return
+            self.stats[message.process] = entry
 
     def accept(self) -> None:
         self.accepting = True
 
-    def fill_from_premature(self) -> None:
-        """At the end of the run: a process whose stats came only before the window takes its latest
-        early one, marked as such (in a --secure run the access control says who may send them)."""
-        for process, entry in self._premature.items():
-            self.stats.setdefault(process, {**entry, "premature": True})
+    def finish(self) -> None:
+        """At the end of the run: a remote process whose stats came only before the window takes its
+        latest early one, marked as such; the forged reports are counted under each process."""
+        with self._lock:
+            for process, entry in self._premature.items():
+                self.stats.setdefault(process, {**entry, "premature": True})
+            for process, count in self.forged.items():
+                self.stats.setdefault(process, {})["forged"] = count
 
     def undeclare(self) -> None:
         self._subscriber.undeclare()
@@ -586,7 +640,7 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
     group = ProcessGroup()
     started = time.monotonic()
     names = nodes_for(scenario)
-    collector = StatsCollector(session, run_id, set(names))
+    collector = StatsCollector(session, run_id, set(names), set(remote))
     stats = collector.stats
     ending = RunEnding(EXIT_FAILED, "the launcher failed")
     guard = SignalGuard(group)
@@ -606,10 +660,11 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
                     peers = loop_peers if name == "plant" else []
                     children.append(_spawn(name, run_id, scenario_path, hub, run_dir, peers, zenoh_config, group,
                                            placement.node_args))
+                    collector.trust(name, group.report_keys[children[-1].process.pid])
                 _wait_alive(session, run_id, children, scenario.run.liveliness.startup_timeout_s, remote,
                             show=show_progress)
                 _follow_run(session, run_id, children, scenario.n_steps, show_progress, scenario.run.liveliness, run_dir,
-                            on_finished=collector.accept, remote=remote)
+                            reports=collector, remote=remote)
                 collector.accept()
                 _stop_remote(session, run_id, launcher_token, remote)
                 _stop_children(children)
@@ -634,7 +689,7 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
                     _stop_children(children)
                 group.kill()     # anything a node started
                 collector.undeclare()
-                collector.fill_from_premature()
+                collector.finish()
             _finish(run_dir, scenario, children, stats, time.monotonic() - started, ending, write_report and not guard.hurry,
                     remote)
         except RunInterrupted as exc:

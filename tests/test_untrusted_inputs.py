@@ -1,5 +1,5 @@
 """Reports and the recorder trust nothing they read: wrong types, floods, CAN frames, sequences
-ahead of the plant and forged process statistics are counted, never fatal, never unbounded."""
+ahead of the plant and forged process reports are counted, never fatal, never unbounded."""
 from __future__ import annotations
 
 import json
@@ -10,7 +10,7 @@ import msgspec
 
 from bench.bus import keys
 from bench.bus.can import zenoh_wire
-from bench.bus.schemas import DeadlineEvent, ProcessStats, ThrustCommand, TruthState, encode, header
+from bench.bus.schemas import DeadlineEvent, ProcessStats, StepDone, ThrustCommand, TruthState, encode, header
 from bench.cli import main as bench_main
 from bench.recorder import (
     COUNTS_FILE, RECORDING_FILE, TOPIC_BYTE_BURST, TOPIC_BYTES_PER_S, TOTAL_BYTE_BURST, Recorder, Recording,
@@ -128,26 +128,80 @@ def test_can_frames_are_recorded_not_malformed(tmp_path):
     assert counts["topics"]["can/flight"] == {"recorded": 2, "malformed": 1, "published": None, "missing": None}
 
 
-def test_forged_process_stats_do_not_replace_the_real_ones():
+def _stats(process: str, n: int, key: bytes | None = None, run_id: str = REC_RUN) -> bytes:
+    from bench.runtime.reports import sign
+
+    message = ProcessStats(header(run_id, 0, 0.0), process, {keys.TRUTH: n}, {})
+    return encode(sign(message, key) if key else message)
+
+
+def test_only_stats_signed_by_the_process_itself_are_taken():
+    """A process the launcher started: its stats only with its own key's signature, whenever they
+    come; unsigned ones, ones signed with another process's key, a signed one of another run and a
+    signed one altered on the way are forged; a replay of the genuine one is not taken again."""
     from bench.launcher import StatsCollector
+    from bench.runtime.reports import new_report_key
 
-    def stats(process: str, n: int) -> bytes:
-        return encode(ProcessStats(header(REC_RUN, 0, 0.0), process, {keys.TRUTH: n}, {}))
-
+    plant_key, controller_key = new_report_key(), new_report_key()
+    genuine = _stats("plant", 288, plant_key)
+    altered = genuine.replace(b'"truth":288', b'"truth":289')
+    assert altered != genuine
     with session_pair() as (launcher_session, rogue):
         collector = StatsCollector(launcher_session, REC_RUN, {"plant", "controller"})
+        collector.trust("plant", plant_key)
+        collector.trust("controller", controller_key)
         key = keys.key(REC_RUN, "status/stats/plant")
         time.sleep(0.2)
-        rogue.put(key, stats("plant", 999))            # before the run ends: premature
-        rogue.put(key, stats("intruder", 5))           # not a process of the run
-        wait_until(lambda: collector.premature == 1)
-        collector.accepting = True                     # the launcher starts stopping the nodes
-        rogue.put(key, stats("plant", 288))            # the plant's own, at its shutdown
-        wait_until(lambda: "plant" in collector.stats)
-        rogue.put(key, stats("plant", 7))              # a forgery after it
-        wait_until(lambda: collector.stats["plant"].get("conflicting") == 1)
+        rogue.put(key, _stats("plant", 999))                           # unsigned
+        rogue.put(key, _stats("plant", 998, controller_key))           # another process's key
+        rogue.put(key, _stats("plant", 997, plant_key, run_id="other"))  # another run: not this run's
+        rogue.put(key, altered)                                        # the mac of other contents
+        rogue.put(key, _stats("intruder", 5, plant_key))               # not a process of the run
+        wait_until(lambda: collector.forged.get("plant") == 3)
+        assert collector.stats == {}
+        rogue.put(key, genuine)                                        # the plant's own, at its shutdown
+        rogue.put(key, genuine)                                        # replayed
+        wait_until(lambda: collector.stats.get("plant", {}).get("replayed") == 1)
         collector.undeclare()
-    assert collector.stats == {"plant": {"published": {keys.TRUTH: 288}, "malformed": {}, "conflicting": 1}}
+    collector.finish()
+    assert collector.stats == {"plant": {"published": {keys.TRUTH: 288}, "malformed": {}, "replayed": 1, "forged": 3}}
+
+
+def test_the_plants_step_reports_count_only_when_it_signed_them():
+    from bench.launcher import StatsCollector
+    from bench.runtime.reports import new_report_key, sign
+
+    plant_key = new_report_key()
+    with session_pair() as (launcher_session, _):
+        collector = StatsCollector(launcher_session, REC_RUN, {"plant"})
+        collector.trust("plant", plant_key)
+        done = StepDone(header(REC_RUN, 19, 0.0), 20, True)
+        assert collector.genuine_step(sign(done, plant_key))
+        assert not collector.genuine_step(done)
+        assert not collector.genuine_step(sign(done, new_report_key()))
+        collector.undeclare()
+    assert collector.forged == {"plant": 2}
+
+
+def test_stats_of_a_remote_process_are_taken_in_the_shutdown_window_only():
+    """A node on another host has no key of this launcher (access control decides who may publish
+    its stats): its first stats in the shutdown window are taken, earlier ones kept aside."""
+    from bench.launcher import StatsCollector
+
+    with session_pair() as (launcher_session, rogue):
+        collector = StatsCollector(launcher_session, REC_RUN, {"plant", "controller"}, remote={"controller"})
+        key = keys.key(REC_RUN, "status/stats/controller")
+        time.sleep(0.2)
+        rogue.put(key, _stats("controller", 999))      # before the run ends: premature
+        wait_until(lambda: collector.premature == 1)
+        collector.accept()                             # the launcher starts stopping the nodes
+        rogue.put(key, _stats("controller", 288))      # the controller's own, at its shutdown
+        wait_until(lambda: "controller" in collector.stats)
+        rogue.put(key, _stats("controller", 7))        # a second one after it
+        wait_until(lambda: collector.stats["controller"].get("conflicting") == 1)
+        collector.undeclare()
+    collector.finish()
+    assert collector.stats == {"controller": {"published": {keys.TRUTH: 288}, "malformed": {}, "conflicting": 1}}
 
 
 # --- the attitude estimator process ---------------------------------------------------------------

@@ -30,6 +30,8 @@ Vec3 = Annotated[list[float], msgspec.Meta(min_length=3, max_length=3)]
 Vec6 = Annotated[list[float], msgspec.Meta(min_length=6, max_length=6)]
 Cov6 = Annotated[list[float], msgspec.Meta(min_length=36, max_length=36)]
 NonNegInt = Annotated[int, msgspec.Meta(ge=0)]
+# HMAC-SHA256 in hex of a report to the launcher (bench/runtime/reports.py); "" unsigned.
+ReportMac = Annotated[str, msgspec.Meta(max_length=64, pattern="^[0-9a-f]*$")]
 
 
 class MalformedMessage(ValueError):
@@ -103,16 +105,21 @@ class DeadlineEvent(Message, tag="deadline"):
 
 
 class StepDone(Message, tag="step_done"):
-    """Plant's progress beacon: step k is integrated (drives the launcher's progress bar)."""
+    """Plant's progress beacon: step k is integrated (drives the launcher's progress bar).
+    mac: signed with the key the launcher handed the plant; the launcher ignores one without it."""
     n_steps: NonNegInt
     finished: bool = False
+    mac: ReportMac = ""
 
 
 class ProcessStats(Message, tag="process_stats"):
-    """Counts a process reports at shutdown: what it published and what it had to reject."""
+    """Counts a process reports at shutdown: what it published and what it had to reject.
+    mac: signed with the key the launcher handed that process; the launcher takes the counts of a
+    process it started only with a valid one."""
     process: str
     published: dict[str, NonNegInt]
     malformed: dict[str, NonNegInt]
+    mac: ReportMac = ""
 
 
 M = TypeVar("M", bound=Message)

@@ -29,6 +29,7 @@ from bench.bus.deployment import DeploymentError, load_deployment
 from bench.bus.schemas import MalformedMessage, Message, ProcessStats, decode, encode, header
 from bench.bus.session import SessionOptions, open_session
 from bench.runtime.ownership import die_with_launcher
+from bench.runtime.reports import SIGNED_TYPES, key_from_environment, sign
 from bench.scenario import Scenario
 
 # Node name -> module with run(ctx). Other parts add theirs (the magnetorquer board, the recorder).
@@ -61,12 +62,17 @@ class NodeContext:
     malformed: Counter = field(default_factory=Counter)
     _publishers: dict = field(default_factory=dict)
     _keepalive: list = field(default_factory=list)
+    # The secret the launcher handed this process: its reports to the launcher (ProcessStats, the
+    # plant's StepDone) are signed with it (bench/runtime/reports.py). None: started by hand.
+    report_key: bytes | None = None
 
     # --- publishing -----------------------------------------------------------------------
     def publish(self, topic: str, message: Message) -> None:
         pub = self._publishers.get(topic)
         if pub is None:
             pub = self.declare_publisher(topic)
+        if self.report_key is not None and isinstance(message, SIGNED_TYPES):
+            message = sign(message, self.report_key)
         pub.put(encode(message))
         self.published[topic] += 1
 
@@ -270,12 +276,13 @@ def run_node(name: str, run_id: str, scenario: Scenario, options: SessionOptions
     if name not in NODES:
         raise ValueError(f"unknown node {name!r} (known: {', '.join(sorted(NODES))})")
     die_with_launcher()
+    report_key = key_from_environment()
     module = importlib.import_module(NODES[name])
     log = logging.getLogger(f"bench.{name}")
     lease_ms = int(round(scenario.run.liveliness.lease_s * 1000))
     session = open_session(dataclasses.replace(options, lease_ms=lease_ms))
     ctx = NodeContext(name=name, run_id=run_id, scenario=scenario, session=session, run_dir=run_dir, log=log,
-                      peers=list(peers or []))
+                      peers=list(peers or []), report_key=report_key)
 
     def request_stop(signum, _frame):
         log.info("signal %d: stopping", signum)
