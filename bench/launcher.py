@@ -38,6 +38,7 @@ from bench.controller.config import PLANNED_LAWS
 from bench.plant.divergence import EXIT_DIVERGED, read_divergence
 from bench.runtime.node import NODES
 from bench.runtime.ownership import CpuProgress, child_environment, kill_group, process_state
+from bench.runtime import zygote as node_zygote
 from bench.runtime.process import start_node
 from bench.scenario import LivelinessConfig, Scenario, ScenarioError, builtin_names, load_scenario, parse_scenario
 
@@ -100,7 +101,7 @@ def nodes_for(scenario: Scenario) -> list[str]:
 @dataclass
 class Child:
     name: str
-    process: subprocess.Popen
+    process: subprocess.Popen | node_zygote.ForkedProcess    # forked by the zygote: the same methods
     log_path: Path
 
     def tail(self, lines: int = 8) -> str:
@@ -131,11 +132,11 @@ class ProcessGroup:
 
 def _spawn(name: str, run_id: str, scenario_path: Path, hub: str, run_dir: Path, peers: list[str],
            zenoh_config: str | None, group: ProcessGroup | None = None,
-           extra_args: list[str] | None = None) -> Child:
+           extra_args: list[str] | None = None, zygote: node_zygote.Zygote | None = None) -> Child:
     log_path = run_dir / "logs" / f"{name}.log"
     group = group or ProcessGroup()
     process = start_node(name, run_id, scenario_path, hub, run_dir, log_path, peers, zenoh_config,
-                         popen_kwargs=group.popen_kwargs(), extra_args=extra_args)
+                         popen_kwargs=group.popen_kwargs(), extra_args=extra_args, zygote=zygote)
     group.joined(process)
     return Child(name, process, log_path)
 
@@ -549,9 +550,17 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
     """
     placement = placement or local_placement(port, zenoh_config)
     hub = placement.hub_endpoint
+    # The zygote before any session of ours: it imports the nodes' packages while the launcher
+    # goes on, and is started by fork+exec, never forked from a process running Zenoh's threads.
+    zygote = node_zygote.Zygote.start(child_environment(), show_progress) if node_zygote.enabled() else None
     # The session first: a taken port must fail before anything is written or started.
     lease_ms = int(round(scenario.run.liveliness.lease_s * 1000))
-    session = open_session(dataclasses.replace(placement.hub, lease_ms=lease_ms))
+    try:
+        session = open_session(dataclasses.replace(placement.hub, lease_ms=lease_ms))
+    except BaseException:
+        if zygote is not None:
+            zygote.close()
+        raise
     launcher_token = session.liveliness().declare_token(keys.key(run_id, f"{keys.ALIVE}/{LAUNCHER}"))
     remote = placement.remote
     run_dir = runs_dir / run_id
@@ -559,6 +568,8 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
         claim = RunDirClaim(run_dir)
     except BaseException:
         session.close()
+        if zygote is not None:
+            zygote.close()
         raise
     (run_dir / "logs").mkdir()
     scenario_path = run_dir / "scenario.json"
@@ -583,7 +594,7 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
                         continue
                     peers = loop_peers if name == "plant" else []
                     children.append(_spawn(name, run_id, scenario_path, hub, run_dir, peers, zenoh_config, group,
-                                           placement.node_args))
+                                           placement.node_args, zygote))
                 _wait_alive(session, run_id, children, scenario.run.liveliness.startup_timeout_s, remote,
                             show=show_progress)
                 _follow_run(session, run_id, children, scenario.n_steps, show_progress, scenario.run.liveliness, run_dir,
@@ -625,6 +636,8 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
         finally:
             session.close()
             claim.release()
+            if zygote is not None:
+                zygote.close()
     return ending.code, run_dir
 
 
