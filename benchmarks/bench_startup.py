@@ -66,12 +66,12 @@ def main() -> int:
     load_after = os.getloadavg()[0]
     print(f"bench run start-up, {args.runs} runs per row, {os.cpu_count()} CPUs, "
           f"load average (1 min) {load_before:.2f} before, {load_after:.2f} after")
-    print(f"{'scenario':24s} {'nodes started by':18s} {'first step p50':>15s} {'p90':>7s} {'end p50':>9s} {'p90':>7s}")
+    print(f"{'scenario':26s} {'nodes started by':18s} {'first step p50':>15s} {'p90':>7s} {'end p50':>9s} {'p90':>7s}")
     for scenario, steps in CASES:
         for path in PATHS:
             first, end = np.array(times[(scenario, path)]).T
             label = "zygote (fork)" if path == "zygote" else "exec"
-            print(f"{scenario + f' --steps {steps}':24s} {label:18s} {np.median(first):13.2f} s {np.percentile(first, 90):5.2f} s "
+            print(f"{scenario + f' --steps {steps}':26s} {label:18s} {np.median(first):13.2f} s {np.percentile(first, 90):5.2f} s "
                   f"{np.median(end):7.2f} s {np.percentile(end, 90):5.2f} s")
     return 0
 
