@@ -93,7 +93,8 @@ def alive_by_ps(pids: list[int]) -> list[str]:
 
 
 @pytest.mark.parametrize("sig,node_start", [(signal.SIGKILL, "zygote"), (signal.SIGKILL, "exec"),
-                                            (signal.SIGTERM, "zygote")])
+                                            (signal.SIGTERM, "zygote")],
+                         ids=["SIGKILL-zygote", "SIGKILL-exec", "SIGTERM-zygote"])
 def test_children_die_with_the_launcher(runs_dir, sig, node_start):
     run_id = f"owner-{sig.name.lower()}-{node_start}"
     proc = start_run(runs_dir, run_id, node_start=node_start)
