@@ -166,6 +166,7 @@ class Zygote:
                 raise self._fail(f"it exited with code {self.process.returncode}")
             waited_s = time.monotonic() - started
             if progress.idle_s(time.monotonic()) > STUCK_IDLE_S or waited_s > ANSWER_TIMEOUT_S:
+                self.process.kill()     # a node it forks later would have nobody watching it
                 raise self._fail(f"no answer after {waited_s:.0f} s")
         answer = self._started.pop(token)
         if "pid" not in answer:
@@ -299,9 +300,12 @@ def _run_node(request: dict, zygote_pid: int, close_fds: list[int]) -> None:
         os.environ[PARENT_PID_ENV] = str(zygote_pid)    # ownership.die_with_launcher: its parent
         cmd = request["cmd"]
         _set_cmdline(cmd)
-        import bench.cli
-        sys.argv = [bench.cli.__file__, *cmd[3:]]
-        code = _exit_code_of_main(bench.cli.main, cmd[3:])
+        # The module the command names (`-m bench.cli`), by name as `python -m` finds it: the
+        # runtime starts the command line, it does not depend on the CLI (tests/test_layers.py).
+        import importlib
+        cli = importlib.import_module(cmd[2])
+        sys.argv = [cli.__file__, *cmd[3:]]
+        code = _exit_code_of_main(cli.main, cmd[3:])
     except BaseException:  # noqa: BLE001 - nothing may return into the zygote's loop
         try:
             import traceback
