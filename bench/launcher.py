@@ -39,6 +39,7 @@ from bench.controller.config import PLANNED_LAWS
 from bench.plant.divergence import EXIT_DIVERGED, read_divergence
 from bench.runtime.node import NODES
 from bench.runtime.ownership import CpuProgress, child_environment, kill_group, process_state
+from bench.runtime import zygote as node_zygote
 from bench.runtime.reports import REPORT_KEY_ENV, is_signed_by, new_report_key
 from bench.runtime.process import start_node
 from bench.scenario import LivelinessConfig, Scenario, ScenarioError, builtin_names, load_scenario, parse_scenario
@@ -114,7 +115,7 @@ def external_parts(scenario: Scenario) -> dict[str, str]:
 @dataclass
 class Child:
     name: str
-    process: subprocess.Popen
+    process: subprocess.Popen | node_zygote.ForkedProcess    # forked by the zygote: the same methods
     log_path: Path
 
     def tail(self, lines: int = 8) -> str:
@@ -151,11 +152,11 @@ class ProcessGroup:
 
 def _spawn(name: str, run_id: str, scenario_path: Path, hub: str, run_dir: Path, peers: list[str],
            zenoh_config: str | None, group: ProcessGroup | None = None,
-           extra_args: list[str] | None = None) -> Child:
+           extra_args: list[str] | None = None, zygote: node_zygote.Zygote | None = None) -> Child:
     log_path = run_dir / "logs" / f"{name}.log"
     group = group or ProcessGroup()
     process = start_node(name, run_id, scenario_path, hub, run_dir, log_path, peers, zenoh_config,
-                         popen_kwargs=group.popen_kwargs(), extra_args=extra_args)
+                         popen_kwargs=group.popen_kwargs(), extra_args=extra_args, zygote=zygote)
     group.joined(process)
     return Child(name, process, log_path)
 
@@ -619,9 +620,17 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
     external = external_parts(scenario)      # bad input: before anything is opened
     placement = placement or local_placement(port, zenoh_config)
     hub = placement.hub_endpoint
+    # The zygote before any session of ours: it imports the nodes' packages while the launcher
+    # goes on, and is started by fork+exec, never forked from a process running Zenoh's threads.
+    zygote = node_zygote.Zygote.start(child_environment(), show_progress) if node_zygote.enabled() else None
     # The session first: a taken port must fail before anything is written or started.
     lease_ms = int(round(scenario.run.liveliness.lease_s * 1000))
-    session = open_session(dataclasses.replace(placement.hub, lease_ms=lease_ms))
+    try:
+        session = open_session(dataclasses.replace(placement.hub, lease_ms=lease_ms))
+    except BaseException:
+        if zygote is not None:
+            zygote.close()
+        raise
     launcher_token = session.liveliness().declare_token(keys.key(run_id, f"{keys.ALIVE}/{LAUNCHER}"))
     remote = {**placement.remote, **external}
     run_dir = runs_dir / run_id
@@ -629,6 +638,8 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
         claim = RunDirClaim(run_dir)
     except BaseException:
         session.close()
+        if zygote is not None:
+            zygote.close()
         raise
     (run_dir / "logs").mkdir()
     scenario_path = run_dir / "scenario.json"
@@ -659,7 +670,7 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
                         continue
                     peers = loop_peers if name == "plant" else []
                     children.append(_spawn(name, run_id, scenario_path, hub, run_dir, peers, zenoh_config, group,
-                                           placement.node_args))
+                                           placement.node_args, zygote))
                     collector.trust(name, group.report_keys[children[-1].process.pid])
                 _wait_alive(session, run_id, children, scenario.run.liveliness.startup_timeout_s, remote,
                             show=show_progress)
@@ -702,6 +713,8 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
         finally:
             session.close()
             claim.release()
+            if zygote is not None:
+                zygote.close()
     return ending.code, run_dir
 
 

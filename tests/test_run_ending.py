@@ -30,10 +30,13 @@ def strict_json(path):
     return json.loads(path.read_text(), parse_constant=refuse)
 
 
-def start_run(runs_dir, run_id, *extra):
+def start_run(runs_dir, run_id, *extra, node_start="zygote"):
+    """node_start: how the launcher starts its nodes (BENCH_NODE_START): forked from its
+    pre-imported zygote (the default) or each by exec."""
     cmd = [sys.executable, "-m", "bench.cli", "run", "--mode", "real-time", "--steps", "2000", "--run-id", run_id,
            "--runs-dir", str(runs_dir), "--no-progress", *extra]
-    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    env = {**os.environ, "BENCH_NODE_START": node_start}
+    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline:   # until the plant is stepping
         log = runs_dir / run_id / "logs" / "plant.log"
@@ -46,9 +49,28 @@ def start_run(runs_dir, run_id, *extra):
 
 
 def children_of(proc) -> list[int]:
-    pids = [p for p in bench_processes_all() if p != proc.pid and _ppid(p) == proc.pid]
-    assert len(pids) >= 4, pids        # recorder, plant, estimator, controller
+    """Every process below the launcher: its nodes, their watchdogs and, on the zygote path, the
+    zygote the nodes were forked from."""
+    parent_of = {p: _ppid(p) for p in bench_processes_all()}
+    pids, frontier = [], {proc.pid}
+    while frontier:
+        frontier = {p for p, parent in parent_of.items() if parent in frontier}
+        pids += sorted(frontier)
+    assert len(node_pids(pids)) >= 4, pids        # recorder, plant, estimator, controller
     return pids
+
+
+def _cmdline(pid: int) -> list[bytes]:
+    try:
+        return open(f"/proc/{pid}/cmdline", "rb").read().split(b"\0")
+    except OSError:
+        return []
+
+
+def node_pids(pids: list[int]) -> list[int]:
+    """The nodes among pids (`bench node NAME` and not a node's own watchdog, a fork of it)."""
+    nodes = [p for p in pids if b"node" in _cmdline(p)]
+    return [p for p in nodes if _ppid(p) not in nodes]
 
 
 def bench_processes_all() -> list[int]:
@@ -70,11 +92,18 @@ def alive_by_ps(pids: list[int]) -> list[str]:
     return [row for row in out.stdout.splitlines() if row.split()[1][0] != "Z"]
 
 
-@pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM])
-def test_children_die_with_the_launcher(runs_dir, sig):
-    run_id = f"owner-{sig.name.lower()}"
-    proc = start_run(runs_dir, run_id)
+@pytest.mark.parametrize("sig,node_start", [(signal.SIGKILL, "zygote"), (signal.SIGKILL, "exec"),
+                                            (signal.SIGTERM, "zygote")],
+                         ids=["SIGKILL-zygote", "SIGKILL-exec", "SIGTERM-zygote"])
+def test_children_die_with_the_launcher(runs_dir, sig, node_start):
+    run_id = f"owner-{sig.name.lower()}-{node_start}"
+    proc = start_run(runs_dir, run_id, node_start=node_start)
     pids = children_of(proc)
+    parents = {_ppid(p) for p in node_pids(pids)}
+    if node_start == "zygote":       # the path under test was taken: every node forked by the zygote
+        assert len(parents) == 1 and b"bench.runtime.zygote" in _cmdline(parents.pop())
+    else:
+        assert parents == {proc.pid}
     proc.send_signal(sig)
     _, stderr = proc.communicate(timeout=60)
     time.sleep(ORPHAN_LIMIT_S)
@@ -118,7 +147,7 @@ def test_ctrl_c_leaves_partial_metrics_and_report(runs_dir):
 def test_a_killed_child_leaves_partial_metrics_and_report(runs_dir):
     run_id = "killed-estimator"
     proc = start_run(runs_dir, run_id)
-    victim = next(p for p in children_of(proc) if b"estimator" in open(f"/proc/{p}/cmdline", "rb").read().split(b"\0"))
+    victim = next(p for p in node_pids(children_of(proc)) if b"estimator" in _cmdline(p))
     os.kill(victim, signal.SIGKILL)
     _, stderr = proc.communicate(timeout=60)
     assert proc.returncode == 1 and "process 'estimator'" in stderr

@@ -21,6 +21,9 @@ import time
 from dataclasses import dataclass
 
 LAUNCHER_PID_ENV = "BENCH_LAUNCHER_PID"
+# Set in a node forked by the launcher's zygote (bench/runtime/zygote.py): its parent is the
+# zygote, which itself dies with the launcher. Absent: the launcher is the node's parent.
+PARENT_PID_ENV = "BENCH_NODE_PARENT_PID"
 PR_SET_PDEATHSIG = 1
 # An orphaned node has this long to stop cleanly after its SIGTERM before it exits hard: the
 # recorder's last chunk and MCAP summary take ~50 ms; a node blocked in a Zenoh call may never.
@@ -41,17 +44,22 @@ def die_with_launcher() -> None:
     main thread is stuck in a C call holding the GIL (a Zenoh close) runs no Python thread, and on
     a loaded machine such a node outlived the 2 s bound. The watchdog dies with its node
     (PDEATHSIG SIGKILL). No-op in a node started by hand (no BENCH_LAUNCHER_PID).
+
+    A node forked by the zygote has the zygote as parent (BENCH_NODE_PARENT_PID): the SIGTERM
+    comes when the zygote dies, which the kernel kills when the launcher dies.
     """
     text = os.environ.get(LAUNCHER_PID_ENV)
+    parent_text = os.environ.pop(PARENT_PID_ENV, "")    # not for what the node itself starts
     if not text or not text.isdigit():
         return
     launcher_pid = int(text)
+    parent_pid = int(parent_text) if parent_text.isdigit() else launcher_pid
     _set_parent_death_signal(signal.SIGTERM)
-    if os.getppid() != launcher_pid:
-        os._exit(ORPHAN_EXIT_CODE)   # the launcher died before prctl took effect
+    if os.getppid() != parent_pid:
+        os._exit(ORPHAN_EXIT_CODE)   # the launcher (or zygote) died before prctl took effect
     node_pid = os.getpid()
     if os.fork() == 0:               # the watchdog; called before the node opens its session
-        _watchdog(node_pid, launcher_pid)
+        _watchdog(node_pid, launcher_pid, parent_pid)
 
 
 def _set_parent_death_signal(sig: int) -> None:
@@ -62,14 +70,15 @@ def _set_parent_death_signal(sig: int) -> None:
         pass     # not Linux: the watchdog still notices the launcher is gone
 
 
-def _watchdog(node_pid: int, launcher_pid: int) -> None:
-    """Child of the node: once the launcher is gone, SIGTERM the node, SIGKILL it ORPHAN_EXIT_S later."""
+def _watchdog(node_pid: int, launcher_pid: int, parent_pid: int) -> None:
+    """Child of the node: once the launcher (or the node's parent, the zygote) is gone, SIGTERM
+    the node, SIGKILL it ORPHAN_EXIT_S later."""
     try:
         os.setsid()                  # out of the run's process group: Ctrl-C and killpg are for the node
         _set_parent_death_signal(signal.SIGKILL)
         if os.getppid() != node_pid:
             os._exit(0)
-        while _alive(launcher_pid) and os.getppid() == node_pid:
+        while _alive(launcher_pid) and _alive(parent_pid) and os.getppid() == node_pid:
             time.sleep(_PARENT_POLL_S)
         if os.getppid() == node_pid:
             os.kill(node_pid, signal.SIGTERM)     # where PDEATHSIG is not available

@@ -3,12 +3,18 @@
 The one way a node process is started, by the launcher (`bench run`) and by the CAN bench
 (`bench.runtime.can_bench`): `python -m bench.cli node NAME ...` with the interpreter running now,
 so a child imports the same tree (PYTHONPATH is inherited), stdout and stderr into one log file.
+Given the launcher's zygote (bench/runtime/zygote.py), the same command is forked from it, already
+imported; by fork+exec when the zygote cannot (or BENCH_NODE_START=exec).
 """
 from __future__ import annotations
 
 import subprocess
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from bench.runtime.zygote import ForkedProcess, Zygote
 
 
 def node_command(name: str, run_id: str, scenario_path: Path, hub: str, run_dir: Path,
@@ -29,11 +35,19 @@ def node_command(name: str, run_id: str, scenario_path: Path, hub: str, run_dir:
 
 def start_node(name: str, run_id: str, scenario_path: Path, hub: str, run_dir: Path, log_path: Path,
                peers: list[str] | None = None, zenoh_config: str | None = None,
-               popen_kwargs: dict | None = None, extra_args: list[str] | None = None) -> subprocess.Popen:
+               popen_kwargs: dict | None = None, extra_args: list[str] | None = None,
+               zygote: "Zygote | None" = None) -> "subprocess.Popen | ForkedProcess":
     """Start node `name` as a child process logging to log_path; stdin closed, so a node
     never waits on the terminal. popen_kwargs: what the launcher adds to own it (process group,
-    environment; bench.runtime.ownership)."""
+    environment; bench.runtime.ownership). zygote: fork it from there when it can."""
+    cmd = node_command(name, run_id, scenario_path, hub, run_dir, peers, zenoh_config, extra_args)
+    popen_kwargs = popen_kwargs or {}
+    if zygote is not None and zygote.can_start(cmd, popen_kwargs):
+        from bench.runtime.zygote import ZygoteFailed
+        try:
+            return zygote.spawn(cmd, log_path, popen_kwargs.get("process_group", 0), zygote.extra_env(popen_kwargs))
+        except ZygoteFailed:
+            pass     # said on stderr once; this node and the next by exec
     with open(log_path, "w") as log_file:
-        return subprocess.Popen(node_command(name, run_id, scenario_path, hub, run_dir, peers, zenoh_config, extra_args),
-                                stdout=log_file, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                **(popen_kwargs or {}))
+        return subprocess.Popen(cmd, stdout=log_file, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                **popen_kwargs)

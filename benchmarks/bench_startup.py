@@ -1,0 +1,80 @@
+"""Start-up of `bench run`: nodes forked from the launcher's pre-imported zygote against each node
+started by exec (BENCH_NODE_START=exec), alternated in the same run so both see the same load.
+
+For each scenario and path, RUNS times: `bench run SCENARIO --steps N --no-report` in a scratch
+runs directory, timed from just before the command starts to the plant's "peers ready" log line
+(the loop's first step: every node is up and connected) and to the command's exit. Prints the
+median and p90 of both, the 1-minute load average before and after, and fails (exit 1) if any run
+did not finish.
+
+    PYTHONPATH=$PWD .venv/bin/python benchmarks/bench_startup.py [--runs 5]
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from datetime import datetime
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parent.parent
+CASES = [("attitude_quick", 20), ("rendezvous_lqr", 5)]
+PATHS = ["zygote", "exec"]
+FIRST_STEP_MARK = "peers ready"     # the plant's log line when its loop starts
+
+
+def one_run(scenario: str, steps: int, path: str, runs_dir: Path, run_id: str) -> tuple[float, float]:
+    """(seconds to the first step, seconds to the command's end) of one `bench run`."""
+    env = {**os.environ, "BENCH_NODE_START": path}
+    cmd = [sys.executable, "-m", "bench.cli", "run", scenario, "--steps", str(steps), "--no-report", "--no-progress",
+           "--run-id", run_id, "--runs-dir", str(runs_dir)]
+    started_wall = time.time()
+    started = time.monotonic()
+    result = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
+    end_s = time.monotonic() - started
+    if result.returncode != 0:
+        raise SystemExit(f"{scenario} ({path}) exited with {result.returncode}:\n{result.stderr[-2000:]}")
+    for line in (runs_dir / run_id / "logs" / "plant.log").read_text().splitlines():
+        if FIRST_STEP_MARK in line:
+            stamp = datetime.strptime(line[:23], "%Y-%m-%d %H:%M:%S,%f").timestamp()
+            return stamp - started_wall, end_s
+    raise SystemExit(f"{scenario} ({path}): no '{FIRST_STEP_MARK}' in the plant's log")
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--runs", type=int, default=5, help="runs per scenario and path (default 5)")
+    args = parser.parse_args()
+    if args.runs < 1:
+        parser.error(f"--runs must be at least 1, got {args.runs}")
+    load_before = os.getloadavg()[0]
+    times: dict[tuple[str, str], list[tuple[float, float]]] = {}
+    with tempfile.TemporaryDirectory(prefix="bench-startup-") as scratch:
+        for i in range(args.runs):
+            for scenario, steps in CASES:
+                order = PATHS if i % 2 == 0 else PATHS[::-1]     # neither path always goes first
+                for path in order:
+                    run = one_run(scenario, steps, path, Path(scratch), f"startup-{scenario}-{path}-{i}")
+                    times.setdefault((scenario, path), []).append(run)
+                    print(f"  {scenario:16s} {path:6s} run {i + 1}: first step {run[0]:5.2f} s, end {run[1]:5.2f} s",
+                          file=sys.stderr)
+    load_after = os.getloadavg()[0]
+    print(f"bench run start-up, {args.runs} runs per row, {os.cpu_count()} CPUs, "
+          f"load average (1 min) {load_before:.2f} before, {load_after:.2f} after")
+    print(f"{'scenario':26s} {'nodes started by':18s} {'first step p50':>15s} {'p90':>7s} {'end p50':>9s} {'p90':>7s}")
+    for scenario, steps in CASES:
+        for path in PATHS:
+            first, end = np.array(times[(scenario, path)]).T
+            label = "zygote (fork)" if path == "zygote" else "exec"
+            print(f"{scenario + f' --steps {steps}':26s} {label:18s} {np.median(first):13.2f} s {np.percentile(first, 90):5.2f} s "
+                  f"{np.median(end):7.2f} s {np.percentile(end, 90):5.2f} s")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
