@@ -14,6 +14,25 @@ def run_bench_cli(*args: str, timeout_s: float = 120, **kwargs) -> subprocess.Co
                           timeout=timeout_s, cwd=kwargs.pop("cwd", REPO), **kwargs)
 
 
+def assert_rendezvous_lqr_run_equals_in_process(run_dir: Path, steps: int) -> None:
+    """The run's trajectory equals `rendezvous_lqr` of `steps` steps simulated in process, to 1e-9
+    of each state component's range and of the thrust: lock-step processes reproduce the loop."""
+    import msgspec
+    import numpy as np
+
+    from bench.scenario import load_scenario
+    from bench.sim import simulate_in_process
+
+    with np.load(run_dir / "trajectory.npz") as data:
+        trajectory = {k: data[k] for k in data.files}
+    scenario = load_scenario("rendezvous_lqr")
+    scenario = msgspec.structs.replace(scenario, run=msgspec.structs.replace(scenario.run, steps=steps))
+    reference, _ = simulate_in_process(scenario)
+    scale = np.abs(reference["state_m_mps"]).max(axis=0)
+    np.testing.assert_allclose(trajectory["state_m_mps"] / scale, reference["state_m_mps"] / scale, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(trajectory["thrust_n"], reference["thrust_n"], rtol=1e-9, atol=1e-15)
+
+
 def bench_processes(run_id: str) -> list[int]:
     """Pids of live processes whose command line names this run id (children left behind)."""
     pids = []

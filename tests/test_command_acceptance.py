@@ -13,7 +13,6 @@ import sys
 import threading
 import time
 
-import msgspec
 import numpy as np
 import pytest
 
@@ -23,9 +22,7 @@ from bench.bus.session import SessionOptions, free_loopback_port, loopback_endpo
 from bench.plant.acceptance import (
     FUTURE, NON_FINITE, OUT_OF_ENVELOPE, STALE, TOO_OLD, WRONG_SIZE, ActuatorEnvelope, CommandGate,
 )
-from bench.scenario import load_scenario
-from bench.sim import simulate_in_process
-from conftest import REPO
+from conftest import REPO, assert_rendezvous_lqr_run_equals_in_process
 
 STEPS = 40
 
@@ -140,14 +137,7 @@ def test_rogue_commands_never_change_the_lock_step_trajectory(runs_dir):
     assert result.returncode == 0, result.stderr
     assert rogue.sent >= 5 * rogue.answered_steps
     run_dir = runs_dir / "rogue-lockstep"
-    with np.load(run_dir / "trajectory.npz") as data:
-        trajectory = {k: data[k] for k in data.files}
-    scenario = load_scenario("rendezvous_lqr")
-    scenario = msgspec.structs.replace(scenario, run=msgspec.structs.replace(scenario.run, steps=STEPS))
-    reference, _ = simulate_in_process(scenario)
-    scale = np.abs(reference["state_m_mps"]).max(axis=0)
-    np.testing.assert_allclose(trajectory["state_m_mps"] / scale, reference["state_m_mps"] / scale, rtol=0, atol=1e-9)
-    np.testing.assert_allclose(trajectory["thrust_n"], reference["thrust_n"], rtol=1e-9, atol=1e-15)
+    assert_rendezvous_lqr_run_equals_in_process(run_dir, STEPS)
     metrics = json.loads((run_dir / "metrics.json").read_text())
     counts = metrics["command_acceptance"]["thrust"]
     assert counts["accepted"] == STEPS

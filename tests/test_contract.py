@@ -10,11 +10,9 @@ from __future__ import annotations
 import ast
 import json
 import sys
-from pathlib import Path
 
 import jsonschema
 import msgspec
-import numpy as np
 import pytest
 
 from bench.bus import acl
@@ -26,8 +24,7 @@ from bench.launcher import external_parts
 from bench.report.deadlines import deadlines
 from bench.report.rundata import load_run
 from bench.scenario import ScenarioError, load_scenario, parse_scenario
-from bench.sim import simulate_in_process
-from conftest import REPO, run_bench_cli
+from conftest import REPO, assert_rendezvous_lqr_run_equals_in_process, run_bench_cli
 
 EXAMPLE = REPO / "examples" / "outside_lqr_controller.py"
 STEPS = 20
@@ -100,14 +97,7 @@ def test_the_example_passes_the_check_and_flies_the_built_in_lqr(runs_dir):
                            "--run-id", "contract-pass", "--command", example_command(), timeout_s=240)
     assert result.returncode == 0, result.stdout + result.stderr
     assert result.stdout.startswith("contract check controller: pass") and result.stdout.count("\n") == 1
-    with np.load(runs_dir / "contract-pass" / "trajectory.npz") as data:
-        trajectory = {k: data[k] for k in data.files}
-    scenario = load_scenario("rendezvous_lqr")
-    scenario = msgspec.structs.replace(scenario, run=msgspec.structs.replace(scenario.run, steps=STEPS))
-    reference, _ = simulate_in_process(scenario)
-    scale = np.abs(reference["state_m_mps"]).max(axis=0)
-    np.testing.assert_allclose(trajectory["state_m_mps"] / scale, reference["state_m_mps"] / scale, rtol=0, atol=1e-9)
-    np.testing.assert_allclose(trajectory["thrust_n"], reference["thrust_n"], rtol=1e-9, atol=1e-15)
+    assert_rendezvous_lqr_run_equals_in_process(runs_dir / "contract-pass", STEPS)
     metrics = json.loads((runs_dir / "contract-pass" / "metrics.json").read_text())
     assert metrics["processes"]["controller"]["host"] == "external"
     # The report does not take the outside controller's own stamps for a measured cycle time.
