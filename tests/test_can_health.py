@@ -167,3 +167,40 @@ def test_a_new_dipole_goes_out_at_once_in_the_on_change_modes(transmission, sent
             assert len(sent) >= 9                            # every 20 ms over 0.2 s
     finally:
         rig.close()
+
+
+@pytest.mark.parametrize("transmission", ["cyclic", "on_change", "mixed"])
+def test_a_law_driven_loop_sends_nothing_before_the_laws_first_dipole(transmission):
+    """first_command_by_law: the bus carries no command until the law's first dipole (at 50 ms on
+    the rig's simulated clock), so the first command frame, from which bus faults count, is the
+    loop's first step; from then on the mode's own timing (keep-alive every 20 ms but on_change)."""
+    rig = Rig()
+    try:
+        sent: list[tuple[float, list[float]]] = []
+        loop = CommandLoop(rig.driver, 0.02, transmission=transmission, first_command_by_law=True,
+                           on_command=lambda counter, dipole, ns: sent.append((rig.clock.t, list(dipole))))
+        real_poll = rig.driver.poll
+        polls, law_s = [0], []
+
+        def poll(timeout_s=0.0, max_frames=1000, lock=None):
+            rig.clock.t += 0.001
+            polls[0] += 1
+            if polls[0] == 50:
+                law_s.append(rig.clock.t)
+                loop.set_dipole([0.05, 0.0, 0.0])
+            rig.board.step(rig.clock.t)
+            return real_poll(0.0, max_frames, lock)
+
+        rig.driver.poll = poll
+        loop.run(duration_s=0.2)
+        assert sent, "the law's dipole never went out"
+        first_s, first_dipole = sent[0]
+        assert first_dipole == [0.05, 0.0, 0.0]
+        assert 0 <= first_s - law_s[0] <= 0.0015                # at once or at the next poll
+        assert loop.driver.host_overruns == 0                   # waiting for the law is not a late host
+        if transmission == "on_change":
+            assert len(sent) == 1
+        else:
+            assert 7 <= len(sent) <= 9                          # every 20 ms over the remaining 150 ms
+    finally:
+        rig.close()

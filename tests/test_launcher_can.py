@@ -42,16 +42,21 @@ def test_driver_in_the_controller_process_detected_each_scripted_fault(can_run):
 
 
 def test_no_corrupted_command_was_applied(can_run):
-    board = json.loads((can_run / "can" / "board.json").read_text())
-    assert board["rejected"].get("WRONG_CRC", 0) >= 2
-    assert len(board["applied"]) == board["accepted"]
-    # Every command heard was applied, rejected, or ignored before the driver's NMT start.
-    ignored = sum(n for what, n in board["ignored"].items() if what.startswith("MTQ_CMD while"))
-    assert board["accepted"] + sum(board["rejected"].values()) + ignored == board["received"]["MTQ_CMD"]
-    # Flipped data bits would change a dipole: every applied one is a value the profile scripts.
+    from bench.bus.can import protocol as p
     from bench.scenario import load_scenario
 
-    scripted = {tuple(step.dipole_am2) for step in load_scenario("rendezvous_mtq_bus").can.dipole_profile}
+    can_cfg = load_scenario("rendezvous_mtq_bus").can
+    command_frame = p.PROFILES[can_cfg.security.profile]
+    board = json.loads((can_run / "can" / "board.json").read_text())
+    # The two corrupted frames: refused by the E2E CRC, or on secoc (the default) by the MAC first.
+    assert board["rejected"].get("WRONG_CRC", 0) + board["rejected"].get("WRONG_MAC", 0) >= 2
+    assert len(board["applied"]) == board["accepted"]
+    # Every command heard was applied, rejected, or ignored before the driver's NMT start.
+    ignored = sum(n for what, n in board["ignored"].items() if what.startswith(f"{command_frame} while"))
+    command_rejections = sum(n for what, n in board["rejected"].items() if not what.startswith("NMT"))
+    assert board["accepted"] + command_rejections + ignored == board["received"][command_frame]
+    # Flipped data bits would change a dipole: every applied one is a value the profile scripts.
+    scripted = {tuple(step.dipole_am2) for step in can_cfg.dipole_profile}
     assert {tuple(a["dipole_am2"]) for a in board["applied"]} <= scripted
 
 

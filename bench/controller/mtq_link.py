@@ -2,8 +2,9 @@
 
 The board drops to its safe state when commands stop for its command timeout (0.1 s), far shorter
 than a 600 s plant step, so the driver commands on its own thread at its own period (CommandLoop),
-with the dipole the scenario scripts until an attitude law asks for one; a law's dipole goes out
-the moment the law gives it too, in the "mixed" and "on_change" transmission modes
+with the dipole the scenario scripts, or from an attitude law's first dipole on (nothing before
+it, so the first command frame, from which the bus faults count, is the loop's first step); a
+law's dipole goes out the moment the law gives it too, in the "mixed" and "on_change" transmission modes
 ([can.driver] transmission). Every fault the driver
 detects is logged as it happens and written, with its detection latency, to can/driver.json.
 """
@@ -30,7 +31,8 @@ class MagnetorquerLink:
         self.driver = MagnetorquerDriver.from_config(self.bus, config)
         self.loop = CommandLoop(self.driver, config.driver.command_period_s,
                                 dipole_at=config.dipole_at if scripted else None, on_events=self._log_events,
-                                transmission="cyclic" if scripted else config.driver.transmission)
+                                transmission="cyclic" if scripted else config.driver.transmission,
+                                first_command_by_law=not scripted)
         self._thread = threading.Thread(target=self.loop.run, args=(ctx.stop,), name="mtq-driver", daemon=True)
 
     def _log_events(self, events: list[FaultEvent]) -> None:

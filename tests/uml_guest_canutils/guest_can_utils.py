@@ -163,14 +163,18 @@ def test_cansend_and_canplayer_on_the_secoc_profile(tmp_path):
     proto = p.Protocol(profile="secoc", key=KEY)
     with BoardOnVcan("secoc") as rig:
         board = rig.board
+        # On secoc the board obeys only the authenticated NMT frame: a plain "start" is refused.
         cansend(nmt(p.NMT_START))
+        rig.wait("plain NMT refused", lambda b: b.rejected["NMT_NOT_AUTHENTICATED"] == 1)
+        assert board.nmt_state != p.NMT_OPERATIONAL
+        cansend(proto.nmt(p.NMT_START, sent_s=time.monotonic()))
         rig.wait("started", lambda b: b.nmt_state == p.NMT_OPERATIONAL)
         # Fresh authenticated commands: freshness values on this clock, one command period apart.
         now_s = time.monotonic()
         fresh = [proto.command([0.02, 0.0, 0.0], counter=k, sent_s=now_s + 0.02 * k) for k in range(5)]
         canplayer(tmp_path / "fresh.log", fresh)
         rig.wait("five applied", lambda b: b.accepted == 5)
-        assert board.rejected == {}
+        assert dict(board.rejected) == {"NMT_NOT_AUTHENTICATED": 1}
         # The same log a second later: every frame older than a period plus the margin.
         time.sleep(2 * FRESHNESS_MARGIN_S)
         canplayer(tmp_path / "replay.log", fresh)
@@ -182,7 +186,8 @@ def test_cansend_and_canplayer_on_the_secoc_profile(tmp_path):
         cansend(forged)
         rig.wait("unauthenticated and forged", lambda b: b.rejected["NOT_AUTHENTICATED"] == 1
                  and b.rejected["WRONG_MAC"] == 1)
-        assert board.accepted == 5 and dict(board.rejected) == {"STALE": 5, "NOT_AUTHENTICATED": 1, "WRONG_MAC": 1}
+        assert board.accepted == 5 and dict(board.rejected) == {"NMT_NOT_AUTHENTICATED": 1, "STALE": 5,
+                                                                "NOT_AUTHENTICATED": 1, "WRONG_MAC": 1}
         assert board.last_command_age_s is not None and board.last_command_age_s <= 0.02 + FRESHNESS_MARGIN_S
 
 

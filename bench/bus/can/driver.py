@@ -401,6 +401,10 @@ class CommandLoop:
     so the flight side must command at its own rate, whatever the rate of the law that decides the
     dipole: run this on its own thread and hand it the dipole with `set_dipole`, or give it
     `dipole_at(t_s)` (seconds since the first command; a scenario's `CanConfig.dipole_at`).
+    With `first_command_by_law`, nothing is commanded until the first `set_dipole` (the loop only
+    polls until then): the bus carries the law's commands from the first one on, so the first
+    command frame, which arms the bus model's faults, is the loop's first step and a fault's
+    `start_s` counts from it, not from the moment this process happened to start.
     `health` is a snapshot other threads may read; `on_command(counter, dipole_am2, sent_ns)` and
     `on_events(events)` run on the thread that sent (the loop's, or the caller of `set_dipole` in
     the on-change modes). The driver itself is not thread-safe: every use of it takes `_lock`, and
@@ -411,7 +415,7 @@ class CommandLoop:
                  dipole_at: Callable[[float], list[float]] | None = None,
                  on_command: Callable[[int, list[float], int], None] | None = None,
                  on_events: Callable[[list[FaultEvent]], None] | None = None,
-                 transmission: str = "cyclic"):
+                 transmission: str = "cyclic", first_command_by_law: bool = False):
         if transmission not in ("cyclic", "on_change", "mixed"):
             raise ValueError(f"transmission must be cyclic, on_change or mixed, not {transmission!r}")
         self.driver = driver
@@ -420,6 +424,7 @@ class CommandLoop:
         self.on_command = on_command
         self.on_events = on_events
         self.transmission = transmission
+        self._awaiting_first_dipole = first_command_by_law
         self.health: BoardHealth = driver.health()
         self.started_s: float | None = None
         self._dipole_am2 = [0.0, 0.0, 0.0]
@@ -429,8 +434,11 @@ class CommandLoop:
 
     def set_dipole(self, dipole_am2) -> None:
         self._dipole_am2 = [float(x) for x in dipole_am2]   # one reference swap: safe across threads
-        if self.transmission != "cyclic" and self._running:
-            with self._lock:
+        if self.transmission == "cyclic" or not self._running:
+            self._awaiting_first_dipole = False
+        else:
+            with self._lock:   # the flag and the frame together: the loop never sends this dipole twice
+                self._awaiting_first_dipole = False
                 now = self.driver.clock()
                 self._command(now)
                 self._next_command_s = now + self.period_s   # the keep-alive counts from the change
@@ -447,20 +455,24 @@ class CommandLoop:
         try:
             while now < end and not (stop is not None and stop.is_set()):
                 with self._lock:
+                    waiting = self._awaiting_first_dipole
+                    due = cyclic and not waiting and now >= self._next_command_s
                     late_s = 0.0
-                    if cyclic and now >= self._next_command_s:
+                    if due:
                         late_s = now - self._next_command_s
                     elif wake_by_s is not None and self.driver.frames_in_last_poll == 0:
                         # A poll that handled no frame returned this late: the scheduler, not frame work.
                         late_s = now - wake_by_s
-                    if late_s > 0.5 * self.period_s:
+                    if late_s > 0.5 * self.period_s and not waiting:
                         self.driver.host_overrun(late_s)   # our thread was late: the host, not the bus
-                    if cyclic and now >= self._next_command_s:
+                    if due:
                         self._command(now)
                         self._next_command_s += self.period_s
                         if self._next_command_s < now:   # woke late: skip the missed slots rather than burst
                             self._next_command_s = now + self.period_s
-                    until = min(self._next_command_s, end) if cyclic else end
+                    if waiting:   # the first cyclic slot is the moment the law's first dipole arrives
+                        self._next_command_s = now
+                    until = min(self._next_command_s, end) if cyclic and not waiting else end
                     timeout_s = max(0.0, min(until - clock(), 0.01))
                     wake_by_s = clock() + timeout_s
                 events = self.driver.poll(timeout_s=timeout_s, lock=self._lock)
