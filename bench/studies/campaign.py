@@ -63,6 +63,14 @@ BUILTIN_PACKAGE = "bench.studies.campaigns"
 # layer; they are found by name, as `bench.cli` finds subcommands.
 RUNNERS = {"in-process": "bench.sim:campaign_case", "processes": "bench.launcher:campaign_case"}
 MODES = tuple(RUNNERS)
+# Other kinds of spec (a TOML's `kind`), each a module with parse_spec, expand and schema. Found by
+# name, as the runners are: such a module builds on this one (cases, engines, results file).
+SPEC_KINDS = {"attitude_faults": "bench.studies.fault_campaign"}
+
+
+def _spec_kind(spec) -> object:
+    """The module of a spec that is not seed 001's kind."""
+    return importlib.import_module(SPEC_KINDS[spec.kind])
 
 
 class CampaignError(ValueError):
@@ -122,10 +130,10 @@ def load_spec(name_or_path: str | Path) -> CampaignSpec:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise CampaignError(f"{source}: not valid TOML: {exc}") from None
-    if data.get("kind") == "attitude_faults":       # bench.studies.fault_campaign's grid
-        from bench.studies import fault_campaign
-
-        return fault_campaign.parse_spec(data, source)
+    if "kind" in data:
+        if data["kind"] not in SPEC_KINDS:
+            raise CampaignError(f"{source}: kind: {data['kind']!r} is not one of {', '.join(SPEC_KINDS)}")
+        return importlib.import_module(SPEC_KINDS[data["kind"]]).parse_spec(data, source)
     return parse_spec(data, source)
 
 
@@ -189,10 +197,8 @@ def _apply_samples(scenario: dict, samples: dict, seed: int, axis_value: str, so
 
 def expand(spec) -> list[Case]:
     """Every case of the grid, validated, in a fixed order (axes in spec order, seeds innermost)."""
-    if not isinstance(spec, CampaignSpec):              # a fault campaign (bench.studies.fault_campaign)
-        from bench.studies import fault_campaign
-
-        return fault_campaign.expand(spec)
+    if not isinstance(spec, CampaignSpec):              # another kind (SPEC_KINDS)
+        return _spec_kind(spec).expand(spec)
     base = scenario_to_toml_dict(load_scenario(spec.base_scenario))
     if spec.steps is not None:
         base = _merge(base, {"run": {"steps": spec.steps}})
@@ -294,9 +300,7 @@ def schema_for(spec):
     """The results file's columns for a spec: seed 001's metrics, or a fault campaign's."""
     if isinstance(spec, CampaignSpec):
         return _schema()
-    from bench.studies import fault_campaign
-
-    return fault_campaign.schema()
+    return _spec_kind(spec).schema()
 
 
 def _schema():
