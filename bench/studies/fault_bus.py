@@ -10,7 +10,8 @@ step at once and then every command period (AUTOSAR COM "mixed", the DBC's defau
 plant gets, for the step, the time average of what the board's coil drivers were set to
 (`output_dipole_am2`: zero in safe state). Detection is the driver's own `FaultEvent`s, stamped
 with the simulated time at which `poll` returned them: the detection latency is in simulated
-seconds, at the co-simulation's resolution (`max_step_s`, 1 ms by default).
+seconds, at the co-simulation's resolution (`max_step_s`, 1 ms by default; frames in a burst reach
+the nodes at most a quarter of it late).
 
 The bus is co-simulated only over a window: from `warmup_s` before the first fault's onset (the
 board booted, started by the driver's NMT, E2E in sync, telemetry flowing) to `tail_s` after the
@@ -174,7 +175,10 @@ class BusCoSimulation:
                 candidates.append(self._next_command_ns)
             bus_next = self.model.next_event_ns()
             if bus_next is not None:
-                candidates.append(max(bus_next, now_ns + 1))
+                # Frames are handled when they arrive, but bursts (error frames, a babbler, held
+                # frames) are taken a quarter step at a time: the bus model still times every
+                # frame exactly, the nodes see them at most max_step_s / 4 late.
+                candidates.append(max(bus_next, now_ns + max(1, max_step_ns // 4)))
             next_ns = min(candidates)
             output = self.board.output_dipole_am2
             integral += output * (next_ns - now_ns)
