@@ -6,7 +6,12 @@ steps per case) into a fresh results file; runs/s counts the whole campaign wall
 start-up included (spawned pool workers and Ray workers import the bench: seconds each). Ray's
 own start-up (`ray.init` of a local 2-CPU cluster) is timed separately.
 
-    .venv/bin/python benchmarks/bench_campaign.py [--cases 12] [--process-cases 4]
+The fault campaign (`--faults`, built-in `attitude_faults`: each law on its mission with a bus
+fault co-simulated through the real board and driver) is measured on the local pool and on Ray in
+the same run, on one seed of every fault kind for the detumble and pointing laws (missions cut to
+--fault-steps steps, faults moved to 60 s): cases/s per engine, and whether the rows are identical.
+
+    .venv/bin/python benchmarks/bench_campaign.py [--cases 12] [--process-cases 4] [--faults-only]
 """
 from __future__ import annotations
 
@@ -40,12 +45,57 @@ def measure(label: str, campaign, out_dir: Path, **kwargs) -> dict:
             "rows": sorted((r["case_id"], r["final_position_error_m"]) for r in rows)}
 
 
+def fault_spec(steps: int):
+    import msgspec
+
+    from bench.studies.campaign import load_spec
+
+    spec = load_spec("attitude_faults")
+    faults = {name: msgspec.structs.replace(f, start_s=60.0) for name, f in spec.faults.items()}
+    laws = {name: law for name, law in spec.laws.items() if law.mission != "planned_slew"}
+    return msgspec.structs.replace(spec, seeds=1, steps=steps, onset_jitter_s=0.0, faults=faults, laws=laws)
+
+
+def measure_faults(out_dir: Path, steps: int) -> None:
+    """Cases/s of the fault campaign on the local pool and on Ray, same cases, same run."""
+    import ray
+
+    from bench.studies.fault_campaign import METRIC_COLUMNS
+
+    campaign = fault_spec(steps)
+    rates, rows = {}, {}
+    for engine in ("local", "ray"):
+        started = time.perf_counter()
+        if engine == "ray":
+            ray.init(address="local", num_cpus=2, object_store_memory=RAY_OBJECT_STORE_BYTES,
+                     include_dashboard=False, log_to_driver=False)
+            print(f"ray.init of a local 2-CPU cluster: {time.perf_counter() - started:.1f} s (not in the rate)")
+        try:
+            out = out_dir / f"faults_{engine}.parquet"
+            outcome = run_campaign(campaign, out, engine=engine, workers=2, show_progress=False)
+        finally:
+            if engine == "ray":
+                ray.shutdown()
+        rates[engine] = outcome
+        rows[engine] = sorted((r["case_id"], r["status"], *(repr(r[c]) for c in METRIC_COLUMNS)) for r in read_rows(out))
+    print(f"fault campaign ({steps} steps per mission, 2 workers): ", end="")
+    print("; ".join(f"{e}: {o.ran} cases, {o.failed} failed, {o.wall_s:.1f} s, {o.runs_per_s:.2f} cases/s"
+                    for e, o in rates.items()))
+    print(f"fault campaign rows identical on the local pool and Ray (every metric column): {rows['local'] == rows['ray']}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cases", type=int, default=12, help="in-process cases per configuration")
     parser.add_argument("--process-cases", type=int, default=4, help="multi-process cases per configuration")
     parser.add_argument("--no-ray", action="store_true")
+    parser.add_argument("--faults-only", action="store_true", help="only the fault campaign, both engines")
+    parser.add_argument("--fault-steps", type=int, default=200, help="steps per mission in the fault campaign")
     args = parser.parse_args()
+    if args.faults_only:
+        with tempfile.TemporaryDirectory() as tmp:
+            measure_faults(Path(tmp), args.fault_steps)
+        return
     results = []
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
@@ -66,6 +116,8 @@ def main() -> None:
                 ray.shutdown()
         results.append(measure("multi-process, local, 1 worker", processes, tmp, workers=1))
         results.append(measure("multi-process, local, 2 workers", processes, tmp, workers=2))
+        if not args.no_ray:
+            measure_faults(tmp, args.fault_steps)
     baseline = results[0]["runs_per_s"]
     print(f"{'configuration':34s} {'runs':>5s} {'failed':>6s} {'wall s':>8s} {'runs/s':>8s} {'x baseline':>10s}")
     for r in results:

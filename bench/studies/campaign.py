@@ -63,6 +63,14 @@ BUILTIN_PACKAGE = "bench.studies.campaigns"
 # layer; they are found by name, as `bench.cli` finds subcommands.
 RUNNERS = {"in-process": "bench.sim:campaign_case", "processes": "bench.launcher:campaign_case"}
 MODES = tuple(RUNNERS)
+# Other kinds of spec (a TOML's `kind`), each a module with parse_spec, expand and schema. Found by
+# name, as the runners are: such a module builds on this one (cases, engines, results file).
+SPEC_KINDS = {"attitude_faults": "bench.studies.fault_campaign"}
+
+
+def _spec_kind(spec) -> object:
+    """The module of a spec that is not seed 001's kind."""
+    return importlib.import_module(SPEC_KINDS[spec.kind])
 
 
 class CampaignError(ValueError):
@@ -122,6 +130,10 @@ def load_spec(name_or_path: str | Path) -> CampaignSpec:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise CampaignError(f"{source}: not valid TOML: {exc}") from None
+    if "kind" in data:
+        if data["kind"] not in SPEC_KINDS:
+            raise CampaignError(f"{source}: kind: {data['kind']!r} is not one of {', '.join(SPEC_KINDS)}")
+        return importlib.import_module(SPEC_KINDS[data["kind"]]).parse_spec(data, source)
     return parse_spec(data, source)
 
 
@@ -183,8 +195,10 @@ def _apply_samples(scenario: dict, samples: dict, seed: int, axis_value: str, so
     return scenario
 
 
-def expand(spec: CampaignSpec) -> list[Case]:
+def expand(spec) -> list[Case]:
     """Every case of the grid, validated, in a fixed order (axes in spec order, seeds innermost)."""
+    if not isinstance(spec, CampaignSpec):              # another kind (SPEC_KINDS)
+        return _spec_kind(spec).expand(spec)
     base = scenario_to_toml_dict(load_scenario(spec.base_scenario))
     if spec.steps is not None:
         base = _merge(base, {"run": {"steps": spec.steps}})
@@ -282,6 +296,13 @@ def run_case(case: Case) -> dict:
 # ------------------------------------------------------------------------------------------------
 # Results file
 # ------------------------------------------------------------------------------------------------
+def schema_for(spec):
+    """The results file's columns for a spec: seed 001's metrics, or a fault campaign's."""
+    if isinstance(spec, CampaignSpec):
+        return _schema()
+    return _spec_kind(spec).schema()
+
+
 def _schema():
     import pyarrow as pa
 
@@ -304,13 +325,13 @@ def parts_dir(out: Path) -> Path:
 class ResultsWriter:
     """Appends rows as numbered part files (written to a temporary name, then renamed)."""
 
-    def __init__(self, out: Path, flush_every: int, flush_interval_s: float = 5.0):
+    def __init__(self, out: Path, flush_every: int, flush_interval_s: float = 5.0, schema=None):
         self.out, self.dir = out, parts_dir(out)
         self.dir.mkdir(parents=True, exist_ok=True)
         self.flush_every, self.flush_interval_s = max(1, flush_every), flush_interval_s
         self.pending: list[dict] = []
         self.last_flush = time.monotonic()
-        self.schema = _schema()
+        self.schema = schema if schema is not None else _schema()
         self.next_part = 1 + max((int(p.stem.split("-")[1]) for p in self.dir.glob("part-*.parquet")), default=0)
 
     def add(self, row: dict) -> None:
@@ -346,7 +367,7 @@ def read_rows(out: Path) -> list[dict]:
     return list(rows.values())
 
 
-def finalise(out: Path, case_order: dict[str, int] | None = None) -> int:
+def finalise(out: Path, case_order: dict[str, int] | None = None, schema=None) -> int:
     """Merge the parts into `out`, sorted by case order; remove the parts. Returns the row count."""
     import pyarrow as pa
     import pyarrow.parquet as pq
@@ -356,7 +377,7 @@ def finalise(out: Path, case_order: dict[str, int] | None = None) -> int:
     key = (lambda r: case_order.get(r["case_id"], len(case_order))) if case_order else (lambda r: r["case_index"])
     rows.sort(key=lambda r: (key(r), r["case_id"]))
     tmp = out.with_name(out.name + ".tmp")
-    pq.write_table(pa.Table.from_pylist(rows, schema=_schema()), tmp)
+    pq.write_table(pa.Table.from_pylist(rows, schema=schema if schema is not None else _schema()), tmp)
     os.replace(tmp, out)
     shutil.rmtree(parts_dir(out), ignore_errors=True)
     return len(rows)
@@ -536,7 +557,8 @@ def run_campaign(spec: CampaignSpec, out: Path, *, engine: str = "local", worker
     # Seed-major order: a campaign stopped early has the same number of seeds in every cell.
     todo.sort(key=lambda c: (c.seed, c.index))
     out.parent.mkdir(parents=True, exist_ok=True)
-    writer = ResultsWriter(out, flush_every)
+    schema = schema_for(spec)
+    writer = ResultsWriter(out, flush_every, schema=schema)
     failed = 0
     start = time.monotonic()
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
@@ -563,7 +585,7 @@ def run_campaign(spec: CampaignSpec, out: Path, *, engine: str = "local", worker
         finally:
             writer.flush()
     wall_s = time.monotonic() - start
-    finalise(out, {c.case_id: c.index for c in cases})
+    finalise(out, {c.case_id: c.index for c in cases}, schema)
     return CampaignOutcome(len(cases), len(cases) - len(todo), len(todo), failed, wall_s)
 
 

@@ -13,6 +13,8 @@ import numpy as np
 
 from bench.studies.campaign import CELL_COLUMNS
 
+# The fault campaign's report (bench.studies.fault_report builds on this module's results reading).
+FAULT_REPORT = "bench.studies.fault_report"
 # 95 % two-sided normal quantile.
 Z_95 = 1.959963984540054
 
@@ -202,6 +204,10 @@ def write_report(results: Path, out_dir: Path | None = None) -> Path:
         raise ValueError(f"{results}: no rows")
     out_dir = Path(out_dir) if out_dir else results.with_name(results.stem + "_report")
     out_dir.mkdir(parents=True, exist_ok=True)
+    if "fault_kind" in rows[0]:          # a fault campaign's rows: its own report, found by name
+        import importlib
+
+        return importlib.import_module(FAULT_REPORT).write_fault_report(results, rows, out_dir)
     summaries = summarise(rows)
     plots = box_plots(summaries, out_dir)
     failures = [r for r in rows if r["status"] != "ok"]
