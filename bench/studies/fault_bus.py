@@ -22,10 +22,12 @@ starts with the first step.
 """
 from __future__ import annotations
 
+import hashlib
 from collections import deque
 from dataclasses import dataclass, field
 
 import can
+import msgspec
 import numpy as np
 
 from bench.bus.can import protocol as p
@@ -105,6 +107,14 @@ class BusCoSimulation:
     def __post_init__(self):
         if not self.faults:
             raise ValueError("a bus co-simulation needs at least one fault")
+        security = self.can_config.security
+        if security.authenticated and not security.key_hex:
+            # The bus lives inside this process, so the key guards nothing; it is derived from the
+            # seed because the MAC's bits change the frames' stuff bits, hence their timing, and a
+            # case must give the same row wherever it runs (pool or Ray).
+            key_hex = hashlib.sha256(f"bus co-simulation seed {self.seed}".encode()).hexdigest()[:32]
+            self.can_config = msgspec.structs.replace(
+                self.can_config, security=msgspec.structs.replace(security, key_hex=key_hex))
         period_s = self.can_config.driver.command_period_s
         self.onset_s = min(f.start_s for f in self.faults)
         self.end_s = max(fault_end_s(f, period_s) for f in self.faults)
