@@ -66,6 +66,10 @@ MALFORMED_PREFIX = "malformed/"
 # seconds of a real-time run) instead of mcap's default 1 MiB, the whole of a short run.
 CHUNK_SIZE_BYTES = 64 * 1024
 CLOCK_SYNC_PERIOD_S = 0.5   # cheap (one query per round); catches short-lived runs
+# A lock-step run of a few hundred steps can be over (its plant gone) within a second of its start,
+# on a loaded host before the first 0.5 s round: ping every 0.1 s over the first seconds.
+CLOCK_SYNC_EARLY_PERIOD_S = 0.1
+CLOCK_SYNC_EARLY_FOR_S = 3.0
 # The writer wakes this often and writes everything queued since, rather than once per sample:
 # on a small machine each wake-up of the recorder competes with the loop's processes for a core.
 DRAIN_PERIOD_S = 0.2
@@ -425,7 +429,9 @@ class ClockSyncThread(threading.Thread):
         self.offsets: dict[str, clock_sync.ClockOffset] = {}
 
     def run(self) -> None:
-        while not self.ctx.stop.wait(CLOCK_SYNC_PERIOD_S):
+        early_until = time.monotonic() + CLOCK_SYNC_EARLY_FOR_S
+        while not self.ctx.stop.wait(CLOCK_SYNC_EARLY_PERIOD_S if time.monotonic() < early_until
+                                     else CLOCK_SYNC_PERIOD_S):
             try:
                 self.offsets = clock_sync.estimate_offsets(self.ctx.session, self.ctx.run_id, rounds=3,
                                                            known=self.offsets)
