@@ -7,10 +7,8 @@ and a test is deterministic and independent of host load. Times are in ns from T
 from __future__ import annotations
 
 import random
-from collections import deque
 from dataclasses import dataclass
 
-import can
 
 from bench.bus.can import protocol as p
 from bench.bus.can.board import AppliedCommand, MagnetorquerBoard
@@ -19,34 +17,10 @@ from bench.bus.can.config import BoardConfig, DriverConfig, SecurityConfig
 from bench.bus.can.driver import MagnetorquerDriver
 from bench.bus.can.faults import FaultSpec
 from bench.bus.can.injector import FaultInjector
+from bench.bus.can.simbus import SimBus, SimClock
 
 T0_NS = 10**12
 STEP_NS = 250_000
-
-
-class SimClock:
-    def __init__(self):
-        self.t_ns = T0_NS
-
-    def __call__(self) -> float:
-        return self.t_ns / 1e9
-
-
-class SimBus:
-    """One node's end of the bus model, with the two calls board and driver make."""
-
-    def __init__(self, model: BusModel, side: str, clock: SimClock):
-        self.model, self.side, self.clock = model, side, clock
-        self.inbox: deque[can.Message] = deque()
-
-    def send(self, msg: can.Message, timeout=None) -> None:
-        self.model.submit(self.side, msg, self.clock.t_ns)
-
-    def recv(self, timeout=0.0):
-        return self.inbox.popleft() if self.inbox else None
-
-    def shutdown(self) -> None:
-        pass
 
 
 @dataclass
@@ -62,7 +36,7 @@ class SimBench:
 
     def __init__(self, *faults: FaultSpec, profile: str = "secoc", board_config: BoardConfig | None = None,
                  security: SecurityConfig | None = None, seed: int = 1, driver_config: DriverConfig | None = None):
-        self.clock = SimClock()
+        self.clock = SimClock(T0_NS)
         self.security = security or SecurityConfig(profile=profile)
         profile = self.security.profile
         # The run's key: the scenario's, else drawn per bench as the launcher draws one per run

@@ -23,10 +23,8 @@ starts with the first step.
 from __future__ import annotations
 
 import hashlib
-from collections import deque
 from dataclasses import dataclass, field
 
-import can
 import msgspec
 import numpy as np
 
@@ -37,6 +35,7 @@ from bench.bus.can.config import CanConfig
 from bench.bus.can.driver import MagnetorquerDriver
 from bench.bus.can.faults import FaultSpec
 from bench.bus.can.injector import FaultInjector
+from bench.bus.can.simbus import SimBus, SimClock
 
 # Simulated time zero of the bus (ns): the mission's t = 0 s. Far from 0 so that no deadline of
 # the driver or board ever looks back before it.
@@ -45,31 +44,6 @@ T0_NS = 10**12
 BENIGN_EVENTS = frozenset({"heartbeat_resumed", "board_error_reset", "error_active", "bus_restarted", "host_overrun"})
 # The board needs a heartbeat and the driver's NMT start before it takes commands (CiA 301).
 BOOT_S = 0.05
-
-
-class _SimBus:
-    """One node's end of the bus model: the two calls the board and the driver make."""
-
-    def __init__(self, model: BusModel, side: str, clock: "_Clock"):
-        self.model, self.side, self.clock = model, side, clock
-        self.inbox: deque[can.Message] = deque()
-
-    def send(self, msg: can.Message, timeout=None) -> None:
-        self.model.submit(self.side, msg, self.clock.t_ns)
-
-    def recv(self, timeout=0.0):
-        return self.inbox.popleft() if self.inbox else None
-
-    def shutdown(self) -> None:
-        pass
-
-
-class _Clock:
-    def __init__(self, t_ns: int):
-        self.t_ns = t_ns
-
-    def __call__(self) -> float:
-        return self.t_ns / 1e9
 
 
 @dataclass
@@ -137,14 +111,14 @@ class BusCoSimulation:
     def _start(self, time_s: float) -> None:
         config = self.can_config
         first_command_ns = T0_NS + round(time_s * 1e9)
-        self.clock = _Clock(first_command_ns - round(BOOT_S * 1e9))
+        self.clock = SimClock(first_command_ns - round(BOOT_S * 1e9))
         outsider = p.Protocol(config.node_id, config.security.profile)     # the injector has no key
         # The bus model arms the injector with the first command frame: fault times count from it.
         shifted = [FaultSpec(name=f.name, frames=list(f.frames), start_s=f.start_s - time_s, duration_s=f.duration_s,
                              count=f.count, every=f.every, params=dict(f.params)) for f in self.faults]
         self.model = BusModel(FaultInjector(shifted, outsider, seed=self.seed), outsider, self.clock.t_ns,
                               to_wall_s=lambda t_ns: t_ns / 1e9)
-        self.buses = {FLIGHT: _SimBus(self.model, FLIGHT, self.clock), BOARD: _SimBus(self.model, BOARD, self.clock)}
+        self.buses = {FLIGHT: SimBus(self.model, FLIGHT, self.clock), BOARD: SimBus(self.model, BOARD, self.clock)}
         self.board = MagnetorquerBoard(self.buses[BOARD], config.board, config.protocol(), clock=self.clock,
                                        security=config.security)
         self.driver = MagnetorquerDriver.from_config(self.buses[FLIGHT], config, clock=self.clock, wall_clock=self.clock)
