@@ -71,7 +71,11 @@ def start_campaign(tmp_path: Path, case: str, seeds: int, workers: int = 2):
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), str(TESTS_DIR), os.environ.get("PYTHONPATH", "")])}
     command = [sys.executable, "-m", "bench.cli", "campaign", str(spec), "--out", str(out), "--workers", str(workers),
                "--flush-every", "1", "--no-progress", "--no-report"]
-    process = subprocess.Popen(command, start_new_session=True, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    # As from a shell prompt: SIGINT at its default disposition. An ignored SIGINT survives exec and
+    # Python then leaves it ignored, and this test's process may have inherited one from whatever
+    # ran before it in the same pytest worker (a Ctrl-C then does nothing and the campaign runs on).
+    process = subprocess.Popen(command, start_new_session=True, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                               preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     return process, out
 
 
