@@ -3,10 +3,10 @@
 The board drops to its safe state when commands stop for its command timeout (0.1 s), far shorter
 than a 600 s plant step, so the driver commands on its own thread at its own period (CommandLoop),
 with the dipole the scenario scripts, or from an attitude law's first dipole on (nothing before
-it, so the first command frame, from which the bus faults count, is the loop's first step); a
-law's dipole goes out the moment the law gives it too, in the "mixed" and "on_change" transmission modes
-([can.driver] transmission). Every fault the driver
-detects is logged as it happens and written, with its detection latency, to can/driver.json.
+it, so the first command frame, from which the bus faults count, is the loop's first step). A
+law's dipole also goes out the moment the law gives it, in the "mixed" and "on_change"
+transmission modes ([can.driver] transmission). Every fault the driver detects is logged as it
+happens and written, with its detection latency, to can/driver.json.
 """
 from __future__ import annotations
 
