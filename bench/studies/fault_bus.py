@@ -25,7 +25,6 @@ from __future__ import annotations
 import hashlib
 from dataclasses import dataclass, field
 
-import msgspec
 import numpy as np
 
 from bench.bus.can import protocol as p
@@ -35,6 +34,7 @@ from bench.bus.can.config import CanConfig
 from bench.bus.can.driver import MagnetorquerDriver
 from bench.bus.can.faults import FaultSpec
 from bench.bus.can.injector import FaultInjector
+from bench.bus.can.run_key import can_needs_key, can_with_key
 from bench.bus.can.simbus import SimBus, SimClock
 
 # Simulated time zero of the bus (ns): the mission's t = 0 s. Far from 0 so that no deadline of
@@ -81,14 +81,12 @@ class BusCoSimulation:
     def __post_init__(self):
         if not self.faults:
             raise ValueError("a bus co-simulation needs at least one fault")
-        security = self.can_config.security
-        if security.authenticated and not security.key_hex:
+        if can_needs_key(self.can_config):
             # The bus lives inside this process, so the key guards nothing; it is derived from the
             # seed because the MAC's bits change the frames' stuff bits, hence their timing, and a
             # case must give the same row wherever it runs (pool or Ray).
             key_hex = hashlib.sha256(f"bus co-simulation seed {self.seed}".encode()).hexdigest()[:32]
-            self.can_config = msgspec.structs.replace(
-                self.can_config, security=msgspec.structs.replace(security, key_hex=key_hex))
+            self.can_config = can_with_key(self.can_config, key_hex)
         period_s = self.can_config.driver.command_period_s
         self.onset_s = min(f.start_s for f in self.faults)
         self.end_s = max(fault_end_s(f, period_s) for f in self.faults)

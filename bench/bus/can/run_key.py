@@ -19,9 +19,18 @@ KEY_BYTES = 16
 SCENARIO_FILE_MODE = 0o600
 
 
-def needs_key(scenario) -> bool:
-    can = getattr(scenario, "can", None)
+def can_needs_key(can) -> bool:
+    """A [can] section on an authenticated profile without its key."""
     return can is not None and can.security.authenticated and not can.security.key_hex
+
+
+def can_with_key(can, key_hex: str):
+    """The [can] section with this SecOC key."""
+    return msgspec.structs.replace(can, security=msgspec.structs.replace(can.security, key_hex=key_hex))
+
+
+def needs_key(scenario) -> bool:
+    return can_needs_key(getattr(scenario, "can", None))
 
 
 def with_run_key(scenario, cert_dir: Path | None = None):
@@ -33,9 +42,7 @@ def with_run_key(scenario, cert_dir: Path | None = None):
         from bench.bus.certs import read_secoc_key
         key_hex = read_secoc_key(cert_dir)
     key_hex = key_hex or secrets.token_hex(KEY_BYTES)
-    can = scenario.can
-    security = msgspec.structs.replace(can.security, key_hex=key_hex)
-    return msgspec.structs.replace(scenario, can=msgspec.structs.replace(can, security=security))
+    return msgspec.structs.replace(scenario, can=can_with_key(scenario.can, key_hex))
 
 
 def write_private(path: Path, data: bytes) -> None:
