@@ -31,6 +31,7 @@ import zenoh
 
 from bench.bus import acl, keys
 from bench.bus.can import run_key
+from bench.bus.can.sim_window import bus_on_simulated_time
 from bench.bus.schemas import ProcessStats, StepDone, decode, MalformedMessage
 from bench.bus.certs import CertificateError, identity_files, write_deployment_certs
 from bench.bus.deployment import LAUNCHER, Deployment, DeploymentError, load_deployment
@@ -90,7 +91,8 @@ def nodes_for(scenario: Scenario) -> list[str]:
     vanish at shutdown."""
     names = ["recorder"] if "recorder" in NODES else []
     if scenario.can is not None:
-        names += ["canbus", "mtq"]
+        # On simulated time the board runs with the bus model, in canbus (bench/bus/can/lockstep_bus.py).
+        names += ["canbus"] if bus_on_simulated_time(scenario) else ["canbus", "mtq"]
     names += ["plant", "estimator", "controller"]
     if scenario.kind == "attitude" and scenario.attitude_control.law in PLANNED_LAWS:
         names.append("planner")    # MILQR plans for the controller's tracker (issue 12)

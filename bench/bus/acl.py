@@ -60,14 +60,16 @@ ROLES: dict[str, Role] = {
         subscribes=("sense/*", keys.TRUTH, "truth/*", keys.COMMAND_THRUST),
     ),
     "controller": Role(
-        publishes=("command/*", keys.EVENT_DEADLINE),
-        subscribes=("estimate/*", "plan/*"),
+        publishes=("command/*", keys.EVENT_DEADLINE, keys.CAN_STEP_FLIGHT),
+        subscribes=("estimate/*", "plan/*", keys.CAN_STEP_BUS),
         can_channels=(_CAN.flight_channel,),   # the magnetorquer driver lives in the controller
     ),
     # MILQR plans from the attitude estimate; it commands nothing itself.
     "planner": Role(publishes=(keys.PLAN_ATTITUDE,), subscribes=(keys.ESTIMATE_ATTITUDE,)),
     "mtq": Role(publishes=(keys.ACTUATOR_MTQ,), can_channels=(_CAN.board_channel,)),
-    "canbus": Role(can_channels=(_CAN.flight_channel, _CAN.board_channel)),
+    # In lock-step with the bus on simulated time the board runs inside canbus (sim_window.py).
+    "canbus": Role(publishes=(keys.CAN_STEP_BUS, keys.ACTUATOR_MTQ), subscribes=(keys.CAN_STEP_FLIGHT,),
+                   can_channels=(_CAN.flight_channel, _CAN.board_channel)),
     "recorder": Role(subscribes=("**",), queries_clocks=True),
     "launcher": Role(subscribes=(keys.STATUS_STEP, f"{keys.STATUS_STATS}/*")),
     "router": Role(),

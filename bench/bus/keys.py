@@ -12,6 +12,10 @@ ESTIMATE_TRANSLATION = "estimate/translation"
 COMMAND_THRUST = "command/thrust"
 COMMAND_APPLIED = "command/applied"   # the command the plant applied, with its full stamp chain
 ACTUATOR_MTQ = "actuator/mtq"
+# Lock-step on simulated time (bench/bus/can/sim_window.py): a step's CAN frames, driver -> bus
+# and bus -> driver, one CanWindow each way per step.
+CAN_STEP_FLIGHT = "canstep/flight"
+CAN_STEP_BUS = "canstep/bus"
 # The attitude loop (issue 11).
 SENSE_GYRO = "sense/gyro"            # every plant step (the gyro rate)
 SENSE_MAG = "sense/mag"              # on the magnetometer's ticks

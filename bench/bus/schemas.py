@@ -168,6 +168,11 @@ class MtqApplied(Message, tag="mtq_applied"):
     safe_state: bool                 # coils off: no valid command within the command timeout
     actuation_paused: bool = False   # coils off for a magnetometer sampling window
     alive_counter: NonNegInt = 0
+    # Lock-step on simulated time (bench/bus/can/lockstep_bus.py): one report per plant step, of the
+    # coil drivers' output averaged over step `step`; command_applied: a command frame of the
+    # step was applied (its counter is alive_counter). None on the wall clock.
+    step: NonNegInt | None = None
+    command_applied: bool | None = None
 
 
 # --- the attitude loop (issue 11) ---------------------------------------------------------------

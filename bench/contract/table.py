@@ -11,6 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from bench.bus import keys
+from bench.bus.can.sim_window import CanWindow
 from bench.bus.plan_message import AttitudePlanMessage
 from bench.bus.schemas import (
     AttitudeEstimate, AttitudeTruth, DeadlineEvent, DipoleCommand, GyroSample, MagnetometerSample, Message, MtqApplied,
@@ -49,7 +50,12 @@ TOPICS: tuple[Topic, ...] = (
           "the thrust command for step k: header.seq = k"),
     Topic(keys.COMMAND_APPLIED, (ThrustCommand, DipoleCommand), BOTH, ("plant",), (),
           "the command the plant applied, with every stamp (recorder, reports)"),
-    Topic(keys.ACTUATOR_MTQ, (MtqApplied,), BOTH, ("mtq",), ("plant",), "the dipole the magnetorquer board applies"),
+    Topic(keys.ACTUATOR_MTQ, (MtqApplied,), BOTH, ("mtq", "canbus"), ("plant",),
+          "the dipole the magnetorquer board applies (canbus: per step, bus on simulated time)"),
+    Topic(keys.CAN_STEP_FLIGHT, (CanWindow,), ATTITUDE, ("controller",), ("canbus",),
+          "lock-step, bus on simulated time: the driver's CAN frames of step k at their simulated times"),
+    Topic(keys.CAN_STEP_BUS, (CanWindow,), ATTITUDE, ("canbus",), ("controller",),
+          "lock-step, bus on simulated time: the CAN frames the driver heard during step k"),
     Topic(keys.SENSE_GYRO, (GyroSample,), ATTITUDE, ("plant",), ("estimator",), "gyro rate of step k; closes the tick"),
     Topic(keys.SENSE_MAG, (MagnetometerSample,), ATTITUDE, ("plant",), ("estimator",), "magnetometer sample, on its ticks"),
     Topic(keys.SENSE_STAR, (StarTrackerSample,), ATTITUDE, ("plant",), ("estimator",), "star-tracker attitude, on its ticks"),
@@ -61,7 +67,7 @@ TOPICS: tuple[Topic, ...] = (
     Topic(keys.EVENT_DEADLINE, (DeadlineEvent,), BOTH, ("plant", "controller"), (), "a deadline miss, as it happens"),
     Topic(keys.STATUS_STEP, (StepDone,), BOTH, ("plant",), ("launcher",), "step k integrated (`finished` on the last)"),
     Topic(f"{keys.STATUS_STATS}/<process>", (ProcessStats,), BOTH,
-          ("plant", "estimator", "controller", "planner", "mtq", "recorder"), ("launcher",),
+          ("plant", "estimator", "controller", "planner", "mtq", "canbus", "recorder"), ("launcher",),
           "a node's counts, once, as it stops (under its own name)"),
 )
 # Liveliness tokens (not data): what the launcher and the plant wait for.

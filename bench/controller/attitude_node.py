@@ -4,11 +4,15 @@ link, once per plant step, under the deadline monitor.
 reads:  estimate/attitude (AttitudeEstimate)
         plan/attitude     (AttitudePlanMessage from `bench node planner`; law "tvlqr_plan" only,
                            bench.controller.plan_tracking: lock-step waits for a plan that is due)
+        canstep/bus       (CanWindow: lock-step, bus on simulated time: the frames the driver heard)
 writes: command/dipole (DipoleCommand: the law's dipole and the alive counter of the first CAN
         frame that carried it), event/deadline; CAN command frames through the driver
-The driver's command loop (its own thread) sends the newest dipole every command period, so the
-board never times out between plant steps; in the "mixed" transmission mode (the default) the
-law's dipole also goes out the moment the law gives it.
+        (canstep/flight, one CanWindow per step, when the bus is on simulated time)
+On the wall clock the driver's command loop (its own thread) sends the newest dipole every command
+period, so the board never times out between plant steps; in the "mixed" transmission mode (the
+default) the law's dipole also goes out the moment the law gives it. In lock-step with the bus on
+simulated time (bench/bus/can/sim_window.py) the same frames go out at their simulated times, a
+step's worth at once (mtq_link.LockStepLink).
 Summary: deadline_controller.json; the driver's view of the bus: can/driver.json.
 """
 from __future__ import annotations
@@ -20,10 +24,11 @@ import time
 import numpy as np
 
 from bench.bus import keys
+from bench.bus.can.sim_window import bus_on_simulated_time
 from bench.bus.schemas import AttitudeEstimate, DipoleCommand
 from bench.controller.attitude_cycle import AttitudeCycle
 from bench.controller.config import PLANNED_LAWS
-from bench.controller.mtq_link import MagnetorquerLink
+from bench.controller.mtq_link import LockStepLink, MagnetorquerLink
 from bench.runtime.node import NodeContext
 
 
@@ -36,7 +41,7 @@ class DipoleSender:
         self._pending: tuple[list[float], threading.Event, list, int] | None = None
         link.loop.on_command = self._on_command
 
-    def send(self, dipole_am2: np.ndarray, timeout_s: float) -> tuple[int, int | None]:
+    def send(self, step: int, dipole_am2: np.ndarray, timeout_s: float) -> tuple[int, int | None]:
         """(alive counter, can_sent ns) of the first frame with this dipole; (-1, None) on timeout."""
         dipole = [float(x) for x in dipole_am2]
         done, result = threading.Event(), []
@@ -81,8 +86,12 @@ def command_send_timeout_s(scenario) -> float:
 def run(ctx: NodeContext) -> int:
     scenario = ctx.scenario
     cycle = AttitudeCycle(scenario)
-    link = MagnetorquerLink(ctx, scenario.can, scripted=False) if scenario.can is not None else None
-    sender = DipoleSender(link) if link is not None else None
+    link = sender = None
+    if bus_on_simulated_time(scenario):
+        link = sender = LockStepLink(ctx, scenario.can, scenario.step_s, scenario.run.command_timeout_s)
+    elif scenario.can is not None:
+        link = MagnetorquerLink(ctx, scenario.can, scripted=False)
+        sender = DipoleSender(link)
     send_timeout_s = command_send_timeout_s(scenario)
     estimates = ctx.subscribe_queue(keys.ESTIMATE_ATTITUDE, AttitudeEstimate)
     follower = None
@@ -104,7 +113,7 @@ def run(ctx: NodeContext) -> int:
         hdr = hdr.stamped("commanded", time.monotonic_ns())
         counter = -1
         if sender is not None:
-            counter, sent_ns = sender.send(outcome.dipole_am2, send_timeout_s)
+            counter, sent_ns = sender.send(estimate.header.seq, outcome.dipole_am2, send_timeout_s)
             if sent_ns is not None:
                 hdr = hdr.stamped("can_sent", sent_ns)
         monitored = outcome.monitored

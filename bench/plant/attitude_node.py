@@ -12,8 +12,11 @@ writes: sense/mag        (MagnetometerSample, every magnetometer_period_s, or on
                          board's report of the frame that carried it: bench/plant/mtq_chain.py), status/step,
         event/deadline   (real-time: step k's command not in before step k+1)
 
-lock-step: publish step k, wait for command k, then for the board's report of a command frame at
-or after the one that carried it (alive counter c .. c+7 modulo 16: later frames of the driver's
+lock-step, bus on simulated time (the default, bench/bus/can/sim_window.py): publish step k, wait
+for command k, then for the canbus process's report of step k (MtqApplied with step = k: the coil
+drivers' output averaged over the step, the board and the bus having run on simulated time), integrate.
+lock-step, bus on the wall clock ([can] lock_step_clock = "wall", or a kernel bus): publish step k,
+wait for command k, then for the board's report of a command frame at or after the one that carried it (alive counter c .. c+7 modulo 16: later frames of the driver's
 command loop carry the same dipole), integrate. The board and the driver stay on the wall clock:
 the driver keeps commanding the current dipole every command period while the plant waits, so the
 board never times out, and the plant pairs reports with commands by counter, not by time; that
@@ -31,6 +34,7 @@ import time
 import numpy as np
 
 from bench.bus import keys
+from bench.bus.can.sim_window import bus_on_simulated_time
 from bench.bus.schemas import (
     AttitudeTruth, DipoleCommand, GyroSample, MagnetometerSample, Message, MtqApplied, StarTrackerSample, StepDone,
     header,
@@ -76,6 +80,10 @@ class BoardReports:
             return exact
         return self._wait(lambda m: (m.alive_counter - counter) % COUNTER_MODULO < COUNTER_WINDOW
                           and np.array_equal(m.dipole_am2, expected_am2), since_ns, REPORT_WAIT_S)
+
+    def wait_for_step(self, step: int, timeout_s: float) -> MtqApplied | None:
+        """Lock-step on simulated time: the report of the coils over plant step `step`."""
+        return self._wait(lambda m: m.step == step, 0, timeout_s)
 
     def _wait(self, matches, since_ns: int, timeout_s: float) -> MtqApplied | None:
         deadline = time.monotonic() + timeout_s
@@ -176,6 +184,7 @@ def run(ctx: NodeContext) -> int:
     ctx.log.info("peers ready (%s); attitude loop, %d steps of %.3f s in %s mode", ", ".join(ctx.peers), n_steps,
                  plant.dt_s, scenario.run.mode)
     realtime = scenario.run.mode == "real-time"
+    simulated_bus = bus_on_simulated_time(scenario)
     clock = RealTimeClock(plant.dt_s / scenario.run.time_factor) if realtime else None
     # a command frame's report can be told from another's until the alive counter wraps
     chains = CommandChains(n_steps, COUNTER_MODULO * scenario.can.driver.command_period_s if scenario.can else 1.0)
@@ -208,7 +217,10 @@ def run(ctx: NodeContext) -> int:
                 if command is None:   # only refused commands came: the controller's step is lost
                     raise LoopBroken(f"step {k}: every dipole command was refused ({dict(command_gate.rejected)})")
                 last_command = command
-                dipole, report = _lockstep_dipole(scenario, acceptance, reports, command, step_started_ns, log, k)
+                if simulated_bus:
+                    dipole, report = _simulated_bus_dipole(scenario, acceptance, reports, command, log, k)
+                else:
+                    dipole, report = _lockstep_dipole(scenario, acceptance, reports, command, step_started_ns, log, k)
             if report is not None:
                 log.board_applied_ns[k] = report.header.stamps_ns.get("applied", -1)
             applied_ns = time.monotonic_ns()
@@ -260,6 +272,21 @@ def _lockstep_dipole(scenario, acceptance, reports, command, since_ns, log, k):
         dipole, reason = acceptance.accept(report.dipole_am2, None)
         log.refused[k] = reason is not None
         log.safe_state[k] = report.safe_state
+    log.reported[k] = dipole
+    return dipole, report
+
+
+def _simulated_bus_dipole(scenario, acceptance, reports, command, log, k):
+    log.commanded[k] = command.dipole_am2
+    log.counter[k] = command.alive_counter
+    report = reports.wait_for_step(k, scenario.run.command_timeout_s)
+    if report is None:
+        raise LoopBroken(f"step {k}: no report of the coils from the CAN bus within {scenario.run.command_timeout_s:g} s")
+    dipole, reason = acceptance.accept(report.dipole_am2, None)
+    # The step's command not applied (lost, rejected, the board in safe state): what the coils did
+    # is still what the plant gets, and the step counts as refused.
+    log.refused[k] = reason is not None or not report.command_applied
+    log.safe_state[k] = report.safe_state
     log.reported[k] = dipole
     return dipole, report
 

@@ -7,6 +7,9 @@ time (the bus is busy in wall time), each window placed at the simulated time it
 window starts at the injector's arming time (the driver's first command frame, busmodel.json
 `faults_t0_ns`) plus the scenario's `start_s`, and ends after its `duration_s` or, for a fault
 limited by a frame count, at the last frame it affected; a window is clipped to the run.
+A bus that ran on simulated time (lock-step, busmodel.json `clock` = "simulated") stamped all of
+these in bus time: simulated seconds are `(t_ns - sim_zero_ns) / 1e9`, and can.log's timestamps
+are `t_ns / 1e9`.
 """
 from __future__ import annotations
 
@@ -61,7 +64,7 @@ def bus_load(run: RunData) -> BusLoad | None:
     can_cfg = getattr(run.scenario, "can", None)
     bitrate = int(getattr(can_cfg, "bitrate_bps", DEFAULT_BITRATE_BPS))
     model = _bus_model_report(run.run_dir)
-    clock = RunClock.from_run(run.trajectory, run.scenario)
+    clock = _bus_clock(model, RunClock.from_run(run.trajectory, run.scenario))
     result = BusLoad(np.zeros(0), np.zeros(0), len(frames), bitrate, fault_windows_sim_s(run.run_dir, can_cfg, clock),
                      _injections(run.run_dir, clock), on_sim_time=clock is not None and "wall_offset_s" in model)
     if frames:
@@ -84,6 +87,26 @@ def bus_load(run: RunData) -> BusLoad | None:
     return result
 
 
+@dataclass(frozen=True)
+class _SimulatedBusClock:
+    """The map of a bus that ran on simulated time: bus ns -> simulated s (RunClock's interface)."""
+    sim_zero_ns: int
+    start_sim_s: float
+    end_sim_s: float
+    sim_s_per_wall_s: float = 1.0
+
+    def sim_s(self, t_ns):
+        out = (np.asarray(t_ns, dtype=float) - self.sim_zero_ns) / 1e9
+        return float(out) if out.ndim == 0 else out
+
+
+def _bus_clock(model: dict, run_clock: RunClock | None):
+    """How this run's bus stamps map to simulated time: the run's clock, or the bus's own."""
+    if model.get("clock") != "simulated" or run_clock is None:
+        return run_clock
+    return _SimulatedBusClock(int(model["sim_zero_ns"]), run_clock.start_sim_s, run_clock.end_sim_s)
+
+
 def _bus_model_report(run_dir: Path) -> dict:
     path = Path(run_dir) / BUSMODEL_FILE
     try:
@@ -97,6 +120,7 @@ def fault_windows_sim_s(run_dir: Path, can_cfg, clock: RunClock | None) -> list[
     without the bus model's arming time or the plant's stamps (nothing to place them by)."""
     faults = list(getattr(can_cfg, "faults", None) or [])
     model = _bus_model_report(run_dir)
+    clock = _bus_clock(model, clock)
     t0_ns = model.get("faults_t0_ns")
     if not faults or t0_ns is None or clock is None:
         return []
@@ -121,5 +145,6 @@ def _injections(run_dir: Path, clock: RunClock | None) -> list[tuple[float, str,
     records = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
     if not records:
         return []
+    clock = _bus_clock(_bus_model_report(run_dir), clock)
     times = clock.sim_s(np.asarray([r["t_ns"] for r in records], dtype=float))
     return [(float(t), r["fault"], r["action"]) for t, r in zip(np.atleast_1d(times), records)]

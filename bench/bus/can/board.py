@@ -349,6 +349,27 @@ class MagnetorquerBoard:
             self._send(self.protocol.encode(p.HEARTBEAT, {"NmtState": self.nmt_state}))
             self._next_heartbeat_s = _next_tick(self._next_heartbeat_s, c.heartbeat_period_s, now_s)
 
+    def next_due_s(self, now_s: float) -> float:
+        """The earliest time after now_s at which `update` has something to do: a periodic frame,
+        the command timeout, an E2E check without new data, a held EMCY, a magnetometer window
+        edge. An event-driven caller (lock-step on simulated time) wakes the board then."""
+        c, s = self.config, self.state
+        due = [self._next_heartbeat_s]
+        if self.nmt_state == p.NMT_OPERATIONAL:
+            due.append(self._next_telemetry_s)
+        if self._last_command_s is not None and not s.safe_state:
+            due.append(self._last_command_s + c.command_timeout_s + 1e-9)   # update() tests "longer than"
+        if self._next_no_data_s is not None:
+            due.append(self._next_no_data_s)
+        if self._pending_emcy and self._last_emcy_s is not None:
+            due.append(self._last_emcy_s + c.emcy_inhibit_s)
+        if c.mag_window_period_s > 0 and c.mag_window_s > 0 and self._started_s is not None:
+            phase_s = (now_s - self._started_s) % c.mag_window_period_s
+            window_start_s = now_s - phase_s
+            due += [edge for edge in (window_start_s + c.mag_window_s, window_start_s + c.mag_window_period_s)
+                    if edge > now_s]
+        return max(now_s, min(due))
+
     def _count_late(self, late_s: float, period_s: float) -> None:
         """A periodic frame more than half its period late: this process was not scheduled in
         time (a host overrun, which the flight side would otherwise take for a bus fault)."""

@@ -430,10 +430,10 @@ class RealTimeBridge:
     MAX_TRANSPORT_DELAY_NS = 1_000_000_000
     # A delivery leaving this much after its last bit passed in the model, or a wait ending this
     # much after it should: this process was not scheduled in time (a host overrun). Recorded so
-    # the flight side's fault checks can tell a starved bridge from a bus fault; 10x granularity.
+    # the flight side's fault checks can tell a starved bridge from a bus fault.
     HOST_LATE_S = 0.005
 
-    def __init__(self, model: BusModel, buses: dict[str, can.BusABC], granularity_s: float = 0.0005):
+    def __init__(self, model: BusModel, buses: dict[str, can.BusABC], granularity_s: float = 0.0001):
         self.model = model
         self.buses = buses
         self.granularity_s = granularity_s
@@ -443,7 +443,15 @@ class RealTimeBridge:
         # queue.Queue, not SimpleQueue: on CPython 3.11 a SimpleQueue.get(timeout) that a signal
         # interrupts (SIGTERM: stop) was seen never to return, so the node could not stop.
         self._inbox: queue.Queue = queue.Queue()
-        self._notifiers = [can.Notifier(bus, [_Inbox(side, self._inbox)], timeout=0.05) for side, bus in buses.items()]
+        # A bus that can hand its frames over on its own receive thread (the Zenoh transport) does;
+        # any other python-can bus gets a Notifier thread that reads it.
+        self._notifiers = []
+        for side, bus in buses.items():
+            listener = _Inbox(side, self._inbox)
+            if hasattr(bus, "forward_to"):
+                bus.forward_to(listener.on_message_received)
+            else:
+                self._notifiers.append(can.Notifier(bus, [listener], timeout=0.05))
 
     def run(self, stop) -> None:
         try:

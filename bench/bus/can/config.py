@@ -137,6 +137,14 @@ class CanConfig(msgspec.Struct, forbid_unknown_fields=True):
     profile_repeat_s: NonNegS = 1.8
     faults: Annotated[list[FaultSpec], msgspec.Meta(max_length=256)] = []
     capture: bool = True               # candump .log of the bus model in the run directory
+    # Lock-step attitude runs: "simulated" runs the driver's periodic frames, the bus's bit times
+    # and the board's timeouts and heartbeats on the run's simulated time (bench/bus/can/sim_window.py),
+    # every frame of every simulated second computed; "wall" keeps them on the wall clock and pairs
+    # the board's reports with commands by counter (what a kernel bus or a part from outside needs;
+    # on a fault-free bus the trajectory is the same, at the cost of the hops only). "auto": simulated
+    # when the scenario injects bus faults, whose timing then must not depend on the host.
+    # Real-time runs are on the wall clock.
+    lock_step_clock: Literal["auto", "simulated", "wall"] = "auto"
 
     def __post_init__(self):
         times = [s.t_s for s in self.dipole_profile]

@@ -54,7 +54,7 @@ RECENT_COMMANDS = 64
 @dataclass(frozen=True)
 class FaultEvent:
     kind: str                 # see KINDS
-    detected_ns: int          # time.monotonic_ns() when detected
+    detected_ns: int          # when detected: time.monotonic_ns(), or bus time on simulated time (sim_window)
     latency_s: float          # driver's estimate of detection latency (see module docstring)
     frame: str = ""
     detail: str = ""
@@ -117,7 +117,7 @@ class MagnetorquerDriver:
 
     def __init__(self, bus: can.BusABC, config: DriverConfig, board: BoardConfig, protocol: p.Protocol,
                  clock: Callable[[], float] = time.monotonic, wall_clock: Callable[[], float] = time.time,
-                 bitrate_bps: int = 1_000_000):
+                 bitrate_bps: int = 1_000_000, event_clock_ns: Callable[[], int] = time.monotonic_ns):
         if protocol.profile == "secoc" and protocol.key is None:
             raise ValueError("the secoc profile needs the key in the driver's Protocol "
                              "(can.security.key_hex is empty: run it from the launcher's scenario.json)")
@@ -127,6 +127,7 @@ class MagnetorquerDriver:
         self.protocol = protocol
         self.clock = clock
         self.wall_clock = wall_clock
+        self.event_clock_ns = event_clock_ns
         self.events: deque[FaultEvent] = deque(maxlen=MAX_EVENTS_KEPT)
         self.event_counts: Counter = Counter()
         self.sent_frames = 0                 # commands (NMT frames are counted in nmt_sent)
@@ -200,6 +201,12 @@ class MagnetorquerDriver:
             self.frames_in_last_poll = handled
             self.check_deadlines(self.clock())
             events, self._new_events = self._new_events, []
+        return events
+
+    def take_events(self) -> list[FaultEvent]:
+        """The events detected since the last `poll` or `take_events` (a caller that hands the
+        driver its frames with `handle` and checks its deadlines itself: lock-step)."""
+        events, self._new_events = self._new_events, []
         return events
 
     def handle(self, msg: can.Message) -> None:
@@ -345,7 +352,7 @@ class MagnetorquerDriver:
 
     # --- reporting ------------------------------------------------------------------------
     def _event(self, kind: str, latency_s: float, frame: str = "", detail: str = "") -> None:
-        event = FaultEvent(kind, time.monotonic_ns(), max(0.0, latency_s), frame, detail)
+        event = FaultEvent(kind, self.event_clock_ns(), max(0.0, latency_s), frame, detail)
         if kind in HEALTH_FAULTS:
             self._fault_seen_s[kind] = self.clock()
         self.events.append(event)

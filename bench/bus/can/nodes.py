@@ -3,6 +3,13 @@
 Each opens its CAN buses on the scenario's transport and writes what a test or a report needs
 into <run_dir>/can/ when it stops: the board its counts and every command it applied, the bus
 model its report, the injector's log and the candump capture.
+
+In lock-step with the bus on simulated time (bench/bus/can/sim_window.py) there is no "mtq"
+process: "canbus" runs the board with the bus model on the simulated clock
+(bench/bus/can/lockstep_bus.py).
+reads:  canstep/flight (CanWindow: the driver's frames of step k)
+writes: canstep/bus    (CanWindow: the frames the driver heard during step k),
+        actuator/mtq   (MtqApplied with `step` = k: the coils' output averaged over the step)
 """
 from __future__ import annotations
 
@@ -19,6 +26,8 @@ from bench.bus.can.busmodel import BOARD, CHANNEL_BUS, FLIGHT, BusModel, RealTim
 from bench.bus.can.config import CanConfig
 from bench.bus.can.injector import FaultInjector
 from bench.bus.can.transport import open_can_bus
+from bench.bus.can.lockstep_bus import LockStepBus
+from bench.bus.can.sim_window import SIM_ZERO_NS, CanWindow, bus_on_simulated_time
 from bench.bus.schemas import MtqApplied, header
 
 PEER_WAIT_S = 10.0
@@ -89,14 +98,18 @@ def run_board(ctx) -> int:
         ctx.declare_ready([])   # the plant starts the loop once every node is ready
         board.run(ctx.stop)
     finally:
-        summary = {"sent": dict(board.sent), "received": dict(board.received), "accepted": board.accepted,
-                   "rejected": dict(board.rejected), "bad_frames": dict(board.protocol.bad.counts),
-                   "ignored": dict(board.ignored), "lost_commands": board.lost_commands, "nmt_state": board.nmt_state,
-                   **board.host_lateness.report(), "applied": applied}
-        (can_dir(ctx.run_dir) / BOARD_NAME).write_text(json.dumps(summary))
-        ctx.log.info("board: sent %s, accepted %d, rejected %s", dict(board.sent), board.accepted, dict(board.rejected))
+        _write_board_summary(ctx, board, applied)
         bus.shutdown()
     return 0
+
+
+def _write_board_summary(ctx, board: MagnetorquerBoard, applied: list[dict]) -> None:
+    summary = {"sent": dict(board.sent), "received": dict(board.received), "accepted": board.accepted,
+               "rejected": dict(board.rejected), "bad_frames": dict(board.protocol.bad.counts),
+               "ignored": dict(board.ignored), "lost_commands": board.lost_commands, "nmt_state": board.nmt_state,
+               **board.host_lateness.report(), "applied": applied}
+    (can_dir(ctx.run_dir) / BOARD_NAME).write_text(json.dumps(summary))
+    ctx.log.info("board: sent %s, accepted %d, rejected %s", dict(board.sent), board.accepted, dict(board.rejected))
 
 
 # --- node "canbus" ------------------------------------------------------------------------------
@@ -119,6 +132,8 @@ def run_bus_model(ctx) -> int:
     config = _can_config(ctx)
     if config is None:
         return 2
+    if bus_on_simulated_time(ctx.scenario):
+        return run_lockstep_bus(ctx, config)
     out = can_dir(ctx.run_dir)
     buses = {FLIGHT: open_node_bus(ctx, config, config.flight_channel),
              BOARD: open_node_bus(ctx, config, config.board_channel)}
@@ -135,19 +150,66 @@ def run_bus_model(ctx) -> int:
         bridge.run(ctx.stop)
     finally:
         # Results first: whatever happens while the buses close, the run's record is on disk.
-        if capture is not None:
-            capture.stop()
         report = model.report()
         report.update(bridge.report())
         report["t0_ns"] = t0_ns
         report["wall_offset_s"] = wall_offset_s   # can.log's wall timestamps = monotonic + this
-        (out / REPORT_NAME).write_text(json.dumps(report, indent=1))
-        with open(out / INJECTIONS_NAME, "w") as f:
-            for record in injector.records:
-                f.write(json.dumps(record.__dict__) + "\n")
-        ctx.log.info("bus load %.1f %%, frames %s, dropped %s", report["bus_load_pct"], report["frames"], report["dropped"])
+        _write_bus_results(ctx, capture, report, injector)
         for bus in buses.values():
             bus.shutdown()
+    return 0
+
+
+def _write_bus_results(ctx, capture: Capture | None, report: dict, injector: FaultInjector) -> None:
+    out = can_dir(ctx.run_dir)
+    if capture is not None:
+        capture.stop()
+    (out / REPORT_NAME).write_text(json.dumps(report, indent=1))
+    with open(out / INJECTIONS_NAME, "w") as f:
+        for record in injector.records:
+            f.write(json.dumps(record.__dict__) + "\n")
+    if "bus_load_pct" in report:
+        ctx.log.info("bus load %.1f %%, frames %s, dropped %s", report["bus_load_pct"], report["frames"], report["dropped"])
+
+
+def run_lockstep_bus(ctx, config: CanConfig) -> int:
+    """The bus and the board on simulated time: one CanWindow in, one out, and the step's coils."""
+    capture = Capture(Path(ctx.run_dir) / CAPTURE_NAME, can_dir(ctx.run_dir) / ACCOUNTING_NAME) if config.capture else None
+    bus = LockStepBus(config, seed=ctx.scenario.run.seed, capture=capture)
+    windows = ctx.subscribe_queue(keys.CAN_STEP_FLIGHT, CanWindow)
+    # Not actuator/mtq: its reader, the plant, subscribes before it waits for this token, and
+    # the driver boots the board through canstep/* before the plant is up.
+    ctx.declare_ready([keys.CAN_STEP_BUS])
+    try:
+        for window in ctx.until_stopped(windows):
+            received_ns = time.monotonic_ns()
+            try:
+                heard, coils = bus.advance(window.start_ns, window.end_ns, window.frames)
+            except ValueError as exc:   # out of order or outside its step: refused, counted, never applied
+                ctx.malformed[keys.CAN_STEP_FLIGHT] += 1
+                ctx.log.error("lock-step CAN window of step %d refused: %s", window.step, exc)
+                continue
+            ctx.publish(keys.CAN_STEP_BUS, CanWindow(header(ctx.run_id, window.header.seq, window.header.sim_time_s),
+                                                     window.step, window.start_ns, window.end_ns, heard))
+            if window.step < 0:
+                continue        # the board's boot, before step 0
+            counter = coils.applied_counter if coils.applied_counter is not None else bus.board.state.last_command_counter
+            ctx.publish(keys.ACTUATOR_MTQ, MtqApplied(
+                header(ctx.run_id, window.step, window.header.sim_time_s, board_received=received_ns,
+                       applied=time.monotonic_ns()),
+                dipole_am2=coils.dipole_am2.tolist(), coil_current_a=coils.coil_current_a.tolist(),
+                safe_state=coils.safe_state, actuation_paused=coils.actuation_paused, alive_counter=counter,
+                step=window.step, command_applied=coils.applied_counter is not None))
+    finally:
+        if bus.t_ns is not None:
+            # Bus time throughout: can.log stamps are t_ns / 1e9 (wall_offset_s 0), events t_ns.
+            report = bus.report() | {"clock": "simulated", "sim_zero_ns": SIM_ZERO_NS, "wall_offset_s": 0.0}
+            _write_bus_results(ctx, capture, report, bus.injector)
+            _write_board_summary(ctx, bus.board, [
+                {"counter": c.alive_counter, "dipole_am2": c.dipole_am2.tolist(), "applied_ns": c.applied_ns,
+                 "age_s": c.age_s} for c in bus.applied])
+        elif capture is not None:
+            capture.stop()
     return 0
 
 
