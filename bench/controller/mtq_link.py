@@ -25,8 +25,8 @@ from bench.bus import keys
 from bench.bus.can.config import CanConfig
 from bench.bus.can.driver import BoardHealth, CommandLoop, FaultEvent, MagnetorquerDriver
 from bench.bus.can.nodes import can_dir, open_node_bus
-from bench.bus.can.sim_window import BOOT_S, CanWindow, OutboxBus, mission_s, sim_ns, to_can_message
-from bench.bus.can.simbus import SimClock
+from bench.bus.can.sim_window import CanWindow, mission_s, sim_ns
+from bench.bus.can.windowed_driver import BOOT_WINDOWS, WindowedDriver
 from bench.bus.schemas import header
 from bench.runtime.node import NodeContext
 
@@ -62,32 +62,20 @@ class MagnetorquerLink:
 
 
 class LockStepLink:
-    """The driver on simulated time, one step at a time: no command thread, no wall-clock period.
-
-    `send(k, dipole)` first hands the driver the frames the bus says it heard during the last
-    step, each at its simulated time, checking its deadlines at every command slot between them
-    as its real-time loop does; then it sends the step's frames (the dipole at the step's start in
-    the on-change and mixed modes, keep-alives at their slots) in one CanWindow to the canbus
-    process. What the driver detects is stamped on the bus's simulated time (sim_window: ns, with
-    the mission's t = 0 at SIM_ZERO_NS). A frame it owes in reply to one it heard (an NMT start)
-    goes out at the next step's start, at most a step later than on the wall clock.
-    """
+    """The driver on simulated time (bench/bus/can/windowed_driver.py), its windows carried over
+    Zenoh to the canbus process: one CanWindow out per step, the bus's answer back before the next.
+    What the driver detects is stamped on the bus's simulated time (sim_window: ns, the mission's
+    t = 0 at SIM_ZERO_NS)."""
 
     def __init__(self, ctx: NodeContext, config: CanConfig, step_s: float, reply_timeout_s: float):
         self.ctx = ctx
         self.step_s = step_s
         self.reply_timeout_s = reply_timeout_s
-        self.clock = SimClock(sim_ns(-BOOT_S))
-        self.bus = OutboxBus(self.clock)
-        self.driver = MagnetorquerDriver.from_config(self.bus, config, clock=self.clock, wall_clock=self.clock,
-                                                     event_clock_ns=lambda: self.clock.t_ns)
-        self.transmission = config.driver.transmission
-        self.period_ns = round(config.driver.command_period_s * 1e9)
+        self.windowed = WindowedDriver(config)
+        self.driver = self.windowed.driver
         self.health: BoardHealth = self.driver.health()
         self._replies = ctx.subscribe_queue(keys.CAN_STEP_BUS, CanWindow)
         self._publisher = ctx.declare_publisher(keys.CAN_STEP_FLIGHT)
-        self._dipole = [0.0, 0.0, 0.0]
-        self._next_slot_ns: int | None = None     # none before the law's first dipole
         self._awaiting: CanWindow | None = None   # the last window sent, until the bus answers it
         self._windows = 0
 
@@ -99,58 +87,28 @@ class LockStepLink:
             if time.monotonic() > deadline or self.ctx.stop.is_set():
                 raise TimeoutError("no canbus process on the lock-step CAN topic")
             time.sleep(0.005)
-        self._exchange(-2, sim_ns(-BOOT_S), sim_ns(-BOOT_S / 2), None)
-        self._catch_up(timeout_s=max(0.0, deadline - time.monotonic()))   # the boot-up heartbeat
-        self._exchange(-1, sim_ns(-BOOT_S / 2), sim_ns(0.0), None)           # the NMT start
-        self._catch_up(timeout_s=max(0.0, deadline - time.monotonic()))
+        for step, start_ns, end_ns in BOOT_WINDOWS:
+            self._send_window(step, start_ns, end_ns, None)
+            self._catch_up(timeout_s=max(0.0, deadline - time.monotonic()))
 
     def send(self, step: int, dipole_am2, timeout_s: float | None = None) -> tuple[int, int | None]:
         """(alive counter, can_sent ns) of the first frame carrying the step's dipole."""
-        return self._exchange(step, sim_ns(step * self.step_s), sim_ns((step + 1) * self.step_s),
-                              [float(x) for x in dipole_am2])
-
-    def _exchange(self, step: int, start_ns: int, end_ns: int, dipole) -> tuple[int, int | None]:
         self._catch_up()
-        self.clock.t_ns = start_ns
-        counter, sent_ns = -1, None
-        if dipole is not None:
-            self._dipole = dipole
-            if self.transmission != "cyclic" or self._next_slot_ns is None:
-                # On change, and the law's first dipole in every mode (nothing is sent before it).
-                counter, sent_ns = self.driver.command(dipole), self.driver.last_sent_ns
-                self._next_slot_ns = start_ns + self.period_ns
-        slots = [start_ns]
-        if self.transmission != "on_change" and self._next_slot_ns is not None:
-            while self._next_slot_ns < end_ns:
-                self.clock.t_ns = self._next_slot_ns
-                slot_counter = self.driver.command(self._dipole)
-                if counter < 0 and dipole is not None:   # cyclic: the first slot carries the new dipole
-                    counter, sent_ns = slot_counter, self.driver.last_sent_ns
-                slots.append(self._next_slot_ns)
-                self._next_slot_ns += self.period_ns
-        window = CanWindow(header(self.ctx.run_id, self._windows, mission_s(start_ns)), step, start_ns, end_ns,
-                           self.bus.take(start_ns))
+        return self._send_window(step, sim_ns(step * self.step_s), sim_ns((step + 1) * self.step_s), dipole_am2)
+
+    def _send_window(self, step: int, start_ns: int, end_ns: int, dipole) -> tuple[int, int | None]:
+        frames, counter, sent_ns = self.windowed.window(start_ns, end_ns, dipole)
+        window = CanWindow(header(self.ctx.run_id, self._windows, mission_s(start_ns)), step, start_ns, end_ns, frames)
         self._windows += 1
-        self._slots_ns = slots + [end_ns]
         self.ctx.publish(keys.CAN_STEP_FLIGHT, window)
         self._awaiting = window
         return counter, sent_ns
 
     def _catch_up(self, stop_aware: bool = True, timeout_s: float | None = None) -> None:
-        """The bus's answer to the last window: its frames handled at their times, with the
-        deadline checks the real-time loop makes at every command slot."""
         sent = self._awaiting
         if sent is None:
             return
-        reply = self._reply_to(sent, stop_aware, timeout_s)
-        timeline = sorted([(f.t_ns, 0, f) for f in reply.frames] + [(t, 1, None) for t in self._slots_ns],
-                          key=lambda item: (item[0], item[1]))
-        for t_ns, is_check, frame in timeline:
-            self.clock.t_ns = t_ns
-            if not is_check:
-                self.driver.handle(to_can_message(frame))
-            self.driver.check_deadlines(self.clock())
-        events = self.driver.take_events()
+        events = self.windowed.heard(self._reply_to(sent, stop_aware, timeout_s).frames)
         if events:
             _log_events(self.ctx, events)
         self.health = self.driver.health()

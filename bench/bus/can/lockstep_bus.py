@@ -14,7 +14,8 @@ What the plant integrates over step k is the time average of the coil drivers' o
 sees it: from the moment the step's first command frame reached the board, for one step length
 (the last stretch, which falls in the next step, held at the output at the step's end). A
 fault-free step gives exactly the commanded dipole after quantisation and saturation, as the
-in-process loop does; a step with coils off for part of it gives the average.
+in-process loop does; a step with coils off for part of it gives the average. When that frame
+never reaches the board unchanged (lost, delayed, altered), the average is over the step itself.
 """
 from __future__ import annotations
 
@@ -77,11 +78,13 @@ class LockStepBus:
         pending = sorted(frames, key=lambda f: f.t_ns)
         if pending and not (start_ns <= pending[0].t_ns and pending[-1].t_ns < max(end_ns, start_ns + 1)):
             raise ValueError("a flight frame's time is outside its step")
+        step_command = next(((f.arbitration_id, f.data) for f in pending if f.arbitration_id == self._command_id), None)
         heard: list[SimFrame] = []
         applied_before = len(self.applied)
-        first_command_ns: int | None = None   # the step's first command frame reached the board
+        first_command_ns: int | None = None   # the step's first command frame reached the board unchanged
         integral = np.zeros(3)                # of the coil drivers' output over the step
         integral_after = np.zeros(3)          # the same, from first_command_ns on
+        outputs_after: list[np.ndarray] = []  # the distinct outputs from first_command_ns on
         off_ns = 0
         i = 0
         board = self.board
@@ -93,7 +96,8 @@ class LockStepBus:
             for delivery in self.model.run_until(now_ns):
                 for node in delivery.destinations:
                     if node == BOARD:
-                        if first_command_ns is None and delivery.msg.arbitration_id == self._command_id:
+                        if first_command_ns is None and \
+                                (delivery.msg.arbitration_id, bytes(delivery.msg.data)) == step_command:
                             first_command_ns = now_ns
                         self.buses[BOARD].inbox.append(delivery.msg)
                     elif node == FLIGHT:
@@ -113,12 +117,17 @@ class LockStepBus:
             integral += output * (next_ns - now_ns)
             if first_command_ns is not None:
                 integral_after += output * (next_ns - now_ns)
+                if not outputs_after or not np.array_equal(outputs_after[-1], output):
+                    outputs_after.append(output)
             if board.state.safe_state or board.state.actuation_paused:
                 off_ns += next_ns - now_ns
             self.clock.t_ns = next_ns
         step_ns = max(1, end_ns - start_ns)
         output = board.output_dipole_am2
-        if first_command_ns is not None:
+        if first_command_ns is not None and len(outputs_after) <= 1 and \
+                (not outputs_after or np.array_equal(outputs_after[0], output)):
+            dipole = output.copy()      # held from the command on: exactly it (a sum of parts may round)
+        elif first_command_ns is not None:
             dipole = (integral_after + output * (first_command_ns - start_ns)) / step_ns
         else:   # no command reached the board: the coils over the step itself
             dipole = integral / step_ns
