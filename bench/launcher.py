@@ -618,6 +618,10 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
     placement: where the sessions are (default: this host, loopback, plain TCP).
     """
     external = external_parts(scenario)      # bad input: before anything is opened
+    if scenario.can is not None:
+        from bench.bus.can.preflight import check_run_buses
+
+        check_run_buses(scenario.can)        # CanBusError (a ValueError): exit 2, nothing started
     placement = placement or local_placement(port, zenoh_config)
     hub = placement.hub_endpoint
     # The zygote before any session of ours: it imports the nodes' packages while the launcher
