@@ -142,3 +142,13 @@ def test_bench_run_refuses_a_bus_before_starting_anything(tmp_path, can_toml, fi
     assert lines == [f"bench: error: {lines[0].removeprefix('bench: error: ')}"]
     assert lines[0].removeprefix("bench: error: ").startswith(first_words)
     assert not (runs / "refused").exists()     # nothing written, nothing started
+
+
+def test_only_the_buses_of_nodes_started_here_are_checked():
+    config = can_config(driver_bus={"interface": "slcan", "channel": "/dev/ttyACM0"},
+                        board_bus={"interface": "carrier_pigeon"})
+    # A deployment runs the controller (the driver) and the board on other hosts: their channels are theirs.
+    assert preflight.roles_on_this_host(config, {"controller": "obc", "mtq": "rig"}) == ["busmodel_flight", "busmodel_board"]
+    preflight.check_run_buses(config, preflight.roles_on_this_host(config, {"controller": "obc", "mtq": "rig"}))
+    with pytest.raises(preflight.CanBusError, match="^can.board_bus.interface"):
+        preflight.check_run_buses(config, preflight.roles_on_this_host(config, {"controller": "obc"}))

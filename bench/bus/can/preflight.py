@@ -31,10 +31,18 @@ def roles_of_run(config: CanConfig, board_external: bool = False) -> list[str]:
     return ["driver"] if board_external else ["driver", "board", "busmodel_flight", "busmodel_board"]
 
 
+NODE_OF_ROLE = {"driver": "controller", "board": "mtq", "busmodel_flight": "canbus", "busmodel_board": "canbus"}
+
+
+def roles_on_this_host(config: CanConfig, remote: dict[str, str] | set[str]) -> list[str]:
+    """The run's buses whose node this host starts (not on another host of a deployment, not external)."""
+    return [role for role in roles_of_run(config) if NODE_OF_ROLE[role] not in remote]
+
+
 def check_run_buses(config: CanConfig, roles: list[str] | None = None) -> None:
     """Raise CanBusError for the first bus of `roles` (default: roles_of_run) that cannot work."""
     checked: set[tuple] = set()
-    for role in roles or roles_of_run(config):
+    for role in roles_of_run(config) if roles is None else roles:
         spec = config.bus_spec(role)
         key = (spec.interface, spec.channel, spec.bitrate, spec.fd, tuple(sorted(spec.options.items())))
         if key in checked:
