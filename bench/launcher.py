@@ -621,6 +621,12 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
     """
     external = external_parts(scenario)      # bad input: before anything is opened
     placement = placement or local_placement(port, zenoh_config)
+    if scenario.can is not None:
+        from bench.bus.can.preflight import check_run_buses, roles_on_this_host
+
+        # CanBusError (a ValueError): exit 2, nothing started. Only the buses of nodes started here:
+        # a deployment's node on another host opens its channel there.
+        check_run_buses(scenario.can, roles_on_this_host(scenario.can, {**placement.remote, **external}))
     hub = placement.hub_endpoint
     # The zygote before any session of ours: it imports the nodes' packages while the launcher
     # goes on, and is started by fork+exec, never forked from a process running Zenoh's threads.

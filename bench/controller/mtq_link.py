@@ -38,7 +38,7 @@ class MagnetorquerLink:
         """scripted: command the scenario's dipole profile; False: the dipole a law sets
         (`self.loop.set_dipole`, zero until then)."""
         self.ctx = ctx
-        self.bus = open_node_bus(ctx, config, config.flight_channel)
+        self.bus = open_node_bus(ctx, config, "driver")
         self.driver = MagnetorquerDriver.from_config(self.bus, config)
         self.loop = CommandLoop(self.driver, config.driver.command_period_s,
                                 dipole_at=config.dipole_at if scripted else None, on_events=self._log_events,

@@ -110,6 +110,9 @@ class DriverConfig(msgspec.Struct, forbid_unknown_fields=True):
     nmt_auto_start: bool = True
 
 
+ROLES = ("driver", "board")     # the nodes whose bus a scenario may name ([can.driver_bus], [can.board_bus])
+
+
 class DipoleStep(msgspec.Struct, forbid_unknown_fields=True):
     t_s: NonNegS
     dipole_am2: Vec3
@@ -121,7 +124,38 @@ def _default_profile() -> list[DipoleStep]:
             DipoleStep(0.9, [-0.1, 0.0, 0.0]), DipoleStep(1.2, [0.0, -0.1, 0.0]), DipoleStep(1.5, [0.0, 0.0, -0.1])]
 
 
+# An interface option: a scalar, bounded like every scenario field (a tty path, a baud rate, a
+# host name, a flag).
+OptionValue = (Annotated[str, msgspec.Meta(max_length=256)] | Annotated[int, msgspec.Meta(ge=-2**31, le=2**32)]
+               | Annotated[float, msgspec.Meta(ge=-1e9, le=1e9)] | bool)
+
+
+class BusSpec(msgspec.Struct, forbid_unknown_fields=True):
+    """One node's CAN bus as python-can opens it: `can.Bus(interface=, channel=, bitrate=, fd=,
+    **options)`. `interface` is any python-can interface name (`slcan`, `pcan`, `kvaser`,
+    `gs_usb`, `udp_multicast`, `socketcand`, ...; `zenoh` is the bench's own), `options` the
+    interface's own keyword arguments (e.g. `{ tty_baudrate = 115200, sleep_after_open = 0 }` for
+    slcan). Whether the interface exists and the channel opens is checked by the launcher before
+    any process starts (bench/bus/can/preflight.py), not here: parsing a scenario does no I/O."""
+    interface: Annotated[str, msgspec.Meta(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$")]
+    channel: Annotated[str, msgspec.Meta(max_length=256)] = ""
+    bitrate: Annotated[int, msgspec.Meta(ge=10_000, le=8_000_000)] | None = None
+    # CAN FD: the secoc profile's authenticated frames (MTQ_CMD_AUTH, MTQ_NMT_AUTH) are FD frames,
+    # so it needs fd = true; a classic-only adapter needs security.profile = "e2e".
+    fd: bool = True
+    options: Annotated[dict[Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z_][A-Za-z0-9_]*$", max_length=64)],
+                            OptionValue], msgspec.Meta(max_length=64)] = {}
+
+    def __post_init__(self):
+        reserved = {"interface", "channel", "bitrate", "fd", "run_id", "session", "ignore_config"} & set(self.options)
+        if reserved:
+            raise ValueError(f"options: {', '.join(sorted(reserved))} is set by the bench or is a field of its own, "
+                             f"not an option")
+
+
 class CanConfig(msgspec.Struct, forbid_unknown_fields=True):
+    # Shorthand for every bus of the run: the bench's nodes (driver, bus model, board) each open
+    # this python-can interface on their channel. driver_bus / board_bus override one node's end.
     transport: Literal["zenoh", "socketcan", "virtual"] = "zenoh"
     flight_channel: Annotated[str, msgspec.Meta(max_length=64)] = "flight"   # the driver's side of the bus model
     board_channel: Annotated[str, msgspec.Meta(max_length=64)] = "board"     # the board's side
@@ -145,11 +179,33 @@ class CanConfig(msgspec.Struct, forbid_unknown_fields=True):
     # when the scenario injects bus faults, whose timing then must not depend on the host.
     # Real-time runs are on the wall clock.
     lock_step_clock: Literal["auto", "simulated", "wall"] = "auto"
+    # The flight-side driver's and the board's own bus, when not the bus model's end of `transport`
+    # on flight_channel / board_channel: any python-can interface (BusSpec; docs/can-bus.md).
+    driver_bus: BusSpec | None = None
+    board_bus: BusSpec | None = None
 
     def __post_init__(self):
         times = [s.t_s for s in self.dipole_profile]
         if times != sorted(times):
             raise ValueError("dipole_profile steps must be in increasing t_s")
+        for role in ROLES:
+            spec = getattr(self, f"{role}_bus")
+            if spec is not None and self.security.authenticated and not spec.fd:
+                raise ValueError(f"{role}_bus.fd: the secoc profile's authenticated frames are CAN FD; "
+                                 f"set fd = true or security.profile = \"e2e\"")
+
+    def bus_spec(self, role: str) -> BusSpec:
+        """The bus a node opens: role "driver" or "board" (its own spec, else the transport on its
+        channel), or "busmodel_flight" / "busmodel_board" (the bus model's ends: always `transport`)."""
+        if role in ROLES and getattr(self, f"{role}_bus") is not None:
+            return getattr(self, f"{role}_bus")
+        channel = {"driver": self.flight_channel, "busmodel_flight": self.flight_channel,
+                   "board": self.board_channel, "busmodel_board": self.board_channel}[role]
+        return BusSpec(interface=self.transport, channel=channel)
+
+    def bus_field(self, role: str) -> str:
+        """The scenario field a role's bus comes from, for error messages."""
+        return f"can.{role}_bus" if role in ROLES and getattr(self, f"{role}_bus") is not None else "can.transport"
 
     def protocol(self):
         """The protocol of this bus: node id, command profile and key (None if not handed over:

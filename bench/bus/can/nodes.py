@@ -25,9 +25,10 @@ from bench.bus.can.board import AppliedCommand, MagnetorquerBoard
 from bench.bus.can.busmodel import BOARD, CHANNEL_BUS, FLIGHT, BusModel, RealTimeBridge
 from bench.bus.can.config import CanConfig
 from bench.bus.can.injector import FaultInjector
-from bench.bus.can.transport import open_can_bus
+
 from bench.bus.can.lockstep_bus import LockStepBus
 from bench.bus.can.sim_window import SIM_ZERO_NS, CanWindow, bus_on_simulated_time
+from bench.bus.can.transport import open_bus
 from bench.bus.schemas import MtqApplied, header
 
 PEER_WAIT_S = 10.0
@@ -44,12 +45,10 @@ def can_dir(run_dir: Path) -> Path:
     return path
 
 
-def open_node_bus(ctx, config: CanConfig, channel: str) -> can.BusABC:
-    """A CAN bus for this node; over Zenoh it shares the node's own session (one per process)."""
-    if config.transport == "zenoh":
-        return can.Bus(interface="zenoh", channel=channel, run_id=ctx.run_id, session=ctx.session, fd=True,
-                       ignore_config=True)
-    return open_can_bus(config.transport, channel, run_id=ctx.run_id)
+def open_node_bus(ctx, config: CanConfig, role: str) -> can.BusABC:
+    """The CAN bus of this node's `role` (CanConfig.bus_spec: "driver", "board", "busmodel_flight",
+    "busmodel_board"); over Zenoh it shares the node's own session (one per process)."""
+    return open_bus(config.bus_spec(role), run_id=ctx.run_id, session=ctx.session)
 
 
 def _wait_for_bus_peer(bus: can.BusABC, what: str, ctx) -> None:
@@ -70,7 +69,7 @@ def run_board(ctx) -> int:
     config = _can_config(ctx)
     if config is None:
         return 2
-    bus = open_node_bus(ctx, config, config.board_channel)
+    bus = open_node_bus(ctx, config, "board")
     applied: list[dict] = []
 
     def publish(received_ns: int | None, counter: int) -> None:
@@ -135,8 +134,8 @@ def run_bus_model(ctx) -> int:
     if bus_on_simulated_time(ctx.scenario):
         return run_lockstep_bus(ctx, config)
     out = can_dir(ctx.run_dir)
-    buses = {FLIGHT: open_node_bus(ctx, config, config.flight_channel),
-             BOARD: open_node_bus(ctx, config, config.board_channel)}
+    buses = {FLIGHT: open_node_bus(ctx, config, "busmodel_flight"),
+             BOARD: open_node_bus(ctx, config, "busmodel_board")}
     capture = Capture(Path(ctx.run_dir) / CAPTURE_NAME, out / ACCOUNTING_NAME) if config.capture else None
     protocol = p.Protocol(config.node_id, config.security.profile)   # no key: the injector is no insider
     t0_ns = time.monotonic_ns()

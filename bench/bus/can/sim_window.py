@@ -95,7 +95,8 @@ class OutboxBus:
 
 def bus_on_simulated_time(scenario) -> bool:
     """Whether this run's CAN bus runs on simulated time: the attitude loop in lock-step with every
-    part of the bus the bench's own, over the portable transport, and `[can] lock_step_clock`
+    part of the bus the bench's own, over the portable transport (no `driver_bus` or `board_bus`
+    of another interface), and `[can] lock_step_clock`
     "simulated" (or "auto" with bus faults). Otherwise the driver and the board keep the wall clock
     (real time, a kernel bus, a part from outside, a fault-free "auto") and the lock-step plant
     pairs the board's reports with commands by counter."""
@@ -103,4 +104,5 @@ def bus_on_simulated_time(scenario) -> bool:
     if can_config is None or scenario.kind != "attitude" or scenario.run.mode != "lock-step":
         return False
     clock = can_config.lock_step_clock
-    return can_config.transport == "zenoh" and (clock == "simulated" or (clock == "auto" and bool(can_config.faults)))
+    own_bus = can_config.transport == "zenoh" and can_config.driver_bus is None and can_config.board_bus is None
+    return own_bus and (clock == "simulated" or (clock == "auto" and bool(can_config.faults)))

@@ -4,6 +4,8 @@
 - "zenoh": frames over the bench's Zenoh session (bench.bus.can.zenoh_interface); works on any
   host, across processes and hosts. The default where there is no vcan.
 - "virtual": python-can's in-process virtual bus; one process only (unit tests, baselines).
+- any other python-can interface (`slcan`, `pcan`, `socketcand`, ...), named per node by a
+  BusSpec ([can.driver_bus], [can.board_bus]) and opened by `open_bus`.
 """
 from __future__ import annotations
 
@@ -13,6 +15,7 @@ from pathlib import Path
 import can
 
 from bench.bus import keys
+from bench.bus.can.config import BusSpec
 from bench.bus.session import SessionOptions
 
 TRANSPORTS = ("zenoh", "socketcan", "virtual")
@@ -41,6 +44,30 @@ def default_transport() -> str:
     return "socketcan" if kernel_has_can() and interface_exists(DEFAULT_VCAN) else "zenoh"
 
 
+def open_bus(
+    spec: BusSpec,
+    *,
+    run_id: str,
+    session=None,
+    session_options: SessionOptions | None = None,
+    receive_own_messages: bool = False,
+) -> can.BusABC:
+    """The python-can bus a BusSpec names; the caller shuts it down. `session`: a node's own Zenoh
+    session, shared by its `zenoh` buses (one session per process)."""
+    if spec.interface == "zenoh" and session is not None:
+        return can.Bus(interface="zenoh", channel=spec.channel, run_id=run_id, session=session, fd=spec.fd,
+                       receive_own_messages=receive_own_messages, ignore_config=True, **spec.options)
+    if spec.interface in TRANSPORTS:
+        return open_can_bus(spec.interface, spec.channel, run_id=run_id, session_options=session_options,
+                            receive_own_messages=receive_own_messages, options=spec.options)
+    # ignore_config: a user's ~/can.conf must not add arguments behind the scenario's back.
+    kwargs = dict(spec.options)
+    if spec.bitrate is not None:
+        kwargs["bitrate"] = spec.bitrate
+    return can.Bus(interface=spec.interface, channel=spec.channel, fd=spec.fd,
+                   receive_own_messages=receive_own_messages, ignore_config=True, **kwargs)
+
+
 def open_can_bus(
     transport: str,
     channel: str,
@@ -48,19 +75,22 @@ def open_can_bus(
     run_id: str,
     session_options: SessionOptions | None = None,
     receive_own_messages: bool = False,
+    options: dict | None = None,
 ) -> can.BusABC:
-    """A python-can bus on `channel` over `transport`; the caller shuts it down.
+    """A python-can bus on `channel` over `transport`; the caller shuts it down. `options`: the
+    interface's own keyword arguments.
 
     Raises ValueError for an unknown transport and TransportUnavailable, with what to do instead,
     when the host cannot provide it.
     """
     keys.check_run_id(run_id)
+    options = dict(options or {})
     if transport == "zenoh":
         # Through python-can's plugin lookup (entry point "can.interface"), as any CAN tool would;
         # ignore_config keeps a user's ~/can.conf from adding arguments behind the bench's back.
         return can.Bus(
             interface="zenoh", channel=channel, run_id=run_id, session_options=session_options,
-            receive_own_messages=receive_own_messages, fd=True, ignore_config=True,
+            receive_own_messages=receive_own_messages, fd=True, ignore_config=True, **options,
         )
     if transport == "socketcan":
         if not kernel_has_can():
@@ -74,9 +104,9 @@ def open_can_bus(
             )
         # fd=True: the authenticated command (MTQ_CMD_AUTH) is a CAN FD frame (vcan needs mtu 72).
         return can.Bus(interface="socketcan", channel=channel, fd=True,
-                       receive_own_messages=receive_own_messages, ignore_config=True)
+                       receive_own_messages=receive_own_messages, ignore_config=True, **options)
     if transport == "virtual":
         # python-can's virtual channels are process-global: the run id keeps parallel runs apart.
         return can.Bus(interface="virtual", channel=f"{run_id}/{channel}",
-                       receive_own_messages=receive_own_messages, ignore_config=True)
+                       receive_own_messages=receive_own_messages, ignore_config=True, **options)
     raise ValueError(f"CAN transport {transport!r} is not one of {', '.join(TRANSPORTS)}")
