@@ -15,7 +15,6 @@ from __future__ import annotations
 import dataclasses
 import fcntl
 import os
-import queue
 import secrets
 import signal
 import subprocess
@@ -52,6 +51,7 @@ EXIT_TERMINATED = 143
 STARTUP_TIMEOUT_S = 120.0
 STARTUP_IDLE_S = 5.0      # a starting node whose CPU time did not advance this long is stuck
 SHUTDOWN_GRACE_S = 5.0
+FOLLOW_PERIOD_S = 0.1     # how often the launcher checks its children and moves the progress bar
 # After a second Ctrl-C (or SIGTERM) the launcher kills every node and exits within this, even if
 # a Zenoh call it is in never returns.
 HARD_EXIT_S = 2.5
@@ -294,7 +294,10 @@ def _follow_run(session, run_id: str, children: list[Child], n_steps: int, show_
     """
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-    steps: queue.Queue[int] = queue.Queue()
+    # Steps done so far, written by Zenoh's thread and read every FOLLOW_PERIOD_S: the launcher's
+    # thread must not wake once per step (in lock-step it would compete with the loop's processes
+    # for the cores, once per cycle, for a progress bar).
+    steps_done = [0]
 
     def on_step(sample) -> None:
         try:
@@ -303,7 +306,7 @@ def _follow_run(session, run_id: str, children: list[Child], n_steps: int, show_
             return   # garbage on the status topic must not stop the launcher
         if message.header.run_id != run_id or not reports.genuine_step(message):
             return   # not the plant's: counted as forged by `reports`
-        steps.put(message.header.seq)
+        steps_done[0] = max(steps_done[0], min(message.header.seq + 1, n_steps))
         if message.finished:
             reports.accept()
 
@@ -338,12 +341,11 @@ def _follow_run(session, run_id: str, children: list[Child], n_steps: int, show_
                     raise
                 _check_liveliness(children, lost, liveliness)
                 _check_remote(session, run_id, remote or {}, lost)
-                try:
-                    done = max(done, min(steps.get(timeout=0.1) + 1, n_steps))
+                time.sleep(FOLLOW_PERIOD_S)
+                if steps_done[0] != done:
+                    done = steps_done[0]
                     progress.update(task, completed=done)
-                except queue.Empty:
-                    pass
-            progress.update(task, completed=done)
+            progress.update(task, completed=steps_done[0])
     finally:
         subscriber.undeclare()
         tokens.undeclare()

@@ -39,11 +39,15 @@ def one_run(scenario: str, steps: int, path: str, runs_dir: Path, run_id: str) -
     end_s = time.monotonic() - started
     if result.returncode != 0:
         raise SystemExit(f"{scenario} ({path}) exited with {result.returncode}:\n{result.stderr[-2000:]}")
-    for line in (runs_dir / run_id / "logs" / "plant.log").read_text().splitlines():
+    return first_step_wall_s(runs_dir / run_id) - started_wall, end_s
+
+
+def first_step_wall_s(run_dir: Path) -> float:
+    """Wall-clock time (time.time) of the plant's first step: its "peers ready" log line."""
+    for line in (run_dir / "logs" / "plant.log").read_text().splitlines():
         if FIRST_STEP_MARK in line:
-            stamp = datetime.strptime(line[:23], "%Y-%m-%d %H:%M:%S,%f").timestamp()
-            return stamp - started_wall, end_s
-    raise SystemExit(f"{scenario} ({path}): no '{FIRST_STEP_MARK}' in the plant's log")
+            return datetime.strptime(line[:23], "%Y-%m-%d %H:%M:%S,%f").timestamp()
+    raise SystemExit(f"{run_dir}: no '{FIRST_STEP_MARK}' in the plant's log")
 
 
 def main() -> int:
