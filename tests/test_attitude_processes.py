@@ -58,6 +58,24 @@ def test_lock_step_processes_equal_the_in_process_loop(detumble_run):
     assert detumble_run.trajectory["att_q_wxyz"].shape == (300, 4)
 
 
+def test_lock_step_on_simulated_bus_time_equals_the_in_process_loop(runs, tmp_path):
+    """The bus on simulated time (every frame of every simulated second through the bus model and
+    the board, in canbus; no mtq process): the same trajectory as the in-process loop."""
+    text = (resources.files("bench.scenarios") / "attitude_detumble.toml").read_text()
+    path = tmp_path / "detumble_simulated_bus.toml"
+    path.write_text(text.replace("[can]\n", '[can]\nlock_step_clock = "simulated"\n', 1))
+    run = bench_run(runs, str(path), "detumble_simulated_bus", "--steps", "40")
+    reference = simulate_attitude_in_process(run.scenario)
+    for name in ("att_q_wxyz", "att_omega_radps", "att_dipole_applied_am2", "att_dipole_commanded_am2"):
+        np.testing.assert_allclose(run.trajectory[name], reference[name], rtol=0, atol=1e-9, err_msg=name)
+    metrics = json.loads((runs / "detumble_simulated_bus" / "metrics.json").read_text())
+    assert "mtq" not in metrics["processes"]
+    bus = json.loads((runs / "detumble_simulated_bus" / "can" / "busmodel.json").read_text())
+    assert bus["clock"] == "simulated"
+    # 40 s at a 10 ms command period: every keep-alive went over the simulated bus.
+    assert bus["frames"]["MTQ_CMD_AUTH"] == 4000
+
+
 def test_detumble_over_the_bus_only_applies_commanded_dipoles_and_slows_the_body(detumble_run):
     t = detumble_run.trajectory
     assert applied_is_commanded_or_zero(t, detumble_run.scenario.can).all()
@@ -219,6 +237,53 @@ def test_each_fault_was_seen_and_the_loop_recovers_after_it(fault_runs, fault):
                 "corrupt": {"command_rejected"}, "stuck_actuator": {"actuator_mismatch", "telemetry_repeated"},
                 "flood": {"board_command_timeout", "telemetry_timeout", "heartbeat_timeout", "command_rejected"}}[fault]
     assert kinds & expected, f"driver saw {sorted(kinds)}"
+
+
+def first_detections(run) -> dict[str, tuple[set[str], float]]:
+    """Per fault window: the kinds the driver detected in it (up to 0.5 s after its end) and the
+    simulated time of the first, from can/driver.json (bus time on a simulated bus, monotonic
+    mapped by the run's clock otherwise)."""
+    from bench.report.timebase import RunClock
+    from bench.bus.can.sim_window import mission_s
+    windows = fault_windows_sim_s(run.run_dir, run.scenario, run.trajectory)
+    bus = json.loads((run.run_dir / "can" / "busmodel.json").read_text())
+    events = json.loads((run.run_dir / "can" / "driver.json").read_text())["events"]
+    if bus.get("clock") == "simulated":
+        times = [mission_s(e["detected_ns"]) for e in events]
+    else:
+        times = list(np.atleast_1d(RunClock.from_run(run.trajectory, run.scenario).sim_s([e["detected_ns"] for e in events])))
+    benign = {"heartbeat_resumed", "board_error_reset", "error_active", "bus_restarted", "host_overrun"}
+    out = {}
+    for name, start, end in windows:
+        inside = [(t, e["kind"]) for t, e in zip(times, events) if start <= t <= end + 0.5 and e["kind"] not in benign]
+        out[name] = ({kind for _, kind in inside}, min((t for t, _ in inside), default=float("nan")))
+    return out
+
+
+@pytest.fixture(scope="module")
+def fault_lock_step_run(runs):
+    return bench_run(runs, "attitude_fault_all", "faults_lock_step", "--mode", "lock-step")
+
+
+def test_a_lock_step_fault_run_detects_what_its_real_time_twin_detects(fault_runs, fault_lock_step_run):
+    """The same faults on simulated bus time (lock-step: deterministic, no host in the timing)
+    and on the wall clock: the same kind of first detection per fault, at the same simulated time
+    to within a fraction of a step (real time adds the host's scheduling) where the detection
+    depends on the bus alone. A stuck actuator is seen when the commanded dipole moves away from
+    the frozen telemetry, which depends on the trajectory, and the two modes' trajectories differ
+    (real time applies a command a step later): for it, the same kind within the window."""
+    bus = json.loads((fault_lock_step_run.run_dir / "can" / "busmodel.json").read_text())
+    assert bus["clock"] == "simulated"
+    real_time, lock_step = first_detections(fault_runs[1]), first_detections(fault_lock_step_run)
+    assert real_time.keys() == lock_step.keys() and len(lock_step) >= 5
+    expected = {"board_death": {"heartbeat_timeout"}, "drop": {"board_command_timeout"},
+                "corrupt": {"command_rejected"}, "stuck_actuator": {"actuator_mismatch", "telemetry_repeated"},
+                "flood": {"board_command_timeout", "telemetry_timeout", "heartbeat_timeout", "command_rejected"}}
+    for name, (kinds, first_s) in lock_step.items():
+        rt_kinds, rt_first_s = real_time[name]
+        assert kinds & expected[name] and rt_kinds & expected[name], (name, kinds, rt_kinds)
+        if name != "stuck_actuator":
+            assert abs(first_s - rt_first_s) < 0.25, (name, first_s, rt_first_s)
 
 
 def test_fault_effect_and_compare_report(fault_runs, runs):
