@@ -25,7 +25,6 @@ from bench.bus.can.board import AppliedCommand, MagnetorquerBoard
 from bench.bus.can.busmodel import BOARD, CHANNEL_BUS, FLIGHT, BusModel, RealTimeBridge
 from bench.bus.can.config import CanConfig
 from bench.bus.can.injector import FaultInjector
-
 from bench.bus.can.lockstep_bus import LockStepBus
 from bench.bus.can.sim_window import SIM_ZERO_NS, CanWindow, bus_on_simulated_time
 from bench.bus.can.transport import open_bus
