@@ -106,3 +106,9 @@ def test_key_files(tmp_path):
     secoc_hex = (cert_dir / "secoc.key").read_text().strip()
     assert derived == hmac.new(bytes.fromhex(secoc_hex), data_auth.DEPLOYMENT_LABEL, hashlib.sha256).digest()
     assert derived != KEY and len(derived) == data_auth.KEY_BYTES
+    # A secure node (certificates) with no key at all is refused, naming both places.
+    empty_certs, empty_run = tmp_path / "other-certs", tmp_path / "other-run"
+    empty_certs.mkdir()
+    empty_run.mkdir()
+    with pytest.raises(data_auth.KeyFileError, match="secoc.key.*bus.key"):
+        data_auth.node_key(empty_run, empty_certs)

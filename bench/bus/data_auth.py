@@ -81,14 +81,21 @@ def read_key_file(path: Path) -> bytes:
 
 def node_key(run_dir: Path, cert_dir: Path | None = None) -> bytes | None:
     """The key a node signs and checks with: the deployment's (a secure node whose certificate
-    directory has a secoc.key), else the run directory's bus.key, else None."""
+    directory has a secoc.key), else the run directory's bus.key, else None (refused for a
+    secure node: it has certificates, so it is meant to be part of a run)."""
     if cert_dir is not None:
         from bench.bus.certs import read_secoc_key
         secoc_hex = read_secoc_key(Path(cert_dir))
         if secoc_hex:
             return deployment_key(secoc_hex)
     path = Path(run_dir) / KEY_FILE
-    return read_key_file(path) if path.is_file() else None
+    if path.is_file():
+        return read_key_file(path)
+    if cert_dir is not None:
+        # A secure node without a key would publish into the void (every other node drops it).
+        raise KeyFileError(f"no data key: neither {str(Path(cert_dir) / 'secoc.key')!r} nor {str(path)!r} exists; "
+                           f"copy the deployment's secoc.key (mode 0600) beside this host's certificates")
+    return None
 
 
 @functools.lru_cache(maxsize=16)
