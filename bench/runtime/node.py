@@ -26,7 +26,7 @@ import zenoh
 
 from bench.bus import data_auth, keys
 from bench.bus.clock_sync import declare_clock_responder
-from bench.bus.certs import identity_files
+from bench.bus.certs import check_identity, identity_files
 from bench.bus.deployment import DeploymentError, load_deployment
 from bench.bus.schemas import MalformedMessage, Message, ProcessStats, decode, encode, header
 from bench.bus.session import SessionOptions, open_session
@@ -313,6 +313,8 @@ def run_node(name: str, run_id: str, scenario: Scenario, options: SessionOptions
         raise ValueError(f"unknown node {name!r} (known: {', '.join(sorted(NODES))})")
     die_with_launcher()
     report_key = key_from_environment()
+    if options.identity is not None:
+        check_identity(options.identity)     # a bad certificate is named before a missing key
     data_key = data_auth.node_key(run_dir, options.identity.ca_path.parent if options.identity else None)
     module = importlib.import_module(NODES[name])
     log = logging.getLogger(f"bench.{name}")
