@@ -112,3 +112,24 @@ def test_key_files(tmp_path):
     empty_run.mkdir()
     with pytest.raises(data_auth.KeyFileError, match="secoc.key.*bus.key"):
         data_auth.node_key(empty_run, empty_certs)
+
+
+def test_unauthentic_samples_are_left_out_of_the_report_and_named_by_the_contract_check(tmp_path):
+    from bench.bus.schemas import ThrustCommand, encode, header
+    from bench.contract.check import read_samples
+    from bench.recorder import RECORDING_FILE, Recording
+    from bench.report.rundata import read_recording
+
+    genuine = encode(ThrustCommand(header("r1", 0, 0.0), [0.1, 0.0, 0.0], True, "solved", 0.0))
+    forged = encode(ThrustCommand(header("r1", 0, 0.0), [0.9, -0.9, 0.9], True, "rogue", 0.0))
+    recording = Recording(tmp_path / RECORDING_FILE, "r1")
+    recording.write("command/thrust", genuine, 1)
+    recording.write("command/thrust", forged, 2, FORGED)
+    recording.write("command/thrust", genuine, 3, REPLAYED)
+    recording.close()
+    unauthentic: dict[str, int] = {}
+    samples = read_samples(tmp_path / RECORDING_FILE, unauthentic)
+    assert unauthentic == {"command/thrust": 2}
+    assert [(s.topic, s.payload) for s in samples] == [("command/thrust", genuine)]
+    messages, malformed, truncated = read_recording(tmp_path / RECORDING_FILE)
+    assert [m.body["thrust_n"] for m in messages] == [[0.1, 0.0, 0.0]] and malformed == 0 and not truncated
