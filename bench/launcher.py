@@ -28,11 +28,11 @@ from pathlib import Path
 import msgspec
 import zenoh
 
-from bench.bus import acl, keys
+from bench.bus import acl, data_auth, keys
 from bench.bus.can import run_key
 from bench.bus.can.sim_window import bus_on_simulated_time
 from bench.bus.schemas import ProcessStats, StepDone, decode, MalformedMessage
-from bench.bus.certs import CertificateError, identity_files, write_deployment_certs
+from bench.bus.certs import CertificateError, identity_files, read_secoc_key, write_deployment_certs
 from bench.bus.deployment import LAUNCHER, Deployment, DeploymentError, load_deployment
 from bench.bus.session import SessionConfigError, SessionOptions, free_loopback_port, loopback_endpoint, open_session
 from bench.controller.config import PLANNED_LAWS
@@ -441,6 +441,8 @@ class StatsCollector:
         if not self._genuine(message.process, message):
             return
         entry = {"published": message.published, "malformed": message.malformed}
+        if message.unauthentic:
+            entry["unauthentic"] = message.unauthentic
         with self._lock:
             if message.process not in self.remote:
                 # Signed by the process itself, which sends its stats once: a second is a replay.
@@ -614,6 +616,16 @@ def make_local_certs(cert_dir: Path) -> Path:
     return cert_dir
 
 
+def _data_key(identity) -> bytes:
+    """The run's data-topic key: derived from the deployment's secoc.key when the run has a
+    certificate directory holding one (so nodes on other hosts derive it too), else new."""
+    if identity is not None:
+        secoc_hex = read_secoc_key(identity.ca_path.parent)
+        if secoc_hex:
+            return data_auth.deployment_key(secoc_hex)
+    return data_auth.new_key()
+
+
 def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None, show_progress: bool = True,
               zenoh_config: str | None = None, write_report: bool = True,
               placement: Placement | None = None) -> tuple[int, Path]:
@@ -657,6 +669,9 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
     identity = placement.hub.identity
     scenario = run_key.with_run_key(scenario, identity.ca_path.parent if identity else None)
     run_key.write_private(scenario_path, msgspec.json.format(msgspec.json.encode(scenario)))
+    # The data topics' key (bench/bus/data_auth.py): the deployment's, else new per run; bus.key
+    # (0600) beside scenario.json is where this run's nodes, by hand or outside ones too, read it.
+    run_key.write_private(run_dir / data_auth.KEY_FILE, (_data_key(identity).hex() + "\n").encode())
     children: list[Child] = []
     group = ProcessGroup()
     started = time.monotonic()

@@ -4,7 +4,10 @@ It subscribes to `bench/<run_id>/**` raw, so it sees whatever is published, know
 sample is classified by its "type" tag against the bench's message types: a valid message goes to
 a JSON channel named after its topic with that type's JSON schema (Foxglove reads it); a CAN frame
 of the Zenoh transport (`can/<channel>`) goes raw to its own channel and counts as recorded; a
-payload that does not decode goes, byte for byte, to `malformed/<topic>` and is counted.
+payload that does not decode goes, byte for byte, to `malformed/<topic>` and is counted. With the
+run's data key (bench/bus/data_auth.py), a sample without a valid, fresh MAC goes, byte for byte,
+to `unauthentic/<topic>` and is counted per reason (forged, replayed); it is never read as the
+message it claims to be (its ProcessStats are not taken). CAN frames carry SecOC, not this MAC.
 
 Anyone on the bus can publish under `bench/<run_id>/**`, so what the recorder keeps is budgeted
 (`RecordingBudget`): per topic a message rate and a byte rate, all topics together a byte rate,
@@ -30,7 +33,7 @@ The scenario (its SecOC key left out) and, for a run placed by a deployment file
 into the file as MCAP metadata records.
 
 At the end it writes recorder_counts.json: per topic what it recorded, what was malformed, and
-what the publishers say they published (their ProcessStats), so a lost sample shows up as a
+what the publishers say they published (their authenticated ProcessStats), so a lost sample shows up as a
 difference. It also pings every process's clock (bench/bus/clock_sync.py) during the run and
 writes clock_offsets.json.
 """
@@ -51,7 +54,7 @@ import can
 import msgspec
 from mcap.writer import Writer
 
-from bench.bus import clock_sync, keys
+from bench.bus import clock_sync, data_auth, keys
 from bench.bus.can import protocol as can_protocol
 from bench.bus.can import zenoh_wire
 from bench.bus.can.zenoh_interface import CAN_TOPIC
@@ -62,6 +65,7 @@ RECORDING_FILE = "recording.mcap"
 COUNTS_FILE = "recorder_counts.json"
 OFFSETS_FILE = "clock_offsets.json"
 MALFORMED_PREFIX = "malformed/"
+UNAUTHENTIC_PREFIX = "unauthentic/"
 # A chunk reaches the file when full: a recorder killed mid-run loses at most this much (a few
 # seconds of a real-time run) instead of mcap's default 1 MiB, the whole of a short run.
 CHUNK_SIZE_BYTES = 64 * 1024
@@ -326,11 +330,16 @@ class Recording:
         self.malformed: Counter = Counter()
         self.dropped: dict[str, dict[str, int]] = {}    # filled from the budget at the end
         self.published_by: dict[str, dict[str, int]] = {}
+        self.unauthentic: dict[str, Counter] = {}      # reason (forged, replayed) -> topic -> count
 
-    def write(self, topic: str, payload: bytes, received_ns: int) -> Message | None:
+    def write(self, topic: str, payload: bytes, received_ns: int, unauthentic: str | None = None) -> Message | None:
         """Record one sample received at received_ns (wall clock): its log time is its simulated
-        time, its publish time received_ns. Returns the decoded message, None if it was malformed
-        or a CAN frame."""
+        time, its publish time received_ns. Returns the decoded message, None if it was malformed,
+        unauthentic (the reason its MAC failed, data_auth.FORGED or REPLAYED) or a CAN frame."""
+        if unauthentic is not None:
+            self.unauthentic.setdefault(unauthentic, Counter())[topic] += 1
+            self._add(self._channel(UNAUTHENTIC_PREFIX + topic, None), self.sim_time.of_unstepped(), payload, received_ns)
+            return None
         if topic.startswith(CAN_TOPIC + "/"):
             return self._write_can_frame(topic, payload, received_ns)
         message = classify(payload, self.run_id)
@@ -404,7 +413,9 @@ class Recording:
         for topics in self.published_by.values():
             published.update(topics)
         topics = {}
-        for topic in sorted(set(self.recorded) | set(self.malformed) | set(published) | set(self.dropped)):
+        unauthentic_topics = {t for counts in self.unauthentic.values() for t in counts}
+        for topic in sorted(set(self.recorded) | set(self.malformed) | set(published) | set(self.dropped)
+                            | unauthentic_topics):
             dropped = sum(self.dropped.get(topic, {}).values())
             seen = self.recorded[topic] + self.malformed[topic] + dropped
             reported = published.get(topic)
@@ -417,6 +428,9 @@ class Recording:
             if dropped:
                 topics[topic]["dropped"] = dropped
                 topics[topic]["dropped_by_reason"] = dict(self.dropped[topic])
+            if topic in unauthentic_topics:
+                topics[topic]["unauthentic"] = {reason: counts[topic] for reason, counts in sorted(self.unauthentic.items())
+                                                if counts[topic]}
         return {"run_id": self.run_id, "topics": topics, "publishers": self.published_by}
 
 
@@ -456,13 +470,20 @@ class Recorder:
         self.samples: queue.SimpleQueue = queue.SimpleQueue()
         self.budget = RecordingBudget()
         self.arrived = 0     # samples handed over by Zenoh so far, kept or dropped (tests wait on it)
+        key = getattr(ctx, "data_key", None)
+        self.verifier = data_auth.Verifier(key) if key is not None else None
         self.subscriber = ctx.session.declare_subscriber(keys.all_topics(ctx.run_id), self._on_sample)
 
     def _on_sample(self, sample) -> None:
         key_expr = str(sample.key_expr)
         payload = sample.payload
-        if self.budget.admit(topic_of(key_expr, self.ctx.run_id), len(payload), time.monotonic()) is None:
-            self.samples.put((key_expr, payload.to_bytes(), time.time_ns()))
+        topic = topic_of(key_expr, self.ctx.run_id)
+        if self.budget.admit(topic, len(payload), time.monotonic()) is None:
+            data = payload.to_bytes()
+            unauthentic = None
+            if self.verifier is not None and not topic.startswith(CAN_TOPIC + "/"):
+                unauthentic = self.verifier.check(key_expr, data, data_auth.attachment_bytes(sample))
+            self.samples.put((key_expr, data, time.time_ns(), unauthentic))
         self.arrived += 1
 
     def drain(self, timeout_s: float) -> None:
@@ -472,8 +493,8 @@ class Recorder:
         except queue.Empty:
             return
         while True:
-            key_expr, payload, received_ns = item
-            self.recording.write(topic_of(key_expr, self.ctx.run_id), payload, received_ns)
+            key_expr, payload, received_ns, unauthentic = item
+            self.recording.write(topic_of(key_expr, self.ctx.run_id), payload, received_ns, unauthentic)
             try:
                 item = self.samples.get_nowait()
             except queue.Empty:
@@ -502,6 +523,8 @@ def run(ctx) -> int:
     finally:
         recorder.finish()
         ctx.malformed.update(recorder.recording.malformed)
+        for reason, counts in recorder.recording.unauthentic.items():
+            ctx.unauthentic.setdefault(reason, Counter()).update(counts)
         clock.join(timeout=3.0)
         _write_json(ctx.run_dir / OFFSETS_FILE, {p: o.to_dict() for p, o in sorted(clock.offsets.items())})
     ctx.log.info("recorded %s; malformed %s", dict(recorder.recording.recorded), dict(recorder.recording.malformed))

@@ -3,8 +3,8 @@
 It imports nothing from `bench`: only Zenoh, json, numpy and scipy (scipy for the discrete
 algebraic Riccati equation and the matrix exponential, the same routines the built-in LQR uses, so
 the two trajectories agree to rounding). Everything it knows comes from the published contract
-(`bench contract export DIR`, docs/contract.md) and from the scenario.json the launcher writes into
-the run directory.
+(`bench contract export DIR`, docs/contract.md) and from the scenario.json and bus.key the launcher
+writes into the run directory.
 
     bench run rendezvous_lqr --external controller --run-id demo --port 7447
     python examples/outside_lqr_controller.py --connect tcp/127.0.0.1:7447 --run-id demo \
@@ -15,6 +15,9 @@ What it does, per the contract:
   endpoint (never Zenoh's default configuration);
 - declares the liveliness token `bench/<run>/alive/controller` (the launcher waits for it), then
   `ready/controller` once its command publisher is matched by the plant's subscriber;
+- takes an estimate only with a valid MAC under the run's key (bus.key beside scenario.json) and a
+  counter above the last one taken, and signs each command (the attachment: version, sender,
+  counter, HMAC-SHA256 over key expression, those and the payload; stdlib hmac);
 - for each TranslationEstimate on `estimate/translation`, publishes one ThrustCommand on
   `command/thrust` whose header is the estimate's (same seq, same sim_time_s, the upstream stamps
   carried) plus its own `controller_received` and `commanded` stamps;
@@ -26,12 +29,14 @@ flight side believes (seed 003: V scales metres to Mm and m/s to km/s; Q and R f
 
 `--break MODE:STEP` (repeatable) makes a deliberately broken variant for `bench contract check`
 (tests/test_contract.py): the command of step STEP goes to a wrong key (wrong-key), carries a field
-the schema does not have (bad-field), or carries the next step's sequence number (skip-seq); modes
-given for the same step all apply to its command.
+the schema does not have (bad-field), carries the next step's sequence number (skip-seq), or a MAC
+that is not the run's (bad-mac); modes given for the same step all apply to its command.
 """
 from __future__ import annotations
 
 import argparse
+import hashlib
+import hmac
 import json
 import queue
 import sys
@@ -48,7 +53,39 @@ NAME = "controller"
 # Seed 003's state scaling V (metres -> Mm, m/s -> km/s) and the thrusters' limit per axis.
 SEED_SCALING = (1e-6, 1e-6, 1e-6, 1e-3, 1e-3, 1e-3)
 SEED_MAX_ABS_THRUST_N = 1.0
-BREAKS = ("wrong-key", "bad-field", "skip-seq")
+BREAKS = ("wrong-key", "bad-field", "skip-seq", "bad-mac")
+MAC_VERSION = 1
+
+
+# --- signing (docs/contract.md, "Signing") ----------------------------------------------------
+def read_bus_key(path: Path, timeout_s: float) -> bytes:
+    """The run's data key: 64 hex digits in the run directory's bus.key (mode 0600)."""
+    deadline = time.monotonic() + timeout_s
+    while not path.is_file():
+        if time.monotonic() > deadline:
+            raise SystemExit(f"no bus key {path} after {timeout_s} s")
+        time.sleep(0.05)
+    time.sleep(0.05)
+    return bytes.fromhex(path.read_text().strip())
+
+
+def mac_attachment(key: bytes, key_expr: str, payload: bytes, counter: int) -> bytes:
+    head = bytes((MAC_VERSION, len(NAME))) + NAME.encode() + counter.to_bytes(8, "big")
+    return head + hmac.new(key, key_expr.encode() + b"\x00" + head + payload, hashlib.sha256).digest()
+
+
+def mac_sender_counter(key: bytes, key_expr: str, payload: bytes, attachment: bytes | None):
+    """(sender, counter) of a sample with a valid MAC; None otherwise."""
+    if not attachment or len(attachment) < 2 or attachment[0] != MAC_VERSION:
+        return None
+    head_len = 2 + attachment[1] + 8
+    if len(attachment) != head_len + 32:
+        return None
+    head = attachment[:head_len]
+    expected = hmac.new(key, key_expr.encode() + b"\x00" + head + payload, hashlib.sha256).digest()
+    if not hmac.compare_digest(expected, attachment[head_len:]):
+        return None
+    return head[2:head_len - 8], int.from_bytes(head[head_len - 8:], "big")
 
 
 # --- the law ----------------------------------------------------------------------------------
@@ -109,6 +146,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--connect", required=True, help="the launcher's hub endpoint, e.g. tcp/127.0.0.1:7447")
     parser.add_argument("--run-id", required=True)
     parser.add_argument("--scenario", required=True, type=Path, help="the run directory's scenario.json")
+    parser.add_argument("--bus-key", type=Path, help="the run's data key (default: bus.key beside --scenario)")
     parser.add_argument("--wait-s", type=float, default=60.0, help="how long to wait for the scenario and the hub")
     parser.add_argument("--break", dest="breaks", action="append", default=[], metavar="MODE:STEP",
                         help=f"break the contract at a step, MODE one of {', '.join(BREAKS)} (for the check's tests)")
@@ -121,6 +159,7 @@ def main(argv: list[str] | None = None) -> int:
         breaks.setdefault(int(step), set()).add(mode)
 
     scenario = wait_for_file(args.scenario, args.wait_s)
+    bus_key = read_bus_key(args.bus_key or args.scenario.parent / "bus.key", args.wait_s)
     gain = lqr_gain(scenario, SEED_SCALING)
     scaling = np.asarray(SEED_SCALING)
     lease_s = scenario["run"]["liveliness"]["lease_s"]
@@ -140,8 +179,19 @@ def main(argv: list[str] | None = None) -> int:
     launcher_gone = threading.Event()
     try:
         keep = [session.liveliness().declare_token(prefix + f"alive/{NAME}")]
-        keep.append(session.declare_subscriber(prefix + "estimate/translation",
-                                               lambda sample: estimates.put(sample.payload.to_bytes())))
+        last_counter: dict[bytes, int] = {}
+
+        def on_estimate(sample) -> None:
+            payload = sample.payload.to_bytes()
+            attachment = None if sample.attachment is None else sample.attachment.to_bytes()
+            opened = mac_sender_counter(bus_key, str(sample.key_expr), payload, attachment)
+            if opened is None or opened[1] <= last_counter.get(opened[0], -1):
+                print(f"dropped an estimate without a valid, fresh MAC: {payload[:80]!r}", file=sys.stderr)
+                return
+            last_counter[opened[0]] = opened[1]
+            estimates.put(payload)
+
+        keep.append(session.declare_subscriber(prefix + "estimate/translation", on_estimate))
         keep.append(session.liveliness().declare_subscriber(
             prefix + "alive/launcher",
             lambda sample: launcher_gone.set() if sample.kind == zenoh.SampleKind.DELETE else None))
@@ -158,6 +208,7 @@ def main(argv: list[str] | None = None) -> int:
             time.sleep(0.005)
         keep.append(session.liveliness().declare_token(prefix + f"ready/{NAME}"))
 
+        counter = time.time_ns()     # goes up by one per message, and on from a restart
         while not launcher_gone.is_set():
             try:
                 payload = estimates.get(timeout=0.2)
@@ -187,7 +238,13 @@ def main(argv: list[str] | None = None) -> int:
             if "bad-field" in broken:
                 command["thrust_vec"] = command["thrust_n"]
             stamps["commanded"] = time.monotonic_ns()
-            (wrong if "wrong-key" in broken else commands).put(json.dumps(command).encode())
+            publisher_used = wrong if "wrong-key" in broken else commands
+            payload = json.dumps(command).encode()
+            counter += 1
+            attachment = mac_attachment(bus_key, str(publisher_used.key_expr), payload, counter)
+            if "bad-mac" in broken:
+                attachment = attachment[:-32] + bytes(32)
+            publisher_used.put(payload, attachment=attachment)
     finally:
         session.close()
     return 0

@@ -16,7 +16,7 @@ import time
 import numpy as np
 import pytest
 
-from bench.bus import keys
+from bench.bus import data_auth, keys
 from bench.bus.schemas import ThrustCommand, TruthState, decode, encode, header
 from bench.bus.session import SessionOptions, free_loopback_port, loopback_endpoint, open_session
 from bench.plant.acceptance import (
@@ -60,10 +60,15 @@ def test_a_refused_step_holds_or_zeroes_as_configured(policy, expected):
 
 # --- a rogue on the bus -------------------------------------------------------------------------
 class Rogue:
-    """Answers each truth sample of step k with bad thrust commands, as fast as Zenoh delivers."""
+    """Answers each truth sample of step k with bad thrust commands, as fast as Zenoh delivers.
+    It signs them with the run's data key (read from the run's bus.key, as any process of the
+    user who started the run can): the output stage is the line behind the data topics' MAC, for
+    whoever holds the key (tests/test_forged_data.py: without it nothing reaches the plant)."""
 
-    def __init__(self, run_id: str, port: int):
+    def __init__(self, run_id: str, port: int, run_dir):
         self.run_id = run_id
+        # Written by the launcher right after its hub listens; until then, the caller retries.
+        self.signer = data_auth.Signer(data_auth.read_key_file(run_dir / data_auth.KEY_FILE), "rogue")
         self.session = open_session(SessionOptions(connect=(loopback_endpoint(port),)))
         self.command_key = keys.key(run_id, keys.COMMAND_THRUST)
         self.seen_commands: list[bytes] = []     # the controller's, to replay
@@ -102,7 +107,7 @@ class Rogue:
             if self.seen_commands:
                 payloads.append(self.seen_commands[-1])  # a replay of the controller's last one
         for payload in payloads:
-            self.session.put(self.command_key, payload)
+            self.session.put(self.command_key, payload, attachment=self.signer(self.command_key, payload))
         self.sent += len(payloads)
         self.answered_steps += 1
 
@@ -119,7 +124,7 @@ def run_with_rogue(runs_dir, run_id: str, *extra: str) -> tuple[subprocess.Compl
     rogue = None
     while rogue is None:
         try:
-            rogue = Rogue(run_id, port)      # the hub listens once the launcher is up
+            rogue = Rogue(run_id, port, runs_dir / run_id)      # the hub listens once the launcher is up
         except Exception:
             assert time.monotonic() < deadline, "the launcher's hub never came up"
             time.sleep(0.2)

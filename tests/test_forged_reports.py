@@ -91,10 +91,11 @@ def _finish(runs_dir, run_id: str, run: subprocess.Popen) -> tuple[dict, dict]:
 
 
 def _comparable(metrics: dict) -> dict:
-    """metrics.json without what differs between any two runs (times, pids) and the forged counts."""
+    """metrics.json without what differs between any two runs (times, pids), the forged counts and
+    the messages the nodes dropped for their data-topic MAC (`unauthentic`)."""
     varying = {"wall_time_s", "end_to_end_latency", "processes"}
     kept = {k: v for k, v in metrics.items() if k not in varying}
-    kept["process_stats"] = {name: {k: v for k, v in entry.items() if k != "forged"}
+    kept["process_stats"] = {name: {k: v for k, v in entry.items() if k not in ("forged", "unauthentic")}
                              for name, entry in metrics["process_stats"].items()}
     kept["exit_codes"] = {name: p["exit_code"] for name, p in metrics["processes"].items()}
     return kept
@@ -129,3 +130,7 @@ def test_forged_reports_change_nothing_in_a_plain_run(runs_dir):
     forged = {name: entry.get("forged", 0) for name, entry in attacked["process_stats"].items()}
     assert all(forged.get(name, 0) > 0 for name in PROCESSES), forged
     assert all("forged" not in entry for entry in clean["process_stats"].values())
+    # The recorder took only the processes' own stats (the forged ones fail the data-topic MAC).
+    counts = json.loads((runs_dir / "reports-rogue" / "recorder_counts.json").read_text())
+    assert counts["publishers"]["controller"][keys.COMMAND_THRUST] == STEPS
+    assert attacked["process_stats"]["recorder"]["unauthentic"]["forged"][f"{keys.STATUS_STATS}/controller"] > 0

@@ -8,6 +8,7 @@ import time
 import numpy as np
 import pytest
 
+from bench.bus import data_auth
 from bench.bus.session import SessionOptions, free_loopback_port, loopback_endpoint, open_session
 from bench.scenario import load_scenario
 from bench.sim import simulate_in_process
@@ -156,10 +157,20 @@ def test_garbage_on_every_bench_key_crashes_nothing(runs_dir):
     proc = _start_long_run(runs_dir, run_id, "--port", str(port))
     session = open_session(SessionOptions(connect=(loopback_endpoint(port),)))
     try:
+        # Half of it signed with the run's data key (its bus.key), so that it reaches the decoders;
+        # the other half is dropped for its missing MAC before.
+        key_path = runs_dir / run_id / data_auth.KEY_FILE
+        deadline = time.monotonic() + 60
+        while not key_path.is_file() or not key_path.read_text().strip():
+            assert time.monotonic() < deadline, "no bus.key"
+            time.sleep(0.05)
+        signer = data_auth.Signer(data_auth.read_key_file(key_path), "garbage")
         topics = ["truth", "sense/relpos", "estimate/translation", "command/thrust", "status/step"]
-        for i in range(20):
+        for i in range(40):
             for topic in topics:
-                session.put(f"bench/{run_id}/{topic}", b"\xff\x00 not a message" if i % 2 else b'{"type":"thrust"}')
+                key_expr = f"bench/{run_id}/{topic}"
+                payload = b"\xff\x00 not a message" if i % 2 else b'{"type":"thrust"}'
+                session.put(key_expr, payload, attachment=signer(key_expr, payload) if i % 4 < 2 else None)
             time.sleep(0.02)
         time.sleep(0.5)
         assert proc.poll() is None, proc.communicate()[1]
@@ -170,6 +181,7 @@ def test_garbage_on_every_bench_key_crashes_nothing(runs_dir):
     logs = {name: (runs_dir / run_id / "logs" / f"{name}.log").read_text() for name in ("estimator", "controller", "plant")}
     for name, text in logs.items():
         assert "malformed message" in text, name
+        assert "forged message" in text, name
         assert "Traceback" not in text, name
 
 

@@ -6,7 +6,7 @@ import threading
 import numpy as np
 import pytest
 
-from bench.bus import keys
+from bench.bus import data_auth, keys
 from bench.bus.schemas import encode, header
 from bench.bus.session import SessionOptions, free_loopback_port, loopback_endpoint, open_session
 from bench.controller.config import DeadlineConfig
@@ -105,8 +105,15 @@ def test_launcher_starts_the_planner_only_for_the_tracker():
 
 
 # --- the planned slew as processes -------------------------------------------------------------
-def _inject_bad_plans(port: int, run_id: str, stop: threading.Event, sent: list) -> None:
-    """From outside the loop: a plan whose arrays do not fit, and one with a NaN (JSON null)."""
+def _inject_bad_plans(port: int, run_id: str, stop: threading.Event, sent: list, run_dir) -> None:
+    """From outside the loop: a plan whose arrays do not fit, and one with a NaN (JSON null),
+    signed with the run's data key (its bus.key): the plan checks are what is tested here (without
+    the key they would be dropped before, tests/test_forged_data.py)."""
+    key_path = run_dir / data_auth.KEY_FILE
+    while not key_path.is_file() or not key_path.read_text().strip():
+        if stop.wait(0.05):
+            return
+    signer = data_auth.Signer(data_auth.read_key_file(key_path), "injector")
     session = open_session(SessionOptions(connect=(loopback_endpoint(port),)))
     try:
         publisher = session.declare_publisher(keys.key(run_id, keys.PLAN_ATTITUDE))
@@ -115,8 +122,8 @@ def _inject_bad_plans(port: int, run_id: str, stop: threading.Event, sent: list)
         non_finite = plan_message(small_plan(plan_id=98), seq=3, run_id=run_id)
         non_finite.dipoles_am2 = [[float("nan"), 0.0, 0.0]] + non_finite.dipoles_am2[1:]
         while not stop.wait(1.0):
-            publisher.put(encode(inconsistent))
-            publisher.put(encode(non_finite))
+            for payload in (encode(inconsistent), encode(non_finite)):
+                publisher.put(payload, attachment=signer(str(publisher.key_expr), payload))
             sent.append(2)
     finally:
         session.close()
@@ -127,7 +134,7 @@ def slew_run(tmp_path_factory):
     runs = tmp_path_factory.mktemp("planner_runs")
     port, run_id = free_loopback_port(), "slew_milqr"
     stop, sent = threading.Event(), []
-    injector = threading.Thread(target=_inject_bad_plans, args=(port, run_id, stop, sent), daemon=True)
+    injector = threading.Thread(target=_inject_bad_plans, args=(port, run_id, stop, sent, runs / run_id), daemon=True)
     injector.start()
     try:
         result = run_bench_cli("run", "attitude_slew_milqr", "--run-id", run_id, "--runs-dir", str(runs),

@@ -184,3 +184,30 @@ def test_scenario_and_deployment_are_metadata_records(tmp_path):
     body = json.loads(metadata["scenario"]["scenario_json"])
     assert body["attitude"]["duration_s"] == scenario.attitude.duration_s
     assert body["can"]["security"]["key_hex"] == "(left out)"
+
+
+def test_unauthentic_samples_are_counted_apart_and_their_stats_not_taken(tmp_path):
+    """A sample that failed the data-topic MAC (the Recorder's verifier says why) goes raw to
+    `unauthentic/<topic>`, is counted per reason, and its ProcessStats do not become the publisher's."""
+    from bench.bus.data_auth import FORGED, REPLAYED
+    from bench.bus.schemas import ProcessStats
+    from bench.recorder import UNAUTHENTIC_PREFIX, Recording
+
+    recording = Recording(tmp_path / RECORDING_FILE, RUN_ID)
+    stats_topic = keys.STATUS_STATS + "/controller"
+    genuine = encode(ProcessStats(header(RUN_ID, 0, 0.0), "controller", {keys.COMMAND_THRUST: 20}, {}))
+    forged = encode(ProcessStats(header(RUN_ID, 0, 0.0), "controller", {keys.COMMAND_THRUST: 1}, {}))
+    command = encode(ThrustCommand(header(RUN_ID, 0, 0.0), [0.9, -0.9, 0.9], True, "rogue", 0.0))
+    recording.write(stats_topic, genuine, 1)
+    recording.write(stats_topic, forged, 2, FORGED)
+    recording.write(keys.COMMAND_THRUST, command, 3, FORGED)
+    recording.write(keys.COMMAND_THRUST, command, 4, REPLAYED)
+    recording.close()
+    counts = recording.counts()
+    assert counts["publishers"] == {"controller": {keys.COMMAND_THRUST: 20}}
+    assert counts["topics"][keys.COMMAND_THRUST]["recorded"] == 0
+    assert counts["topics"][keys.COMMAND_THRUST]["unauthentic"] == {FORGED: 1, REPLAYED: 1}
+    assert counts["topics"][keys.COMMAND_THRUST]["missing"] == 20    # the genuine 20 never came
+    assert counts["topics"][stats_topic]["unauthentic"] == {FORGED: 1}
+    channels = sorted({channel.topic for _, channel, _ in read_back(tmp_path / RECORDING_FILE)})
+    assert channels == [stats_topic, UNAUTHENTIC_PREFIX + keys.COMMAND_THRUST, UNAUTHENTIC_PREFIX + stats_topic]

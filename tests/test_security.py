@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import zenoh
 
-from bench.bus import acl, keys
+from bench.bus import acl, data_auth, keys
 from bench.bus import session as session_module
 from bench.bus.certs import (
     CertificateError, Identity, check_identity, identity_files, issue, load_ca, make_ca, write_deployment_certs,
@@ -238,20 +238,33 @@ def _wait_port(port: int, timeout_s: float) -> None:
 
 class RogueCommander:
     """Answers every truth sample of step k with its own thrust command for step k, at once:
-    it wins the race against the real controller whenever its command is delivered."""
+    it wins the race against the real controller whenever its command is delivered. signer: the
+    run's data key (bench/bus/data_auth.py), for a rogue that could read the run's bus.key."""
 
-    def __init__(self, session, run_id: str):
-        self.session, self.run_id, self.sent = session, run_id, 0
+    def __init__(self, session, run_id: str, signer=None):
+        self.session, self.run_id, self.sent, self.signer = session, run_id, 0, signer
         self.publisher = session.declare_publisher(keys.key(run_id, keys.COMMAND_THRUST))
         self.subscriber = session.declare_subscriber(keys.key(run_id, keys.TRUTH), self._on_truth)
 
     def _on_truth(self, sample) -> None:
         k = decode(sample.payload.to_bytes(), TruthState).header.seq
-        self.publisher.put(encode(ThrustCommand(header(self.run_id, k, 0.0), [0.9, -0.9, 0.9], True, "rogue", 0.0)))
+        payload = encode(ThrustCommand(header(self.run_id, k, 0.0), [0.9, -0.9, 0.9], True, "rogue", 0.0))
+        attachment = self.signer(str(self.publisher.key_expr), payload) if self.signer else None
+        self.publisher.put(payload, attachment=attachment)
         self.sent += 1
 
 
-def _run_with_rogue(runs_dir, run_id: str, identity, extra: list[str]) -> tuple[dict, int]:
+def _run_key_signer(run_dir, timeout_s: float = 60.0):
+    """A signer with the run's data key, read from its bus.key as soon as the launcher writes it."""
+    deadline = time.monotonic() + timeout_s
+    while not (run_dir / data_auth.KEY_FILE).is_file():
+        assert time.monotonic() < deadline, f"no {data_auth.KEY_FILE} in {run_dir}"
+        time.sleep(0.02)
+    time.sleep(0.05)
+    return data_auth.Signer(data_auth.read_key_file(run_dir / data_auth.KEY_FILE), "rogue")
+
+
+def _run_with_rogue(runs_dir, run_id: str, identity, extra: list[str], with_run_key: bool = False) -> tuple[dict, int]:
     port = free_loopback_port()
     cmd = [sys.executable, "-m", "bench.cli", "run", "--run-id", run_id, "--runs-dir", str(runs_dir), "--steps",
            str(STEPS), "--port", str(port), "--no-progress", "--no-report", *extra]
@@ -262,7 +275,7 @@ def _run_with_rogue(runs_dir, run_id: str, identity, extra: list[str]) -> tuple[
         protocol = "tls" if identity else "tcp"
         rogue_session = open_session(SessionOptions(connect=(loopback_endpoint(port, protocol),), identity=identity,
                                                     access_control=False))
-        rogue = RogueCommander(rogue_session, run_id)
+        rogue = RogueCommander(rogue_session, run_id, _run_key_signer(runs_dir / run_id) if with_run_key else None)
         out, err = run.communicate(timeout=300)
         assert run.returncode == 0, err + out
     finally:
@@ -298,10 +311,12 @@ def test_estimator_certificate_cannot_command_the_plant(runs_dir, tmp_path):
     np.testing.assert_allclose(trajectory["thrust_n"], reference["thrust_n"], rtol=1e-9, atol=1e-15)
 
 
-def test_without_security_the_same_rogue_takes_over(runs_dir):
-    """The control: a plain run, the same rogue without any certificate, and the plant flies its
-    commands (the trajectory leaves the clean one)."""
-    trajectory, sent = _run_with_rogue(runs_dir, "plain-rogue", None, [])
+def test_without_security_the_same_rogue_with_the_run_key_takes_over(runs_dir):
+    """The control: a plain run, the same rogue without any certificate but holding the run's data
+    key (any process of the user who started the run can read runs/<id>/bus.key), and the plant
+    flies its commands (the trajectory leaves the clean one). Without the key its commands are
+    dropped: tests/test_forged_data.py."""
+    trajectory, sent = _run_with_rogue(runs_dir, "plain-rogue", None, [], with_run_key=True)
     assert sent > 0
     assert np.any(np.all(np.isclose(trajectory["thrust_n"], [0.9, -0.9, 0.9]), axis=1))
     reference = _reference()

@@ -7,7 +7,9 @@
     <identity>.pem      one certificate per identity, CN = the identity (node name, launcher, router)
     <identity>.key      its private key (mode 0600; only the host that runs the identity needs it)
     secoc.key           the deployment's CAN SecOC key, 32 hex digits (mode 0600; the launcher's
-                        host needs it: it hands it to the CAN nodes in each run's scenario.json)
+                        host needs it: it hands it to the CAN nodes in each run's scenario.json;
+                        every host of a deployment derives the data topics' key from it,
+                        bench/bus/data_auth.py)
 
 The common name is what Zenoh's access control matches (`cert_common_names`), so the CN of a
 certificate *is* the node's identity on the bus: whoever holds `controller.key` may command.

@@ -120,6 +120,9 @@ class ProcessStats(Message, tag="process_stats"):
     published: dict[str, NonNegInt]
     malformed: dict[str, NonNegInt]
     mac: ReportMac = ""
+    # Messages it dropped for their data-topic MAC (bench/bus/data_auth.py): "forged" or
+    # "replayed" -> topic -> count.
+    unauthentic: dict[str, dict[str, NonNegInt]] = {}
 
 
 M = TypeVar("M", bound=Message)

@@ -8,6 +8,8 @@ who is told where to connect. The verdict comes afterwards from the run's record
 keeps every sample under `bench/<run_id>/**`, valid or not, with its arrival time on the recorder's
 clock, so the check needs nothing from the outside node but what it put on the bus:
 
+- authenticity: every message carries a valid MAC under the run's data key (bench/bus/data_auth.py;
+  the recorder puts the others on `unauthentic/<topic>`, and the plant never saw them);
 - keys: every topic is one of the contract's (bench.contract.table);
 - schemas: everything on the controller's topics decodes as its message (bench.bus.schemas), of
   this run and schema version;
@@ -38,7 +40,7 @@ from bench.bus.schemas import SCHEMA_VERSION, MalformedMessage, ThrustCommand, T
 from bench.bus.session import free_loopback_port, loopback_endpoint
 from bench.contract.table import RENDEZVOUS, publications_of, topic_of
 from bench.launcher import run_bench
-from bench.recorder import MALFORMED_PREFIX, RECORDING_FILE
+from bench.recorder import MALFORMED_PREFIX, RECORDING_FILE, UNAUTHENTIC_PREFIX
 from bench.scenario import Scenario, ScenarioError, load_scenario, parse_scenario
 
 UPSTREAM_STAGES = ("sensed", "estimator_received", "estimated")   # the stamps a command carries on
@@ -139,12 +141,18 @@ class Sample:
     received_ns: int      # the recorder's wall clock at arrival
 
 
-def read_samples(path: Path) -> list[Sample]:
-    """Every sample of the recording, valid or not, in arrival order (malformed ones under their topic)."""
+def read_samples(path: Path, unauthentic: dict[str, int] | None = None) -> list[Sample]:
+    """Every sample of the recording, valid or not, in arrival order (malformed ones under their
+    topic); those that failed the data-topic MAC are only counted per topic into `unauthentic`."""
     samples = []
+    unauthentic = {} if unauthentic is None else unauthentic
     with open(path, "rb") as f:
         try:
             for _schema, channel, message in NonSeekingReader(f).iter_messages(log_time_order=False):
+                if channel.topic.startswith(UNAUTHENTIC_PREFIX):
+                    topic = channel.topic.removeprefix(UNAUTHENTIC_PREFIX)
+                    unauthentic[topic] = unauthentic.get(topic, 0) + 1
+                    continue
                 topic = channel.topic.removeprefix(MALFORMED_PREFIX)
                 samples.append(Sample(topic, bytes(message.data), int(message.publish_time)))
         except (McapError, EOFError, ValueError):
@@ -163,7 +171,11 @@ def judge(run_dir: Path, scenario: Scenario, exit_code: int, allowed_misses: int
         problems.append(f"no recording ({recording}): nothing to judge")
         verdict.summary = "no recording"
         return verdict
-    samples = read_samples(recording)
+    unauthentic: dict[str, int] = {}
+    samples = read_samples(recording, unauthentic)
+    for topic, n in sorted(unauthentic.items()):
+        problems.append(f"not authenticated: {n} message(s) on {topic} without a valid, fresh MAC under the run's key "
+                        f"(runs/<id>/bus.key; docs/contract.md, \"Signing\"); the bench's nodes dropped them")
 
     # Keys.
     unknown: dict[str, int] = {}

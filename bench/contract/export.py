@@ -70,6 +70,12 @@ Each payload is one JSON object: a `"type"` tag, a `header` and the message's fi
 `schemas/`). Unknown fields, missing required fields, wrong types and vectors of the wrong length
 are refused; a refused payload is counted by its receiver and dropped, never fatal.
 
+Each sample also carries a tag in its Zenoh attachment: version 1, the sender's name (length
+byte, then the name), an 8-byte big-endian counter that goes up with every message, and
+HMAC-SHA256 under the run's key (`runs/<run_id>/bus.key`, 64 hex digits) over the key expression,
+a zero byte, those bytes and the payload. A sample without a valid tag is dropped as forged, one
+whose counter its receiver has already passed as replayed (docs/contract.md, "Signing").
+
 The header: `schema_version` ({SCHEMA_VERSION}), `run_id` (the run's id, also the second chunk of
 every key), `seq` (the index k of the plant sample the message derives from), `sim_time_s` (the
 simulated time of sample k) and `stamps_ns` (stage -> `CLOCK_MONOTONIC` in ns on the host that

@@ -27,7 +27,7 @@ from bench.bus.schemas import (
     DeadlineEvent, DipoleCommand, GyroSample, MagnetometerSample, Message, MtqApplied, ProcessStats, RelativePosition,
     StarTrackerSample, StepDone, ThrustCommand, TranslationEstimate, TruthState,
 )
-from bench.recorder import COUNTS_FILE, MALFORMED_PREFIX, OFFSETS_FILE, RECORDING_FILE, classify_any
+from bench.recorder import COUNTS_FILE, MALFORMED_PREFIX, OFFSETS_FILE, RECORDING_FILE, UNAUTHENTIC_PREFIX, classify_any
 from bench.scenario import Scenario, ScenarioError, load_scenario
 
 CAN_LOG_FILE = "can.log"
@@ -114,6 +114,8 @@ def read_recording(path: Path, wrong_type: dict[str, int] | None = None) -> tupl
         try:
             for _schema, channel, message in NonSeekingReader(f).iter_messages(log_time_order=False):
                 topic = channel.topic
+                if topic.startswith(UNAUTHENTIC_PREFIX):
+                    continue        # failed the data-topic MAC: not the run's (recorder_counts.json counts it)
                 if topic.startswith(MALFORMED_PREFIX) or topic.startswith(CAN_TOPIC + "/"):
                     malformed += topic.startswith(MALFORMED_PREFIX)
                     continue

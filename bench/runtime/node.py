@@ -5,7 +5,9 @@ builds the context and calls it; the launcher starts each node that way as its o
 
 Messages arrive on Zenoh's threads; `subscribe` decodes and validates them there and hands typed
 messages to the node's queue, so a node's logic runs on one thread and a malformed payload is
-counted and logged where it arrives, never raised into the node.
+counted and logged where it arrives, never raised into the node. With the run's data key
+(bench/bus/data_auth.py) every published message carries a MAC in its attachment (`_tag`), and a
+received one without a valid, fresh MAC is dropped and counted before it is decoded (`_refused`).
 """
 from __future__ import annotations
 
@@ -22,9 +24,9 @@ from typing import Callable
 
 import zenoh
 
-from bench.bus import keys
+from bench.bus import data_auth, keys
 from bench.bus.clock_sync import declare_clock_responder
-from bench.bus.certs import identity_files
+from bench.bus.certs import check_identity, identity_files
 from bench.bus.deployment import DeploymentError, load_deployment
 from bench.bus.schemas import MalformedMessage, Message, ProcessStats, decode, encode, header
 from bench.bus.session import SessionOptions, open_session
@@ -65,6 +67,12 @@ class NodeContext:
     # The secret the launcher handed this process: its reports to the launcher (ProcessStats, the
     # plant's StepDone) are signed with it (bench/runtime/reports.py). None: started by hand.
     report_key: bytes | None = None
+    # The run's data-topic key (bench/bus/data_auth.py): what this node publishes is signed with
+    # it, and what it receives is taken only with a valid, fresh MAC. None: neither (no key found).
+    data_key: bytes | None = None
+    # Messages dropped for their MAC: reason (forged, replayed) -> topic -> count (ProcessStats).
+    unauthentic: dict = field(default_factory=dict)
+    _signer: data_auth.Signer | None = None
 
     # --- publishing -----------------------------------------------------------------------
     def publish(self, topic: str, message: Message) -> None:
@@ -73,8 +81,30 @@ class NodeContext:
             pub = self.declare_publisher(topic)
         if self.report_key is not None and isinstance(message, SIGNED_TYPES):
             message = sign(message, self.report_key)
-        pub.put(encode(message))
+        payload = encode(message)
+        pub.put(payload, attachment=self._tag(topic, payload))
         self.published[topic] += 1
+
+    def _tag(self, topic: str, payload: bytes) -> bytes | None:
+        if self.data_key is None:
+            return None
+        if self._signer is None:
+            self._signer = data_auth.Signer(self.data_key, self.name)
+        return self._signer(keys.key(self.run_id, topic), payload)
+
+    def _refused(self, verifier: data_auth.Verifier | None, sample: zenoh.Sample, topic: str, payload: bytes) -> bool:
+        """Whether a sample fails the MAC check (then it is counted and logged, never raised)."""
+        if verifier is None:
+            return False
+        reason = verifier.check(str(sample.key_expr), payload, data_auth.attachment_bytes(sample))
+        if reason is None:
+            return False
+        counts = self.unauthentic.setdefault(reason, Counter())
+        counts[topic] += 1
+        if counts[topic] <= 5 or counts[topic] % 100 == 0:
+            self.log.warning("%s message #%d on %s dropped (no valid MAC under the run's key)" if reason == data_auth.FORGED
+                             else "%s message #%d on %s dropped (its counter was already seen)", reason, counts[topic], topic)
+        return True
 
     def declare_publisher(self, topic: str) -> zenoh.Publisher:
         # Reliable and blocking: in lock-step a lost sample would stall the loop, and the
@@ -100,14 +130,18 @@ class NodeContext:
         subscribers do not (benchmarks/bench_sensor_order.py: up to a quarter of the earlier topics'
         samples came after the last topic's sample of the same tick)."""
         prefix = keys.key(self.run_id, "")
+        verifier = data_auth.Verifier(self.data_key) if self.data_key is not None else None
 
         def handle(sample: zenoh.Sample) -> None:
             topic = str(sample.key_expr)[len(prefix):]
             kind = kinds.get(topic)
+            payload = sample.payload.to_bytes()
+            if self._refused(verifier, sample, topic, payload):
+                return
             try:
                 if kind is None:
                     raise MalformedMessage(f"no message is expected on {topic}")
-                message = decode(sample.payload.to_bytes(), kind)
+                message = decode(payload, kind)
             except MalformedMessage as exc:
                 self.malformed[topic] += 1
                 if self.malformed[topic] <= 5 or self.malformed[topic] % 100 == 0:
@@ -210,9 +244,11 @@ class NodeContext:
             process=self.name,
             published=dict(self.published),
             malformed=dict(self.malformed),
+            unauthentic={reason: dict(counts) for reason, counts in self.unauthentic.items()},
         )
         self.publish(f"{keys.STATUS_STATS}/{self.name}", stats)
-        self.log.info("published %s; malformed %s", dict(self.published), dict(self.malformed))
+        self.log.info("published %s; malformed %s; unauthentic %s", dict(self.published), dict(self.malformed),
+                      stats.unauthentic)
 
 
 def node_options(args) -> SessionOptions:
@@ -277,12 +313,18 @@ def run_node(name: str, run_id: str, scenario: Scenario, options: SessionOptions
         raise ValueError(f"unknown node {name!r} (known: {', '.join(sorted(NODES))})")
     die_with_launcher()
     report_key = key_from_environment()
+    if options.identity is not None:
+        check_identity(options.identity)     # a bad certificate is named before a missing key
+    data_key = data_auth.node_key(run_dir, options.identity.ca_path.parent if options.identity else None)
     module = importlib.import_module(NODES[name])
     log = logging.getLogger(f"bench.{name}")
     lease_ms = int(round(scenario.run.liveliness.lease_s * 1000))
     session = open_session(dataclasses.replace(options, lease_ms=lease_ms))
     ctx = NodeContext(name=name, run_id=run_id, scenario=scenario, session=session, run_dir=run_dir, log=log,
-                      peers=list(peers or []), report_key=report_key)
+                      peers=list(peers or []), report_key=report_key, data_key=data_key)
+    if data_key is None:
+        log.warning("no data key (%s): this node signs and checks nothing, and the run's nodes drop what it "
+                    "publishes", run_dir / data_auth.KEY_FILE)
 
     def request_stop(signum, _frame):
         log.info("signal %d: stopping", signum)
