@@ -45,9 +45,9 @@ def test_propagation_matches_the_plants_integration_of_the_nonlinear_equations(f
     for start in starts(frame):
         expected = plant_step(frame, start, THRUST_N, n_steps)
         got = model(frame).propagate(start, THRUST_N, n_steps)
-        # RK4 at 30 s: ~0.1 mm on a 400 km start; the CWH model errs by ~10 m there (checked below).
-        np.testing.assert_allclose(got[:3], expected[:3], rtol=0, atol=1e-3)
-        np.testing.assert_allclose(got[3:], expected[3:], rtol=0, atol=1e-6)
+        # RK4 at 60 s: ~1.5 mm per step on a 400 km start; the CWH model errs by metres there (below).
+        np.testing.assert_allclose(got[:3], expected[:3], rtol=0, atol=5e-3 * n_steps**2)
+        np.testing.assert_allclose(got[3:], expected[3:], rtol=0, atol=1e-5 * n_steps**2)
 
 
 def test_the_linear_model_does_not_pass_the_same_check_on_the_far_start():
@@ -80,8 +80,8 @@ def test_linearisation_at_the_target_is_the_cwh_model(frame):
     propagated, jacobian = m.linearise(np.zeros(6), np.zeros(3))
     # At rest on the target's orbit: only rounding of n^2 R - mu / R^2 (~1e-15 m/s^2) moves it.
     np.testing.assert_allclose(propagated, np.zeros(6), rtol=0, atol=1e-6)
-    # RK4's truncation, (n h)^4 / 120 per substep, is the only difference from the exact CWH matrix.
-    np.testing.assert_allclose(jacobian, a_d, rtol=0, atol=1e-7 * np.abs(a_d).max())
+    # RK4's truncation, ~(n h)^4 / 120 per substep, is the only difference from the exact CWH matrix.
+    np.testing.assert_allclose(jacobian, a_d, rtol=0, atol=1e-5 * np.abs(a_d).max())
     # A thrust of 0.3 N held 600 s moves the chaser by ~100 m; the nonlinear terms of that are ~mm.
     np.testing.assert_allclose(m.propagate(np.zeros(6), THRUST_N), b_d @ THRUST_N, rtol=0, atol=1e-2)
 

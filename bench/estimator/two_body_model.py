@@ -20,7 +20,7 @@ on the moving local axes as the chaser moves.
 
 `propagate` integrates with a fixed-step classical Runge-Kutta (RK4) in complex arithmetic, so
 that `linearise` gets the exact Jacobian d x_k / d x_{k-1} by the complex step (six perturbed
-trajectories in one vectorised integration, no subtraction error). RK4 at 30 s steps against
+trajectories in one vectorised integration, no subtraction error). RK4 at 60 s steps against
 scipy's DOP853 at 1e-12: see tests/test_estimator_two_body_model.py.
 """
 from __future__ import annotations
@@ -31,10 +31,12 @@ import numpy as np
 
 NavigationFrame = Literal["cartesian", "curvilinear"]
 
-# RK4 step: the truncation error per 600 s plant step is ~(n h)^4 relative with n ~ 1.1e-3 rad/s;
-# at 30 s it is ~0.1 mm on the 400 km start (tests), far below the 10 m fixes and the ~0.4 m
-# the smoother settles at, and 3x cheaper than 10 s (the estimator runs one integration per step).
-MAX_SUBSTEP_S = 30.0
+# RK4 step: the truncation error is ~(n h)^4 / 120 relative per substep, n ~ 1.1e-3 rad/s. At 60 s
+# it is ~1.5 mm per 600 s plant step on the 400 km start and less nearer the target (tests):
+# far below the 10 m fixes and the ~0.4 m the smoother settles at, while the old CWH model missed
+# metres per step there. Each step of the estimator costs one integration (~7 ms at 60 s; the
+# numpy calls on six complex trajectories, not the arithmetic, are the cost).
+MAX_SUBSTEP_S = 60.0
 # Complex-step size (state units: m, m/s): tiny, the derivative is exact to rounding anyway.
 _COMPLEX_STEP = 1e-20
 
@@ -65,38 +67,42 @@ class TwoBodyRelativeModel:
 
     # ---- the equations -----------------------------------------------------------------------
 
-    def _lvlh_thrust(self, state: np.ndarray, thrust_n: np.ndarray) -> np.ndarray:
-        """The command as the LVLH vector the plant holds over the step (rows: trajectories)."""
+    def _lvlh_thrust(self, state: np.ndarray, thrust_n: np.ndarray) -> tuple:
+        """The command as the LVLH vector the plant holds over the step: three components, each
+        one number per trajectory (rows of `state`)."""
         if self.frame == "cartesian":
-            return np.broadcast_to(thrust_n, state[..., :3].shape).astype(state.dtype)
+            return tuple(thrust_n[i] + 0.0 * state[..., 0] for i in range(3))
         theta, phi = state[..., 1] / self.radius_m, state[..., 2] / self.radius_m
-        e_r, e_t, e_p = _local_axes(theta, phi)
-        return (thrust_n[0] * e_r + thrust_n[1] * e_t + thrust_n[2] * e_p)
+        ct, st, cp, sp = np.cos(theta), np.sin(theta), np.cos(phi), np.sin(phi)
+        u_r, u_t, u_p = thrust_n
+        # u_r e_r + u_t e_theta + u_p e_phi, with the axes of bench/plant/curvilinear.py
+        return (u_r * cp * ct - u_t * st - u_p * sp * ct, u_r * cp * st + u_t * ct - u_p * sp * st, u_r * sp + u_p * cp)
 
-    def derivative(self, state: np.ndarray, thrust_lvlh_n: np.ndarray) -> np.ndarray:
-        """d state / dt for rows of states (real or complex), thrust given as held LVLH vectors."""
+    def derivative(self, state: np.ndarray, thrust_lvlh_n: tuple) -> np.ndarray:
+        """d state / dt for rows of states (real or complex), the thrust as the held LVLH components."""
         mu, radius, n = self.mu, self.radius_m, self.mean_motion_radps
+        ux, uy, uz = (u / self.mass_kg for u in thrust_lvlh_n)
         out = np.empty_like(state)
         out[..., :3] = state[..., 3:]
         if self.frame == "cartesian":
             x, y, z, vx, vy, vz = (state[..., i] for i in range(6))
             px = radius + x
             gravity = mu / (px * px + y * y + z * z) ** 1.5
-            a = thrust_lvlh_n / self.mass_kg
-            out[..., 3] = 2 * n * vy + n * n * px - gravity * px + a[..., 0]
-            out[..., 4] = -2 * n * vx + n * n * y - gravity * y + a[..., 1]
-            out[..., 5] = -gravity * z + a[..., 2]
+            out[..., 3] = 2 * n * vy + n * n * px - gravity * px + ux
+            out[..., 4] = -2 * n * vx + n * n * y - gravity * y + uy
+            out[..., 5] = -gravity * z + uz
             return out
         dr, s, w, dr_dot, s_dot, w_dot = (state[..., i] for i in range(6))
         r = radius + dr
         theta, phi = s / radius, w / radius
         phi_dot = w_dot / radius
         lam_dot = s_dot / radius + n
-        cp, sp = np.cos(phi), np.sin(phi)
-        e_r, e_t, e_p = _local_axes(theta, phi)
-        a_r = np.sum(thrust_lvlh_n * e_r, axis=-1) / self.mass_kg
-        a_t = np.sum(thrust_lvlh_n * e_t, axis=-1) / self.mass_kg
-        a_p = np.sum(thrust_lvlh_n * e_p, axis=-1) / self.mass_kg
+        ct, st, cp, sp = np.cos(theta), np.sin(theta), np.cos(phi), np.sin(phi)
+        # The held LVLH thrust on the local axes (e_r, e_theta, e_phi) where the chaser is now.
+        horizontal = ux * ct + uy * st
+        a_r = cp * horizontal + sp * uz
+        a_t = -ux * st + uy * ct
+        a_p = -sp * horizontal + cp * uz
         out[..., 3] = r * phi_dot**2 + r * lam_dot**2 * cp**2 - mu / r**2 + a_r
         out[..., 4] = radius * (a_t - 2 * dr_dot * lam_dot * cp + 2 * r * lam_dot * phi_dot * sp) / (r * cp)
         out[..., 5] = radius * (a_p - 2 * dr_dot * phi_dot - r * lam_dot**2 * sp * cp) / r
@@ -138,14 +144,6 @@ class TwoBodyRelativeModel:
         value = (ends[0].real.copy(), (ends.imag / h).T.copy())
         self._last_key, self._last_value = key, value
         return value
-
-
-def _local_axes(theta, phi):
-    """(e_r, e_theta, e_phi) in LVLH at the angles, stacked along the last axis (complex-safe)."""
-    ct, st, cp, sp = np.cos(theta), np.sin(theta), np.cos(phi), np.sin(phi)
-    zero = 0.0 * theta
-    return (np.stack([cp * ct, cp * st, sp], axis=-1), np.stack([-st, ct, zero], axis=-1),
-            np.stack([-sp * ct, -sp * st, cp], axis=-1))
 
 
 def _checked(state_m_mps, thrust_n, n_steps) -> tuple[np.ndarray, np.ndarray]:
