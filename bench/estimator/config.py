@@ -28,6 +28,12 @@ class TranslationSmootherConfig(msgspec.Struct, forbid_unknown_fields=True):
     # is none, as the linear CWH plant has none (an assumed 1e-9 m^2/s^3, ~0.8 mm/s of velocity
     # random walk per 600 s step, made the in-loop NEES 3.2 instead of 6).
     process_noise_psd_m2ps3: NonNegative | None = None
+    # The smoother's motion model between steps. "cwh": the linear CWH equations (exact for the
+    # linear plant). "two_body_cartesian" / "two_body_curvilinear": the exact relative motion of
+    # two-body gravity about a circular orbit (bench/estimator/two_body_model.py), in the flight
+    # side's navigation frame (plant.navigation_frame), linearised once about the previous
+    # estimate when each step's motion factor is made; the model for the nonlinear plant.
+    motion_model: Literal["cwh", "two_body_cartesian", "two_body_curvilinear"] = "cwh"
     # Prior on the initial relative velocity (the first position fix gives the position).
     initial_velocity_std_mps: Positive = 10.0
     # Relative-position noise the estimator believes; None: [onboard]'s belief, else the plant's

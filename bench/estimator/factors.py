@@ -94,8 +94,12 @@ def cwh_motion_factor(previous_key: int, key: int, thrust_n: np.ndarray,
 def cwh_motion_factor_unknown_mean_motion(
     previous_key: int, key: int, mean_motion_key: int, thrust_n: np.ndarray, n_steps: int,
     model: CwhMotionModel, believed_mean_motion_radps: float,
+    nonlinear_correction: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> gtsam.CustomFactor:
     """x_k - Ad(n) x_{k-1} - Bd(n) u = w with n = n_believed (1 + delta) and delta a variable.
+
+    nonlinear_correction (c, dF, x*): a nonlinear model's difference from CWH linearised at x*,
+    x_k = Ad(n) x_{k-1} + Bd(n) u + c + dF (x_{k-1} - x*) + w (the two-body model's factor).
 
     delta is relative (dimensionless, order 1e-2) rather than n itself (order 1e-3 rad/s) so the
     smoother's relinearisation thresholds mean the same thing for it as for the states.
@@ -103,6 +107,10 @@ def cwh_motion_factor_unknown_mean_motion(
     """
     thrust_n = np.asarray(thrust_n, dtype=float).copy()
     whiten = model.discrete(believed_mean_motion_radps, n_steps).process_whitening
+    if nonlinear_correction is None:
+        offset, d_transition_nl, about = np.zeros(6), np.zeros((6, 6)), np.zeros(6)
+    else:
+        offset, d_transition_nl, about = (np.asarray(v, dtype=float).copy() for v in nonlinear_correction)
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians) -> np.ndarray:
         x_prev = values.atVector(previous_key)
@@ -110,11 +118,11 @@ def cwh_motion_factor_unknown_mean_motion(
         delta = values.atVector(mean_motion_key)[0]
         mean_motion = believed_mean_motion_radps * (1.0 + delta)
         transition, input_matrix = model.transition_and_input(mean_motion, n_steps)
-        residual = x_now - transition @ x_prev - input_matrix @ thrust_n
+        residual = x_now - transition @ x_prev - input_matrix @ thrust_n - offset - d_transition_nl @ (x_prev - about)
         if jacobians is not None:
             d_transition, d_input = model.derivative(mean_motion, n_steps)
             d_residual_d_delta = -(d_transition @ x_prev + d_input @ thrust_n) * believed_mean_motion_radps
-            jacobians[0] = -whiten @ transition
+            jacobians[0] = -whiten @ (transition + d_transition_nl)
             jacobians[1] = whiten
             jacobians[2] = (whiten @ d_residual_d_delta).reshape(-1, 1)
         return whiten @ residual

@@ -2,7 +2,11 @@
 
 One state key x_k (6, SI) per plant step k. Factors:
 - motion between k-1 and k from the discretised CWH model with the thrust commanded at k-1 (the
-  thrust the plant held over the step), whitened by the assumed process noise;
+  thrust the plant held over the step), whitened by the assumed process noise; or, with
+  `motion_model = "two_body_*"`, from the exact two-body relative motion linearised about the
+  previous step's estimate when the factor is made (an extended-Kalman-style factor: linear, never
+  relinearised; the second-order error of that linearisation is ~n^2 e^2 / R for an estimate
+  error e, 1e-11 m/s^2 at e = 10 m, against the 1e-5 m/s^2 of the terms CWH drops);
 - a relative-position (or range/bearing) measurement at k when one is used;
 - on the first key, a prior on the velocity (the first fix gives the position);
 - with `estimate_mean_motion`, one extra key delta (the mean motion is n_believed (1 + delta)), a
@@ -29,6 +33,7 @@ from bench.estimator import factors
 from bench.estimator.config import TranslationSmootherConfig
 from bench.estimator.kalman import POSITION_MATRIX, Gaussian, predict
 from bench.estimator.motion_model import CwhMotionModel
+from bench.estimator.two_body_model import TwoBodyRelativeModel
 from bench.gnc.cwh import RendezvousParams
 from bench.gnc.range_bearing import position_from_range_bearing, wrap_angle_rad
 from bench.plant.config import RangeBearingSensorConfig, RelativePositionSensorConfig
@@ -136,6 +141,9 @@ class TranslationSmoother:
         self.range_noise_std_m = _or(config.range_noise_std_m, RangeBearingSensorConfig().range_noise_std_m)
         self.bearing_noise_std_rad = _or(config.bearing_noise_std_rad, RangeBearingSensorConfig().bearing_noise_std_rad)
         self.model = CwhMotionModel(params.mass_kg, params.time_step_s, _or(config.process_noise_psd_m2ps3, 0.0))
+        self._two_body: TwoBodyRelativeModel | None = None
+        if config.motion_model != "cwh":
+            self._two_body = self._two_body_model(self.believed_mean_motion_radps)
         self.failed_updates = 0
         self.rejected_measurements = 0
         self.reacquisitions = 0
@@ -325,8 +333,44 @@ class TranslationSmoother:
             return gtsam.noiseModel.mEstimator.Cauchy.Create(k)
         return None
 
+    def _two_body_model(self, mean_motion_radps: float) -> TwoBodyRelativeModel:
+        """The two-body model of the orbit whose mean motion is given (R = (mu / n^2)^(1/3)); the
+        last one is kept, as every factor of a step and its prediction share one mean motion."""
+        model = self._two_body
+        if model is not None and model.mean_motion_radps == mean_motion_radps:
+            return model
+        mu = self.believed_params.gravitational_parameter_m3ps2
+        radius_m = self.believed_params.target_radius_m if mean_motion_radps == self.believed_mean_motion_radps \
+            else (mu / mean_motion_radps**2) ** (1.0 / 3.0)
+        frame = "cartesian" if self.config.motion_model == "two_body_cartesian" else "curvilinear"
+        model = TwoBodyRelativeModel(mu, radius_m, self.believed_params.mass_kg, self.believed_params.time_step_s, frame)
+        model.mean_motion_radps = mean_motion_radps     # the very number asked for (cache key)
+        self._two_body = model
+        return model
+
+    def _two_body_linearised(self, state: np.ndarray, thrust: np.ndarray, n_steps: int,
+                             delta: float) -> tuple[np.ndarray, np.ndarray]:
+        """(f(x*, u), df/dx at x*) of the two-body model at the mean motion n_believed (1 + delta)."""
+        return self._two_body_model(self._mean_motion(delta)).linearise(state, thrust, n_steps)
+
     def _motion_factor(self, seq: int, n_steps: int, thrust: np.ndarray):
         previous, key = state_key(seq - n_steps), state_key(seq)
+        if self._two_body is not None:
+            # Linearised about the previous step's estimate (self._last is that step).
+            about = self._last.state.mean
+            propagated, jacobian = self._two_body_linearised(about, thrust, n_steps, self._last.delta)
+            if not self.estimates_mean_motion:
+                m = self.model.discrete(self.believed_mean_motion_radps, n_steps)
+                return factors.linear_factor([(previous, -jacobian), (key, np.eye(6))],
+                                             propagated - jacobian @ about, whiten=m.process_whitening)
+            # The CWH factor in delta plus the two-body model's difference from CWH at the estimated
+            # mean motion (its own dependence on delta is second order: a few % of a small term).
+            mean_motion = self._mean_motion(self._last.delta)
+            transition, input_matrix = self.model.transition_and_input(mean_motion, n_steps)
+            correction = (propagated - transition @ about - input_matrix @ thrust, jacobian - transition, about)
+            return factors.cwh_motion_factor_unknown_mean_motion(
+                previous, key, MEAN_MOTION_KEY, thrust, n_steps, self.model, self.believed_mean_motion_radps,
+                nonlinear_correction=correction)
         if self.estimates_mean_motion:
             return factors.cwh_motion_factor_unknown_mean_motion(
                 previous, key, MEAN_MOTION_KEY, thrust, n_steps, self.model, self.believed_mean_motion_radps)
@@ -448,6 +492,8 @@ class TranslationSmoother:
         """A joint belief ([x] or [x; delta], then any constant states) carried n_steps with the
         thrust held (first order in delta)."""
         process_cov = self.model.discrete(self.believed_mean_motion_radps, n_steps).process_cov
+        if self._two_body is not None:
+            return self._propagate_two_body(joint, n_steps, thrust, process_cov)
         if not self.estimates_mean_motion:
             m = self.model.discrete(self.believed_mean_motion_radps, n_steps)
             if joint.mean.size == 6:
@@ -470,6 +516,23 @@ class TranslationSmoother:
         jacobian[:6, 6] = (d_transition @ x + d_input @ thrust) * self.believed_mean_motion_radps
         mean = joint.mean.copy()
         mean[:6] = transition @ x + input_matrix @ thrust
+        cov = jacobian @ joint.covariance @ jacobian.T
+        cov[:6, :6] += process_cov
+        return Gaussian(mean, 0.5 * (cov + cov.T))
+
+    def _propagate_two_body(self, joint: Gaussian, n_steps: int, thrust: np.ndarray, process_cov) -> Gaussian:
+        """`_propagate` with the two-body model: the mean through the model, the covariance through
+        its Jacobian (and, with the mean motion estimated, the CWH model's derivative in delta)."""
+        delta = float(joint.mean[6]) if self.estimates_mean_motion else 0.0
+        x = joint.mean[:6]
+        propagated, transition = self._two_body_linearised(x, thrust, n_steps, delta)
+        jacobian = np.eye(joint.mean.size)
+        jacobian[:6, :6] = transition
+        if self.estimates_mean_motion:
+            d_transition, d_input = self.model.derivative(self._mean_motion(delta), n_steps)
+            jacobian[:6, 6] = (d_transition @ x + d_input @ thrust) * self.believed_mean_motion_radps
+        mean = joint.mean.copy()
+        mean[:6] = propagated
         cov = jacobian @ joint.covariance @ jacobian.T
         cov[:6, :6] += process_cov
         return Gaussian(mean, 0.5 * (cov + cov.T))
