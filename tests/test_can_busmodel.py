@@ -258,3 +258,23 @@ def test_a_copy_that_starts_with_the_next_command_collides_and_only_the_command_
     # What the fault suite's accounting counts as on the wire: the two commands, not the copy.
     on_the_wire = [m for m in captured if m.channel == "bus" and not m.is_error_frame]
     assert [bytes(m.data) for m in on_the_wire] == [bytes(first.data), bytes(second.data)]
+
+
+def test_the_fast_bit_counts_equal_the_bit_by_bit_stream():
+    """The bus's frame lengths (counted from runs of equal bits, CRC-15 a byte at a time) against
+    the stream built and stuffed bit by bit (frame_bits_unstuffed, crc15, stuff), on random
+    classic, remote and FD frames with long runs of equal bits."""
+    import random
+    rng = random.Random(3)
+    for _ in range(3000):
+        extended = rng.random() < 0.3
+        ident = rng.choice([0, (1 << (29 if extended else 11)) - 1, rng.getrandbits(29 if extended else 11)])
+        data = bytes(rng.choice([0, 255, rng.getrandbits(8)]) for _ in range(rng.randint(0, 8)))
+        remote = rng.random() < 0.1
+        data = bytes(len(data)) if remote else data
+        slow = len(bittiming.stuff(bittiming.frame_bits_unstuffed(ident, data, extended=extended, remote=remote)))
+        assert bittiming._frame_bits.__wrapped__(ident, data, extended, remote) == slow + bittiming.TAIL_BITS
+        fd_data = bytes(rng.choice([0, 255, rng.getrandbits(8)]) for _ in range(rng.choice([0, 8, 12, 20, 32, 64])))
+        checked = 4 + (17 if len(fd_data) <= 16 else 21)
+        slow_fd = len(bittiming.stuff(bittiming.fd_bits_unstuffed(ident, fd_data, extended))) + checked + 1 + checked // 4
+        assert bittiming._fd_frame_bits.__wrapped__(ident, fd_data, extended) == slow_fd + bittiming.TAIL_BITS

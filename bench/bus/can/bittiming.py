@@ -7,6 +7,7 @@ CRC. The stuffed count is therefore computed on the frame's actual bits, includi
 """
 from __future__ import annotations
 
+import re
 from functools import lru_cache
 
 import can
@@ -66,9 +67,62 @@ def stuff(bits: list[int]) -> list[int]:
     return out
 
 
+# --- the same counts, fast: every frame on a simulated bus is timed (sim_window.py) -------------
+_RUNS = re.compile(r"0+|1+")
+
+
+def _crc15_table() -> list[int]:
+    table = []
+    for byte in range(256):
+        crc = byte << 7
+        for _ in range(8):
+            crc = ((crc << 1) ^ CRC15_POLY) if crc & 0x4000 else (crc << 1)
+            crc &= 0x7FFF
+        table.append(crc)
+    return table
+
+
+_CRC15_TABLE = _crc15_table()
+
+
+def crc15_of_bit_string(bits: str) -> int:
+    """crc15 of a '0'/'1' string, a byte at a time (leading zeros do not change a zero-initialised
+    CRC, so the string is padded at the front to whole bytes)."""
+    padded = bits.zfill(-(-len(bits) // 8) * 8)
+    crc = 0
+    for byte in int(padded, 2).to_bytes(len(padded) // 8, "big"):
+        crc = ((crc << 8) & 0x7FFF) ^ _CRC15_TABLE[((crc >> 7) ^ byte) & 0xFF]
+    return crc
+
+
+def stuffed_length(bits: str) -> int:
+    """len(stuff(bits)) of a '0'/'1' string, from its runs of equal bits. A run of n equal bits
+    (counting a stuff bit of its value just before it) gets n // 5 stuff bits; when the last one
+    falls on the run's last bit, that stuff bit has the next run's value and counts for it."""
+    inserted, carry = 0, 0
+    for run in _RUNS.finditer(bits):
+        n = run.end() - run.start() + carry
+        inserted += n // 5
+        carry = 1 if n >= 5 and n % 5 == 0 else 0
+    return len(bits) + inserted
+
+
+def _head_string(arbitration_id: int, extended: bool, remote: bool, fd: bool) -> str:
+    if extended:
+        return f"0{arbitration_id >> 18:011b}11{arbitration_id & 0x3FFFF:018b}" + ("0" if fd else f"{int(remote)}00")
+    return f"0{arbitration_id:011b}" + ("00" if fd else f"{int(remote)}00")
+
+
+def _data_string(data: bytes) -> str:
+    return f"{int.from_bytes(data, 'big'):0{8 * len(data)}b}" if data else ""
+
+
 @lru_cache(maxsize=4096)
 def _frame_bits(arbitration_id: int, data: bytes, extended: bool, remote: bool) -> int:
-    return len(stuff(frame_bits_unstuffed(arbitration_id, data, extended=extended, remote=remote))) + TAIL_BITS
+    body = _head_string(arbitration_id, extended, remote, fd=False) + f"{len(data):04b}"
+    if not remote:
+        body += _data_string(data)
+    return stuffed_length(body + f"{crc15_of_bit_string(body):015b}") + TAIL_BITS
 
 
 def arbitration_bits(arbitration_id: int, *, extended: bool = False, remote: bool = False) -> tuple[int, ...]:
@@ -113,11 +167,12 @@ def _fd_frame_bits(arbitration_id: int, data: bytes, extended: bool) -> int:
     has one bitrate). Dynamic stuffing from SOF to the end of the data field; then the stuff count
     (3-bit Gray code and parity) and the CRC (17 bits up to 16 data bytes, 21 beyond) with fixed
     stuff bits, one before the stuff count and one after every 4 bits (ISO 11898-1:2015 10.5)."""
-    head = fd_bits_unstuffed(arbitration_id, data, extended)
+    head = (_head_string(arbitration_id, extended, False, fd=True) + f"1000{can.util.len2dlc(len(data)):04b}"
+            + _data_string(data))
     crc_bits = 17 if len(data) <= 16 else 21
     checked = 4 + crc_bits
     fixed_stuff = 1 + checked // 4
-    return len(stuff(head)) + checked + fixed_stuff + TAIL_BITS
+    return stuffed_length(head) + checked + fixed_stuff + TAIL_BITS
 
 
 def frame_bits(msg: can.Message) -> int:
