@@ -9,8 +9,6 @@ On the main branch before data topics were signed this fails: the plant flew the
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 import threading
 
 import numpy as np
@@ -19,20 +17,10 @@ import zenoh
 from bench.bus import keys
 from bench.bus.schemas import (ProcessStats, RangeBearing, RelativePosition, ThrustCommand, TranslationEstimate,
                                TruthState, decode, encode, header)
-from bench.bus.session import SessionOptions, free_loopback_port, loopback_endpoint, open_session
-from conftest import REPO
-from test_forged_reports import _finish
-from test_security import _wait_port
+from test_forged_reports import attacked_beside_clean, comparable
 
 REPLAY_LAG_STEPS = 2
 STEPS = 60
-
-
-def _start(runs_dir, run_id: str) -> tuple[subprocess.Popen, int]:
-    port = free_loopback_port()
-    cmd = [sys.executable, "-m", "bench.cli", "run", "rendezvous_lqr", "--run-id", run_id, "--runs-dir", str(runs_dir),
-           "--steps", str(STEPS), "--port", str(port), "--no-progress", "--no-report"]
-    return subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True), port
 
 
 class RogueData:
@@ -92,37 +80,11 @@ class RogueData:
         self.subscriber.undeclare()
 
 
-def _comparable(metrics: dict) -> dict:
-    """metrics.json without what differs between any two runs (times, pids) and the drop counts (the
-    nodes' `unauthentic`, the launcher's `forged` and `replayed` reports)."""
-    varying = {"wall_time_s", "end_to_end_latency", "processes"}
-    kept = {k: v for k, v in metrics.items() if k not in varying}
-    kept["process_stats"] = {name: {k: v for k, v in entry.items() if k not in ("forged", "replayed", "unauthentic")}
-                             for name, entry in metrics["process_stats"].items()}
-    kept["exit_codes"] = {name: p["exit_code"] for name, p in metrics["processes"].items()}
-    return kept
-
-
 def test_forged_and_replayed_data_change_nothing_in_a_plain_run(runs_dir):
-    clean_run, _ = _start(runs_dir, "data-clean")
-    attacked_run, port = _start(runs_dir, "data-rogue")
-    session = rogue = None
-    try:
-        _wait_port(port, 60.0)
-        session = open_session(SessionOptions(connect=(loopback_endpoint(port),)))
-        rogue = RogueData(session, "data-rogue")
-        attacked, attacked_trajectory = _finish(runs_dir, "data-rogue", attacked_run)
-        clean, clean_trajectory = _finish(runs_dir, "data-clean", clean_run)
-    finally:
-        for run in (clean_run, attacked_run):
-            if run.poll() is None:
-                run.kill()
-        if rogue is not None:
-            rogue.close()
-        if session is not None:
-            session.close()
+    rogue, (attacked, attacked_trajectory), (clean, clean_trajectory) = attacked_beside_clean(
+        runs_dir, "data", STEPS, RogueData)
     assert rogue.sent["forged"] > 0 and rogue.sent["replayed"] > 0, rogue.sent
-    assert _comparable(attacked) == _comparable(clean)
+    assert comparable(attacked) == comparable(clean)
     for key, values in clean_trajectory.items():
         np.testing.assert_array_equal(attacked_trajectory[key], values)
     assert attacked["process_stats"]["controller"]["published"][keys.COMMAND_THRUST] == STEPS

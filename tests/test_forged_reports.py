@@ -70,10 +70,10 @@ class RogueReporter:
             subscriber.undeclare()
 
 
-def _start(runs_dir, run_id: str) -> tuple[subprocess.Popen, int]:
+def _start(runs_dir, run_id: str, steps: int) -> tuple[subprocess.Popen, int]:
     port = free_loopback_port()
     cmd = [sys.executable, "-m", "bench.cli", "run", "rendezvous_lqr", "--run-id", run_id, "--runs-dir", str(runs_dir),
-           "--steps", str(STEPS), "--port", str(port), "--no-progress", "--no-report"]
+           "--steps", str(steps), "--port", str(port), "--no-progress", "--no-report"]
     return subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True), port
 
 
@@ -90,28 +90,30 @@ def _finish(runs_dir, run_id: str, run: subprocess.Popen) -> tuple[dict, dict]:
     return metrics, trajectory
 
 
-def _comparable(metrics: dict) -> dict:
-    """metrics.json without what differs between any two runs (times, pids), the forged counts and
-    the messages the nodes dropped for their data-topic MAC (`unauthentic`)."""
+def comparable(metrics: dict) -> dict:
+    """metrics.json without what differs between any two runs (times, pids) and the drop counts
+    (the launcher's `forged` and `replayed`, the nodes' `unauthentic`: their data-topic MAC)."""
     varying = {"wall_time_s", "end_to_end_latency", "processes"}
     kept = {k: v for k, v in metrics.items() if k not in varying}
-    kept["process_stats"] = {name: {k: v for k, v in entry.items() if k not in ("forged", "unauthentic")}
+    kept["process_stats"] = {name: {k: v for k, v in entry.items() if k not in ("forged", "replayed", "unauthentic")}
                              for name, entry in metrics["process_stats"].items()}
     kept["exit_codes"] = {name: p["exit_code"] for name, p in metrics["processes"].items()}
     return kept
 
 
-def test_forged_reports_change_nothing_in_a_plain_run(runs_dir):
-    # Side by side (bounded time): a lock-step run's numbers do not depend on the machine's load.
-    clean_run, _ = _start(runs_dir, "reports-clean")
-    attacked_run, port = _start(runs_dir, "reports-rogue")
+def attacked_beside_clean(runs_dir, prefix: str, steps: int, make_rogue):
+    """A clean run and an attacked one side by side (bounded time: a lock-step run's numbers do not
+    depend on the machine's load); `make_rogue(session, run_id)` joins the attacked run's hub.
+    Returns (rogue, (attacked metrics, trajectory), (clean metrics, trajectory))."""
+    clean_run, _ = _start(runs_dir, f"{prefix}-clean", steps)
+    attacked_run, port = _start(runs_dir, f"{prefix}-rogue", steps)
     session = rogue = None
     try:
         _wait_port(port, 60.0)
         session = open_session(SessionOptions(connect=(loopback_endpoint(port),)))
-        rogue = RogueReporter(session, "reports-rogue")
-        attacked, attacked_trajectory = _finish(runs_dir, "reports-rogue", attacked_run)
-        clean, clean_trajectory = _finish(runs_dir, "reports-clean", clean_run)
+        rogue = make_rogue(session, f"{prefix}-rogue")
+        attacked = _finish(runs_dir, f"{prefix}-rogue", attacked_run)
+        clean = _finish(runs_dir, f"{prefix}-clean", clean_run)
     finally:
         for run in (clean_run, attacked_run):
             if run.poll() is None:
@@ -120,10 +122,16 @@ def test_forged_reports_change_nothing_in_a_plain_run(runs_dir):
             rogue.close()
         if session is not None:
             session.close()
+    return rogue, attacked, clean
+
+
+def test_forged_reports_change_nothing_in_a_plain_run(runs_dir):
+    rogue, (attacked, attacked_trajectory), (clean, clean_trajectory) = attacked_beside_clean(
+        runs_dir, "reports", STEPS, RogueReporter)
     sent = rogue.sent
     assert sent > 0
     assert attacked["process_stats"]["controller"]["published"][keys.COMMAND_THRUST] == STEPS
-    assert _comparable(attacked) == _comparable(clean)
+    assert comparable(attacked) == comparable(clean)
     for key, values in clean_trajectory.items():
         np.testing.assert_array_equal(attacked_trajectory[key], values)
     # The rogue reached the launcher: it dropped forgeries naming each process, and counted them.
