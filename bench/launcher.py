@@ -92,7 +92,8 @@ def nodes_for(scenario: Scenario) -> list[str]:
     names = ["recorder"] if "recorder" in NODES else []
     if scenario.can is not None:
         # On simulated time the board runs with the bus model, in canbus (bench/bus/can/lockstep_bus.py).
-        names += ["canbus"] if bus_on_simulated_time(scenario) else ["canbus", "mtq"]
+        if not board_is_external(scenario):     # else the driver and the plant are on the board's bus
+            names += ["canbus"] if bus_on_simulated_time(scenario) else ["canbus", "mtq"]
     names += ["plant", "estimator", "controller"]
     if scenario.kind == "attitude" and scenario.attitude_control.law in PLANNED_LAWS:
         names.append("planner")    # MILQR plans for the controller's tracker (issue 12)
@@ -103,12 +104,40 @@ EXTERNAL_HOST = "external"   # the "host" of a part provided from outside (docs/
 
 
 def external_parts(scenario: Scenario) -> dict[str, str]:
-    """[run] external: node -> EXTERNAL_HOST. They join as nodes on other hosts do (not spawned,
-    waited for and watched by their liveliness token), so they reuse the `remote` placement."""
-    if scenario.run.external and (scenario.kind != "rendezvous" or scenario.can is not None):
-        raise ScenarioError("run.external: an external controller is supported in the rendezvous loop without [can] "
-                            "only (the attitude controller also drives the magnetorquer's CAN bus)")
-    return {name: EXTERNAL_HOST for name in scenario.run.external}
+    """[run] external's Zenoh nodes: node -> EXTERNAL_HOST. They join as nodes on other hosts do
+    (not spawned, waited for and watched by their liveliness token), so they reuse the `remote`
+    placement. An external board is no Zenoh node (it is on the CAN bus only): not in here, but
+    nodes_for starts neither the simulated board nor the bus model for it."""
+    external = scenario.run.external
+    if len(set(external)) != len(external):
+        raise ScenarioError(f"run.external: a part named twice ({', '.join(external)})")
+    if "board" in external:
+        if scenario.kind != "attitude" or scenario.can is None:
+            raise ScenarioError("run.external: \"board\" is the magnetorquer board on the CAN bus: the attitude "
+                                "loop with [can] only")
+        if scenario.run.mode != "real-time":
+            raise ScenarioError("run.external: an external \"board\" runs in real time only (run.mode = "
+                                "\"real-time\"): a board's telemetry reports the coil current, which lags the "
+                                "command, on its own clock, so lock-step cannot pair it with a step (docs/contract.md)")
+    return {name: EXTERNAL_HOST for name in external if name != "board"}
+
+
+def board_is_external(scenario: Scenario) -> bool:
+    return "board" in scenario.run.external
+
+
+BOARD_SIDE_NODES = ("mtq", "canbus")    # what an external board replaces: the simulated board and the bus model
+
+
+def with_driver_on_the_board_bus(scenario: Scenario) -> Scenario:
+    """An external board has no bus model between it and the driver: unless [can.driver_bus] names
+    the driver's own bus, the driver (and the plant, which hears the board's telemetry) open the
+    board's bus ([can.board_bus], else the transport on board_channel). Written into the run's
+    scenario.json, so an external controller started from it opens the same bus."""
+    if not board_is_external(scenario) or scenario.can.driver_bus is not None:
+        return scenario
+    can_config = msgspec.structs.replace(scenario.can, driver_bus=scenario.can.bus_spec("board"))
+    return msgspec.structs.replace(scenario, can=can_config)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -634,13 +663,16 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
     placement: where the sessions are (default: this host, loopback, plain TCP).
     """
     external = external_parts(scenario)      # bad input: before anything is opened
+    scenario = with_driver_on_the_board_bus(scenario)
+    # Marked "external" in metrics.json; not waited for (no Zenoh node): the board on the CAN bus.
+    board_side = dict.fromkeys(BOARD_SIDE_NODES, EXTERNAL_HOST) if board_is_external(scenario) else {}
     placement = placement or local_placement(port, zenoh_config)
     if scenario.can is not None:
         from bench.bus.can.preflight import check_run_buses, roles_on_this_host
 
         # CanBusError (a ValueError): exit 2, nothing started. Only the buses of nodes started here:
         # a deployment's node on another host opens its channel there.
-        check_run_buses(scenario.can, roles_on_this_host(scenario.can, {**placement.remote, **external}))
+        check_run_buses(scenario.can, roles_on_this_host(scenario.can, {**placement.remote, **external, **board_side}))
     hub = placement.hub_endpoint
     # The zygote before any session of ours: it imports the nodes' packages while the launcher
     # goes on, and is started by fork+exec, never forked from a process running Zenoh's threads.
@@ -686,9 +718,13 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
                 if show_progress:
                     print(f"bench: run {run_id}: starting {', '.join(n for n in names if n not in remote)}",
                           file=sys.stderr)
-                for name in scenario.run.external:
+                for name in external:
                     print(f"bench: waiting for the external {name}: connect to {hub}, run id {run_id}, "
                           f"scenario {scenario_path}", file=sys.stderr)
+                if board_side:
+                    spec = scenario.can.driver_bus
+                    print(f"bench: the magnetorquer board is external: the driver and the plant open {spec.interface} "
+                          f"channel {spec.channel!r}; no simulated board, no bus model", file=sys.stderr)
                 loop_peers = [n for n in names if n != "plant"]
                 for name in names:
                     if name in remote:
@@ -727,7 +763,7 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
                 collector.undeclare()
                 collector.finish()
             _finish(run_dir, scenario, children, stats, time.monotonic() - started, ending, write_report and not guard.hurry,
-                    remote)
+                    {**remote, **{n: h for n, h in board_side.items() if n == "mtq"}})
         except RunInterrupted as exc:
             # The first signal came during the cleanup itself: the nodes go at once; only the
             # files may be missing, and `bench report RUN` can build them.
@@ -847,7 +883,7 @@ def add_commands(subparsers) -> None:
                      help="mutual TLS and access control on loopback, with certificates made for this run")
     run.add_argument("--cert-dir", help="with --secure: certificates to use (default: new ones in the run directory)")
     run.add_argument("--deployment", help="deployment TOML: which node runs on which host (see docs/security.md)")
-    run.add_argument("--external", action="append", choices=["controller"],
+    run.add_argument("--external", action="append", choices=["controller", "board"],
                      help="a part provided from outside: not started, waited for under its name (docs/contract.md)")
     run.add_argument("--no-progress", action="store_true", help="no progress bar")
     run.add_argument("--no-report", action="store_true", help="skip report.html/report.md (bench report RUN_DIR later)")

@@ -106,9 +106,13 @@ class RunConfig(msgspec.Struct, forbid_unknown_fields=True):
     # lock-step: how long the plant waits for a command before it declares the loop broken.
     command_timeout_s: Annotated[float, msgspec.Meta(gt=0, le=3600.0)] = 10.0
     liveliness: LivelinessConfig = msgspec.field(default_factory=LivelinessConfig)
-    # Zenoh-side parts provided from outside the bench (docs/contract.md): the launcher starts no
-    # such node and waits for one to join under its name. Only the rendezvous loop's controller so far.
-    external: Annotated[list[Literal["controller"]], msgspec.Meta(max_length=1)] = msgspec.field(default_factory=list)
+    # Parts provided from outside the bench (docs/contract.md). "controller": the controller process,
+    # which in the attitude loop over [can] is the flight software (the law and the magnetorquer
+    # driver on the bus); the launcher starts no such node and waits for one to join under its name.
+    # "board": a magnetorquer board on the CAN bus (no simulated board, no bus model; the plant reads
+    # the board's telemetry frames); rules in bench.launcher.external_parts.
+    external: Annotated[list[Literal["controller", "board"]], msgspec.Meta(max_length=2)] = msgspec.field(
+        default_factory=list)
 
 
 class OnboardConfig(msgspec.Struct, forbid_unknown_fields=True):

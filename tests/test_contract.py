@@ -82,13 +82,14 @@ def test_sequence_rules_name_skipped_repeated_unknown_and_disordered():
     assert clean == []
 
 
-def test_external_is_bounded_and_for_the_rendezvous_loop_only():
+def test_external_is_bounded_to_the_controller_and_the_board():
     with pytest.raises(ScenarioError, match="run.external"):
         parse_scenario({"name": "x", "run": {"external": ["plant"]}}, "test")
     attitude = load_scenario("attitude_quick")
-    attitude = msgspec.structs.replace(attitude, run=msgspec.structs.replace(attitude.run, external=["controller"]))
-    with pytest.raises(ScenarioError, match="rendezvous loop"):
+    attitude = msgspec.structs.replace(attitude, run=msgspec.structs.replace(attitude.run, external=["controller"] * 2))
+    with pytest.raises(ScenarioError, match="named twice"):
         external_parts(attitude)
+    # The attitude loop's controller (law and CAN driver) and board: tests/test_external_roles.py.
 
 
 # --- two runs: the example passes and equals the built-in LQR; the broken one fails --------------

@@ -82,11 +82,12 @@ class LockStepLink:
     def start(self) -> None:
         """Wait for the bus, then boot the board: its boot-up heartbeat comes back in the first
         window and the driver's NMT start goes out in the second, before step 0."""
-        deadline = time.monotonic() + self.ctx.scenario.run.liveliness.startup_timeout_s
-        while not self._publisher.matching_status.matching:
-            if time.monotonic() > deadline or self.ctx.stop.is_set():
-                raise TimeoutError("no canbus process on the lock-step CAN topic")
-            time.sleep(0.005)
+        timeout_s = self.ctx.scenario.run.liveliness.startup_timeout_s
+        deadline = time.monotonic() + timeout_s
+        # canbus's ready token, not a matching subscriber: the recorder (bench/<run_id>/**) matches
+        # too, and a window it alone hears is never answered (a controller from outside, started
+        # before the launcher's canbus is up, sent its boot window to the recorder only).
+        self.ctx.wait_for_tokens(keys.READY, ["canbus"], timeout_s=timeout_s)
         for step, start_ns, end_ns in BOOT_WINDOWS:
             self._send_window(step, start_ns, end_ns, None)
             self._catch_up(timeout_s=max(0.0, deadline - time.monotonic()))

@@ -173,7 +173,10 @@ def run(ctx: NodeContext) -> int:
     command_gate = CommandGate(ActuatorEnvelope("dipole", "A m^2", acceptance.envelope_am2),
                                on_reject=scenario.plant.command_acceptance.on_reject)
     commands = ctx.subscribe_queue(keys.COMMAND_DIPOLE, DipoleCommand)
-    if scenario.can is not None:
+    telemetry = None
+    if scenario.can is not None and "board" in scenario.run.external:
+        telemetry = _listen_to_external_board(ctx, reports)   # a real board: its frames, not actuator/mtq
+    elif scenario.can is not None:
         ctx.subscribe(keys.ACTUATOR_MTQ, MtqApplied, reports.add)
     estimator_truth = scenario.estimator.mode == "truth"
     for topic in (*keys.SENSE_ATTITUDE_TOPICS, keys.TRUTH_ATTITUDE, keys.EVENT_DEADLINE, keys.COMMAND_APPLIED):
@@ -245,7 +248,32 @@ def run(ctx: NodeContext) -> int:
         for _, applied in chains.expire():
             ctx.publish(keys.COMMAND_APPLIED, applied)
         _write_trajectory(ctx, plant, chains, clock, log, acceptance)
+        if telemetry is not None:
+            _stop_listening(ctx, telemetry)
     return 0
+
+
+def _listen_to_external_board(ctx: NodeContext, reports: BoardReports):
+    """[run] external = ["board"]: the plant hears the board's telemetry on the driver's bus (with no
+    bus model between them, the board's bus: the launcher writes it as [can.driver_bus])."""
+    from bench.bus.can.transport import open_bus
+    from bench.plant.board_telemetry import BoardTelemetry
+
+    config = ctx.scenario.can
+    bus = open_bus(config.bus_spec("driver"), run_id=ctx.run_id, session=ctx.session)
+    telemetry = BoardTelemetry(bus, config.protocol(), ctx.run_id, reports.add, config.driver.max_delta_counter)
+    telemetry.start()
+    return telemetry
+
+
+def _stop_listening(ctx: NodeContext, telemetry) -> None:
+    import json
+
+    from bench.bus.can.nodes import can_dir
+
+    telemetry.stop()
+    telemetry.bus.shutdown()
+    (can_dir(ctx.run_dir) / "plant_board_telemetry.json").write_text(json.dumps(telemetry.summary(), indent=1))
 
 
 def _lockstep_dipole(scenario, acceptance, reports, command, since_ns, log, k):

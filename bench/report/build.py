@@ -131,8 +131,12 @@ def deadline_section(result: DeadlineResult, plot_dir: Path) -> Section:
         ["host late to wake the controller after a worker timeout, max [ms]", ms(m["host_wake_late_max_s"])],
         ["controller cycle p99 less that lateness [ms]", ms(m["cycle_time_less_host_p99_s"])],
     ]
-    if result.external:
-        rows.insert(0, ["provided from outside (not measured: cycle time, stamps)", ", ".join(result.external)])
+    nodes = [name for name in result.external if name != "board"]
+    if nodes:
+        rows.insert(0, ["provided from outside (not measured: cycle time, stamps)", ", ".join(nodes)])
+    if "board" in result.external:
+        rows.insert(0, ["magnetorquer board provided from outside (not measured: its command-to-coil time, the bus "
+                        "traffic; applied dipole: its telemetry's coil current, stamped on arrival at the plant)", "board"])
     if "planner" in m:
         planner = m["planner"]
         rows += [["planner: plans", fmt(planner["plans"])],
@@ -214,6 +218,9 @@ def can_section(run: RunData, plot_dir: Path) -> tuple[Section | None, dict | No
     if driver_table is not None:
         section.paragraphs.append("What the flight-side driver detected (can/driver.json), with the latency from "
                                   "the fault's evidence on the bus to its detection.")
+        if run.scenario is not None and "controller" in run.scenario.run.external:
+            section.paragraphs.append("The flight software (controller and driver) was provided from outside: "
+                                      "can/driver.json is its own account, if it wrote one, not the bench's measurement.")
         section.tables.append(driver_table)
         m["driver"] = driver_metrics
     if load.load.size:

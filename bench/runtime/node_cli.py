@@ -30,6 +30,8 @@ def cmd_node(args) -> int:
         peers = [p for p in (args.wait_for or "").split(",") if p]
         options = node_options(args)
         stop_with, host = None, None
+        if args.name in scenario.run.external:
+            stop_with = LAUNCHER   # a node from outside (docs/contract.md): no launcher signals it
         if args.deployment:
             host = args.host
             if load_deployment(args.deployment).launcher_host != host:
