@@ -15,7 +15,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from bench.report.attitude_metrics import attitude_metrics, pointing_error_deg, summary_rows  # noqa: E402
-from bench.report import canbus  # noqa: E402
+from bench.report import canbus, plots  # noqa: E402
 from bench.report.document import Figure, Section, Table  # noqa: E402
 from bench.report.timebase import RunClock  # noqa: E402
 
@@ -71,7 +71,7 @@ def loop_figure(trajectory: dict, scenario, windows, path: Path) -> Path:
     ax.legend(fontsize="small", ncol=4)
     for a in axes:
         a.grid(True, alpha=0.3)
-    fig.tight_layout()
+    plots.fixed_layout(fig)
     fig.savefig(path, dpi=90)
     plt.close(fig)
     return path
@@ -138,7 +138,7 @@ def dipole_figure(trajectory: dict, limit_am2: float, windows, path: Path, telem
     axes[3].set_xlabel("simulated time [s]")
     axes[3].legend(fontsize="small", ncol=4)
     axes[3].grid(True, alpha=0.3)
-    fig.tight_layout()
+    plots.fixed_layout(fig)
     fig.savefig(path, dpi=90)
     plt.close(fig)
     return path
@@ -194,7 +194,7 @@ def comparison_section(runs: list, plot_dir: Path, with_reference: bool = True) 
     ax.set_ylabel("pointing error [deg] or body rate [deg/s]")
     ax.grid(True, alpha=0.3)
     ax.legend(fontsize="small")
-    fig.tight_layout()
+    plots.fixed_layout(fig)
     path = plot_dir / "attitude_compare.png"
     fig.savefig(path, dpi=90)
     plt.close(fig)

@@ -27,8 +27,28 @@ class TrajectorySeries:
     thrust_n: np.ndarray       # (n, 3)
 
 
+def fixed_layout(fig, column_gap_in: float = 0.9, row_gap_in: float = 0.75) -> None:
+    """Margins and gaps in inches for a figure's subplot grid: room for tick labels, an axis label
+    and a title. (tight_layout measures every label by drawing the figure once more: most of a
+    report's plotting time, 2.5 of 3.1 s for the latency histograms.)"""
+    w_in, h_in = fig.get_size_inches()
+    specs = [ax.get_subplotspec() for ax in fig.axes if ax.get_subplotspec() is not None]
+    rows, cols = specs[0].get_gridspec().get_geometry() if specs else (1, 1)
+    left, right, bottom = 0.85 / w_in, 1 - 0.3 / w_in, 0.6 / h_in
+    top = 1 - (0.45 + (0.4 if fig._suptitle is not None else 0.0)) / h_in
+
+    def spacing(n: int, span_in: float, gap_in: float) -> float:   # gap as a fraction of one axes' size
+        if n <= 1:
+            return 0.2
+        size_in = (span_in - (n - 1) * gap_in) / n
+        return gap_in / max(size_in, 0.1)
+    fig.subplots_adjust(left=left, right=right, bottom=bottom, top=top,
+                        wspace=spacing(cols, w_in * (right - left), column_gap_in),
+                        hspace=spacing(rows, h_in * (top - bottom), row_gap_in))
+
+
 def _save(fig, path: Path) -> Path:
-    fig.tight_layout()
+    fixed_layout(fig)
     fig.savefig(path, dpi=DPI)
     plt.close(fig)
     return path
