@@ -39,9 +39,11 @@ GUEST_MEM = "1536M"          # one run at a time (tests/test_kernel_can_uml.py: 
 
 
 def bench_run(scenario: str, run_id: str, runs_dir: Path, *extra: str) -> dict:
+    """`bench run` as a user runs it: with the report, which judges the criteria on the driver's
+    events (with --no-report those read "not measured")."""
     started = time.monotonic()
     result = subprocess.run([sys.executable, "-m", "bench.cli", "run", scenario, "--run-id", run_id, "--runs-dir",
-                             str(runs_dir), "--no-progress", "--no-report", *extra],
+                             str(runs_dir), "--no-progress", *extra],
                             capture_output=True, text=True, timeout=RUN_TIMEOUT_S, cwd=REPO)
     return {"run_id": run_id, "exit_code": result.returncode, "wall_s": time.monotonic() - started,
             "stderr_tail": result.stderr[-2000:]}
