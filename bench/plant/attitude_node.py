@@ -47,7 +47,13 @@ from bench.plant.acceptance import ActuatorEnvelope, CommandGate
 from bench.plant.mtq_chain import COUNTER_MODULO, COUNTER_WINDOW, CommandChains
 from bench.plant.stepping import LoopBroken, RealTimeClock, wait_command_lockstep
 
-EXACT_REPORT_WAIT_S = 0.5  # lock-step: far longer than a fault-free bus round trip (~5 ms)
+# Lock-step on the wall-clock bus: how long the plant waits for the board's report of the frame
+# that carried step k's command. On a bus with faults the frame may be lost: 0.5 s (far longer
+# than a fault-free round trip, ~5 ms), then up to REPORT_WAIT_S for a later frame with the same
+# dipole. On a fault-free bus the report always comes: the plant waits up to the run's command
+# timeout, so that a starved host (user-mode Linux on a busy machine) slows the run instead of
+# changing it.
+EXACT_REPORT_WAIT_S = 0.5
 REPORT_WAIT_S = 1.0
 
 
@@ -71,11 +77,12 @@ class BoardReports:
         with self._cond:
             return list(self._reports)
 
-    def wait_for_report(self, counter: int, expected_am2: np.ndarray, since_ns: int) -> MtqApplied | None:
+    def wait_for_report(self, counter: int, expected_am2: np.ndarray, since_ns: int,
+                        exact_wait_s: float = EXACT_REPORT_WAIT_S) -> MtqApplied | None:
         """The board's report of the frame with alive counter `counter` carrying the expected
         dipole; if that frame was lost (faults), of a later frame (c+1 .. c+7) carrying it."""
         exact = self._wait(lambda m: m.alive_counter == counter and np.array_equal(m.dipole_am2, expected_am2),
-                           since_ns, EXACT_REPORT_WAIT_S)
+                           since_ns, exact_wait_s)
         if exact is not None:
             return exact
         return self._wait(lambda m: (m.alive_counter - counter) % COUNTER_MODULO < COUNTER_WINDOW
@@ -287,7 +294,8 @@ def _lockstep_dipole(scenario, acceptance, reports, command, since_ns, log, k):
     report = None
     if command.alive_counter >= 0:
         expected = board_dipole_without_bus(command.dipole_am2, scenario.can)
-        report = reports.wait_for_report(command.alive_counter, expected, since_ns)
+        exact_wait_s = EXACT_REPORT_WAIT_S if scenario.can.faults else scenario.run.command_timeout_s
+        report = reports.wait_for_report(command.alive_counter, expected, since_ns, exact_wait_s)
     if report is None:
         # No report of this command (never sent, or every frame lost for 2 s): coils as last
         # reported if that is current, else off. Counted as a refusal of the command.
