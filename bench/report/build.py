@@ -198,15 +198,27 @@ def driver_events_table(path: Path) -> tuple[Table | None, dict | None]:
     return Table(["driver event", "count", "first latency [ms]", "worst latency [ms]"], rows), metrics
 
 
-def can_section(run: RunData, plot_dir: Path) -> tuple[Section | None, dict | None]:
+def can_metrics(run: RunData) -> tuple[canbus.BusLoad | None, dict | None]:
+    """The bus's figures for metrics.json (with or without the report): load, faults, injections,
+    whether commands are authenticated, and what the driver detected."""
     load = canbus.bus_load(run)
     if load is None:
         return None, None
     m = load.to_metrics()
-    rows = [["frames", fmt(m["frames"])], ["bitrate [bit/s]", fmt(m["bitrate_bps"])],
-            ["mean load [%]", fmt(m["mean_load"] * 100)], ["peak load [%]", fmt(m["peak_load"] * 100)]]
     can = getattr(run.scenario, "can", None)
     m["authenticated"] = can.security.authenticated if can is not None else None
+    _, driver_metrics = driver_events_table(run.run_dir / "can" / "driver.json")
+    if driver_metrics is not None:
+        m["driver"] = driver_metrics
+    return load, m
+
+
+def can_section(run: RunData, plot_dir: Path) -> tuple[Section | None, dict | None]:
+    load, m = can_metrics(run)
+    if load is None:
+        return None, None
+    rows = [["frames", fmt(m["frames"])], ["bitrate [bit/s]", fmt(m["bitrate_bps"])],
+            ["mean load [%]", fmt(m["mean_load"] * 100)], ["peak load [%]", fmt(m["peak_load"] * 100)]]
     rows.append(["authentication", {True: "SecOC: commands and NMT carry an AES-CMAC (the run's key)", None: "unknown",
                                     False: "NONE (e2e profile): the bus is unauthenticated, anyone on it can command "
                                            "the coils or stop the board"}[m["authenticated"]]])
@@ -214,7 +226,7 @@ def can_section(run: RunData, plot_dir: Path) -> tuple[Section | None, dict | No
              for f in m["faults"]]
     rows += [[f"injected {what}", fmt(n)] for what, n in sorted(m["injections"].items())]
     section = Section("CAN bus", ["From can.log (candump format)."], [Table(["bus", "value"], rows)])
-    driver_table, driver_metrics = driver_events_table(run.run_dir / "can" / "driver.json")
+    driver_table, _ = driver_events_table(run.run_dir / "can" / "driver.json")
     if driver_table is not None:
         section.paragraphs.append("What the flight-side driver detected (can/driver.json), with the latency from "
                                   "the fault's evidence on the bus to its detection.")
@@ -222,7 +234,6 @@ def can_section(run: RunData, plot_dir: Path) -> tuple[Section | None, dict | No
             section.paragraphs.append("The flight software (controller and driver) was provided from outside: "
                                       "can/driver.json is its own account, if it wrote one, not the bench's measurement.")
         section.tables.append(driver_table)
-        m["driver"] = driver_metrics
     if load.load.size:
         path = plots.bus_load(load.window_start_s, load.load, load.fault_windows, load.injections,
                               plot_dir / "bus_load.png",

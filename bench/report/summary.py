@@ -52,6 +52,16 @@ def run_metrics(run_dir: Path, scenario: Scenario, processes: dict[str, dict], s
     acceptance = _read_json(run_dir / ACCEPTANCE_FILE)
     if acceptance is not None:
         metrics["command_acceptance"] = acceptance
+    if getattr(scenario, "can", None) is not None:
+        # The bus's figures too, which criteria judge, whether or not a report is written.
+        from bench.report.build import can_metrics
+        from bench.report.rundata import CAN_LOG_FILE, RunData
+
+        can_log = Path(run_dir) / CAN_LOG_FILE
+        _, can_bus = can_metrics(RunData(Path(run_dir), Path(run_dir).name, scenario, trajectory=trajectory or {},
+                                         can_log=can_log if can_log.is_file() else None))
+        if can_bus is not None:
+            metrics["can_bus"] = can_bus
     metrics["exit_code"] = exit_code
     metrics["partial"] = end_reason is not None
     if end_reason is not None:
