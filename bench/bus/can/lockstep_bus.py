@@ -44,6 +44,32 @@ class StepCoils:
     off_fraction: float             # part of the step with the coil drivers off
 
 
+class StepAverage:
+    """The coil drivers' output over one step, as the plant integrates it (module docstring)."""
+
+    def __init__(self, start_ns: int, end_ns: int):
+        self.start_ns, self.step_ns = start_ns, max(1, end_ns - start_ns)
+        self.command_ns: int | None = None    # the step's command frame reached the board unchanged
+        self.whole = np.zeros(3)              # integral over the step (A m^2 ns)
+        self.after = np.zeros(3)              # the same from command_ns on
+        self.outputs_after: list[np.ndarray] = []   # the distinct outputs from command_ns on
+
+    def hold(self, output_am2: np.ndarray, duration_ns: int) -> None:
+        self.whole += output_am2 * duration_ns
+        if self.command_ns is not None:
+            self.after += output_am2 * duration_ns
+            if not self.outputs_after or not np.array_equal(self.outputs_after[-1], output_am2):
+                self.outputs_after.append(output_am2)
+
+    def dipole_am2(self, output_at_end_am2: np.ndarray) -> np.ndarray:
+        if self.command_ns is None:        # no command reached the board: the coils over the step itself
+            return self.whole / self.step_ns
+        if all(np.array_equal(o, output_at_end_am2) for o in self.outputs_after):
+            return output_at_end_am2.copy()   # held from the command on: exactly it (a sum of parts may round)
+        # From the command on for one step length; the stretch past the step's end at its end's output.
+        return (self.after + output_at_end_am2 * (self.command_ns - self.start_ns)) / self.step_ns
+
+
 class LockStepBus:
     """`advance(start_ns, end_ns, frames)`: one step of the flight side's frames through the bus
     model and the board; returns the frames the flight side heard and the step's `StepCoils`."""
@@ -81,10 +107,7 @@ class LockStepBus:
         step_command = next(((f.arbitration_id, f.data) for f in pending if f.arbitration_id == self._command_id), None)
         heard: list[SimFrame] = []
         applied_before = len(self.applied)
-        first_command_ns: int | None = None   # the step's first command frame reached the board unchanged
-        integral = np.zeros(3)                # of the coil drivers' output over the step
-        integral_after = np.zeros(3)          # the same, from first_command_ns on
-        outputs_after: list[np.ndarray] = []  # the distinct outputs from first_command_ns on
+        average = StepAverage(start_ns, end_ns)
         off_ns = 0
         i = 0
         board = self.board
@@ -96,44 +119,31 @@ class LockStepBus:
             for delivery in self.model.run_until(now_ns):
                 for node in delivery.destinations:
                     if node == BOARD:
-                        if first_command_ns is None and \
+                        if average.command_ns is None and \
                                 (delivery.msg.arbitration_id, bytes(delivery.msg.data)) == step_command:
-                            first_command_ns = now_ns
+                            average.command_ns = now_ns
                         self.buses[BOARD].inbox.append(delivery.msg)
                     elif node == FLIGHT:
                         heard.append(to_sim_frame(delivery.msg, now_ns))
             board.step(self.clock())
             if now_ns >= end_ns:
                 break
+            # The next event: a flight frame's time, a frame's last bit, a board timer, the step's end.
             candidates = [end_ns, round(board.next_due_s(self.clock()) * 1e9)]
             if i < len(pending):
                 candidates.append(pending[i].t_ns)
             bus_next = self.model.next_event_ns()
             if bus_next is not None:
                 candidates.append(bus_next)
-            next_ns = max(now_ns + 1, min(candidates))   # a timer due now was handled: move on
-            next_ns = min(next_ns, end_ns)
-            output = board.output_dipole_am2
-            integral += output * (next_ns - now_ns)
-            if first_command_ns is not None:
-                integral_after += output * (next_ns - now_ns)
-                if not outputs_after or not np.array_equal(outputs_after[-1], output):
-                    outputs_after.append(output)
+            next_ns = min(max(now_ns + 1, min(candidates)), end_ns)   # a timer due now was handled: move on
+            average.hold(board.output_dipole_am2, next_ns - now_ns)
             if board.state.safe_state or board.state.actuation_paused:
                 off_ns += next_ns - now_ns
             self.clock.t_ns = next_ns
-        step_ns = max(1, end_ns - start_ns)
-        output = board.output_dipole_am2
-        if first_command_ns is not None and len(outputs_after) <= 1 and \
-                (not outputs_after or np.array_equal(outputs_after[0], output)):
-            dipole = output.copy()      # held from the command on: exactly it (a sum of parts may round)
-        elif first_command_ns is not None:
-            dipole = (integral_after + output * (first_command_ns - start_ns)) / step_ns
-        else:   # no command reached the board: the coils over the step itself
-            dipole = integral / step_ns
         new = self.applied[applied_before:]
-        coils = StepCoils(dipole, bool(board.state.safe_state), bool(board.state.actuation_paused),
-                          board.state.coil_current_a.copy(), new[0].alive_counter if new else None, off_ns / step_ns)
+        coils = StepCoils(average.dipole_am2(board.output_dipole_am2), bool(board.state.safe_state),
+                          bool(board.state.actuation_paused), board.state.coil_current_a.copy(),
+                          new[0].alive_counter if new else None, off_ns / average.step_ns)
         return heard, coils
 
     @property
