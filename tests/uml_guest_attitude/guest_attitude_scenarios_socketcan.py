@@ -39,6 +39,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 sys.path.insert(0, str(HERE))
 from conftest import run_bench_cli  # noqa: E402
+from guest_attitude_socketcan import check_only_commanded_applied  # noqa: E402
 from socketcan_scenarios import EXPECTED_KINDS, HOLD, SLEW, fault_names, write_over_socketcan  # noqa: E402
 
 from bench.bus.can import vcan  # noqa: E402
@@ -46,7 +47,6 @@ from bench.bus.can.host_lateness import load_host_late_records, longest_host_lat
 from bench.bus.can.transport import interface_exists, kernel_has_can  # noqa: E402
 from bench.plant.attitude_node import EXACT_REPORT_WAIT_S  # noqa: E402
 from bench.plant.mtq_acceptance import board_dipole_without_bus  # noqa: E402
-from bench.report.attitude_metrics import applied_is_commanded_or_zero  # noqa: E402
 from bench.report.rundata import load_run  # noqa: E402
 from bench.sim import simulate_attitude_in_process  # noqa: E402
 
@@ -120,19 +120,6 @@ def failed_criteria(metrics: dict) -> list:
     return [f"{c['metric']} = {c['value']} (bound {c['bound']})" for c in metrics["verdict"]["criteria"] if not c["passed"]]
 
 
-def check_nothing_uncommanded_applied(run) -> None:
-    """Plant side and board side: every applied dipole is zero or the board's version of a dipole
-    the law published (guest_attitude_socketcan.py's check, without its count of published
-    commands: a starved guest's controller misses steps, which the verdict judges)."""
-    published = [m.body["dipole_am2"] for m in run.on("command/dipole")]
-    assert published, "the controller published no command"
-    assert applied_is_commanded_or_zero(run.trajectory, run.scenario.can, published).all()
-    board = json.loads((run.run_dir / "can" / "board.json").read_text())
-    expected = {tuple(board_dipole_without_bus(c, run.scenario.can)) for c in published}
-    assert board["applied"], "the board applied nothing"
-    assert all(tuple(a["dipole_am2"]) in expected or not any(a["dipole_am2"]) for a in board["applied"])
-
-
 def longest_host_stall_s(run) -> float:
     """The longest time the host held a CAN node (driver, board, bus model) up in this run."""
     return longest_host_late_s(load_host_late_records(Path(run.run_dir) / "can"), 0, 2**63)
@@ -174,7 +161,7 @@ def lockstep_failures(run) -> list[str]:
 def test_attitude_fault_scenario_over_kernel_socketcan(runs, scenario):
     run, metrics = finished_run(runs, scenario)
     # Safety first, whatever the host did: nothing the law did not command moved the coils.
-    check_nothing_uncommanded_applied(run)
+    check_only_commanded_applied(run, every_step=False)
     driver = json.loads((run.run_dir / "can" / "driver.json").read_text())
     kinds = {e["kind"] for e in driver["events"]}
     failures = [f"{fault}: the driver saw none of {sorted(EXPECTED_KINDS[fault])}"

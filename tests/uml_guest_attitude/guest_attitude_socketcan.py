@@ -55,11 +55,15 @@ def bench_run(tmp_path: Path, scenario: str, run_id: str):
     return run
 
 
-def check_only_commanded_applied(run) -> None:
+def check_only_commanded_applied(run, every_step: bool = True) -> None:
     """Plant side and board side: every applied dipole is zero or the board's version of a dipole
-    the law published (the recording's command/dipole)."""
+    the law published (the recording's command/dipole). every_step: and the law published one
+    for nearly every step (not on a starved guest, whose controller misses steps: the verdict
+    judges those)."""
     published = [m.body["dipole_am2"] for m in run.on("command/dipole")]
-    assert len(published) >= len(run.trajectory["att_time_s"]) - 5
+    assert published, "the controller published no command"
+    if every_step:
+        assert len(published) >= len(run.trajectory["att_time_s"]) - 5
     assert applied_is_commanded_or_zero(run.trajectory, run.scenario.can, published).all()
     board = json.loads((run.run_dir / "can" / "board.json").read_text())
     expected = {tuple(board_dipole_without_bus(c, run.scenario.can)) for c in published}

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import can
 import numpy as np
 
 from bench.bus.can import protocol as p
