@@ -5,7 +5,6 @@ into the tables, the pictures and metrics.json.
 """
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -182,39 +181,8 @@ def estimation_section(run: RunData, plot_dir: Path) -> tuple[Section | None, di
     return section, m
 
 
-def driver_events_table(path: Path) -> tuple[Table | None, dict | None]:
-    """Detected faults per kind: count, first and worst detection latency, and the final health."""
-    if not path.is_file():
-        return None, None
-    report = json.loads(path.read_text())
-    by_kind: dict[str, list[float]] = {}
-    for event in report["events"]:
-        by_kind.setdefault(event["kind"], []).append(event["latency_s"])
-    rows = [[kind, fmt(len(lat)), fmt(lat[0] * 1e3), fmt(max(lat) * 1e3)] for kind, lat in sorted(by_kind.items())]
-    rows.append(["board healthy at the end", "yes" if report["health"]["ok"] else "NO", "", ""])
-    metrics = {"events": {k: len(v) for k, v in by_kind.items()},
-               "worst_latency_s": {k: max(v) for k, v in by_kind.items()},
-               "board_ok_at_end": report["health"]["ok"]}
-    return Table(["driver event", "count", "first latency [ms]", "worst latency [ms]"], rows), metrics
-
-
-def can_metrics(run: RunData) -> tuple[canbus.BusLoad | None, dict | None]:
-    """The bus's figures for metrics.json (with or without the report): load, faults, injections,
-    whether commands are authenticated, and what the driver detected."""
-    load = canbus.bus_load(run)
-    if load is None:
-        return None, None
-    m = load.to_metrics()
-    can = getattr(run.scenario, "can", None)
-    m["authenticated"] = can.security.authenticated if can is not None else None
-    _, driver_metrics = driver_events_table(run.run_dir / "can" / "driver.json")
-    if driver_metrics is not None:
-        m["driver"] = driver_metrics
-    return load, m
-
-
 def can_section(run: RunData, plot_dir: Path) -> tuple[Section | None, dict | None]:
-    load, m = can_metrics(run)
+    load, m = canbus.can_metrics(run)
     if load is None:
         return None, None
     rows = [["frames", fmt(m["frames"])], ["bitrate [bit/s]", fmt(m["bitrate_bps"])],
@@ -226,7 +194,9 @@ def can_section(run: RunData, plot_dir: Path) -> tuple[Section | None, dict | No
              for f in m["faults"]]
     rows += [[f"injected {what}", fmt(n)] for what, n in sorted(m["injections"].items())]
     section = Section("CAN bus", ["From can.log (candump format)."], [Table(["bus", "value"], rows)])
-    driver_table, _ = driver_events_table(run.run_dir / "can" / "driver.json")
+    driver_rows = canbus.driver_event_rows(run.run_dir / "can" / "driver.json")
+    driver_table = None if driver_rows is None else Table(
+        ["driver event", "count", "first latency [ms]", "worst latency [ms]"], driver_rows)
     if driver_table is not None:
         section.paragraphs.append("What the flight-side driver detected (can/driver.json), with the latency from "
                                   "the fault's evidence on the bus to its detection.")

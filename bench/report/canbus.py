@@ -21,6 +21,7 @@ import can
 import numpy as np
 
 from bench.bus.can.bittiming import DEFAULT_BITRATE_BPS, frame_bits
+from bench.report.document import fmt
 from bench.report.timebase import RunClock, wall_to_mono_ns
 from bench.report.rundata import RunData
 
@@ -148,3 +149,39 @@ def _injections(run_dir: Path, clock: RunClock | None) -> list[tuple[float, str,
     clock = _bus_clock(_bus_model_report(run_dir), clock)
     times = clock.sim_s(np.asarray([r["t_ns"] for r in records], dtype=float))
     return [(float(t), r["fault"], r["action"]) for t, r in zip(np.atleast_1d(times), records)]
+
+
+def driver_events(path: Path) -> tuple[list[list[str]] | None, dict | None]:
+    """What the flight-side driver detected (can/driver.json), per kind: table rows (count, first
+    and worst detection latency in ms, the final health) and the metrics."""
+    if not path.is_file():
+        return None, None
+    report = json.loads(path.read_text())
+    by_kind: dict[str, list[float]] = {}
+    for event in report["events"]:
+        by_kind.setdefault(event["kind"], []).append(event["latency_s"])
+    rows = [[kind, fmt(len(lat)), fmt(lat[0] * 1e3), fmt(max(lat) * 1e3)] for kind, lat in sorted(by_kind.items())]
+    rows.append(["board healthy at the end", "yes" if report["health"]["ok"] else "NO", "", ""])
+    metrics = {"events": {k: len(v) for k, v in by_kind.items()},
+               "worst_latency_s": {k: max(v) for k, v in by_kind.items()},
+               "board_ok_at_end": report["health"]["ok"]}
+    return rows, metrics
+
+
+def driver_event_rows(path: Path) -> list[list[str]] | None:
+    return driver_events(path)[0]
+
+
+def can_metrics(run: RunData) -> tuple[BusLoad | None, dict | None]:
+    """The bus's figures for metrics.json (with or without the report): load, faults, injections,
+    whether commands are authenticated, and what the driver detected."""
+    load = bus_load(run)
+    if load is None:
+        return None, None
+    m = load.to_metrics()
+    can = getattr(run.scenario, "can", None)
+    m["authenticated"] = can.security.authenticated if can is not None else None
+    _, driver_metrics = driver_events(run.run_dir / "can" / "driver.json")
+    if driver_metrics is not None:
+        m["driver"] = driver_metrics
+    return load, m

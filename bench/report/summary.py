@@ -21,7 +21,9 @@ import numpy as np
 
 from bench.criteria import verdict as judge_criteria
 from bench.plant.acceptance import ACCEPTANCE_FILE
+from bench.report import canbus
 from bench.report.jsonout import write_json
+from bench.report.rundata import CAN_LOG_FILE, RunData
 from bench.report.run_metrics import trajectory_metrics
 from bench.scenario import Scenario
 
@@ -54,11 +56,9 @@ def run_metrics(run_dir: Path, scenario: Scenario, processes: dict[str, dict], s
         metrics["command_acceptance"] = acceptance
     if getattr(scenario, "can", None) is not None:
         # The bus's figures too, which criteria judge, whether or not a report is written.
-        from bench.report.build import can_metrics
-        from bench.report.rundata import CAN_LOG_FILE, RunData
 
         can_log = Path(run_dir) / CAN_LOG_FILE
-        _, can_bus = can_metrics(RunData(Path(run_dir), Path(run_dir).name, scenario, trajectory=trajectory or {},
+        _, can_bus = canbus.can_metrics(RunData(Path(run_dir), Path(run_dir).name, scenario, trajectory=trajectory or {},
                                          can_log=can_log if can_log.is_file() else None))
         if can_bus is not None:
             metrics["can_bus"] = can_bus
