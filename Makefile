@@ -40,7 +40,7 @@ endif
 test: $(STAMP)
 	bash tools/install-system-deps.sh
 	$(PY) tools/check_lock.py
-	$(PY) -m pytest
+	$(PY) -m pytest --durations=25
 
 benchmarks: $(STAMP)
 	for b in benchmarks/bench_*.py; do $(PY) $$b || exit 1; done
