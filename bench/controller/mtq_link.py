@@ -4,9 +4,9 @@ Two ways to run the driver: `MagnetorquerLink` on the wall clock (real time, a k
 from outside), and `LockStepLink` on simulated time (lock-step with the bench's own bus:
 bench/bus/can/sim_window.py).
 
-On the wall clock:
-The board drops to its safe state when commands stop for its command timeout (0.1 s), far shorter
-than a 600 s plant step, so the driver commands on its own thread at its own period (CommandLoop),
+On the wall clock the board drops to its safe state when commands stop for its command timeout
+(0.1 s), far shorter than a plant step, so the driver commands on its own thread at its own
+period (CommandLoop),
 with the dipole the scenario scripts, or from an attitude law's first dipole on (nothing before
 it, so the first command frame, from which the bus faults count, is the loop's first step). A
 law's dipole also goes out the moment the law gives it, in the "mixed" and "on_change"
