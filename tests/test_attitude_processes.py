@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from bench.report.attitude_metrics import (
-    applied_is_commanded_or_zero, continuous_rotation_angle_deg, fault_effect, host_held_steps, late_before_the_bus,
+    applied_is_commanded_or_zero, continuous_rotation_angle_deg, fault_effect,
     loop_recovery_s, pointing_error_deg, whole_steps,
 )
 from bench.bus.can.host_lateness import load_host_late_records, longest_host_late_s
@@ -208,8 +208,11 @@ def broken_steps_after(part: dict, run, end_s: float, excused: np.ndarray) -> st
 
 
 @pytest.mark.parametrize("fault", ["board_death", "drop", "corrupt", "stuck_actuator", "flood"])
-def test_each_fault_was_seen_and_the_loop_recovers_after_it(fault_runs, fault):
-    run = fault_runs[1]
+def test_each_fault_was_seen_and_the_loop_recovers_after_it(fault_lock_step_run, fault):
+    """On simulated bus time (the lock-step twin of the real-time fault run: no host in the
+    timing, so nothing to excuse): each fault seen by the driver, and the loop whole again within
+    2 s of the fault's window and for a second after it."""
+    run = fault_lock_step_run
     windows = {name: (start, end) for name, start, end in fault_windows_sim_s(run.run_dir, run.scenario, run.trajectory)}
     start, end = windows[fault]
     assert 0.0 < start < end < run.trajectory["att_time_s"][-1]
@@ -218,19 +221,12 @@ def test_each_fault_was_seen_and_the_loop_recovers_after_it(fault_runs, fault):
     t = run.trajectory["att_time_s"]
     upto = min([s for s, _ in windows.values() if s > end] + [t[-1] + 1.0])
     part = {k: v[t < upto] for k, v in run.trajectory.items() if isinstance(v, np.ndarray) and v.ndim and len(v) == len(t)}
-    # A step the host held up is not the fault's and is excused: a CAN node stalled half a step or
-    # more around it (a step that lost its whole command chain is placed by its neighbours' stamps),
-    # or its command left the controller half a step or more after the plant sensed (no bus in that
-    # path). CI with both cores busy, before these two: recovery 2.28 s after stuck_actuator and
-    # 2.17 s after flood. But the loop must be seen whole on its own for a second after the window,
-    # or a loop that never recovers on a busy machine would pass.
     step_s = float(np.median(np.diff(t)))
-    held = host_held_steps(part, run.run_dir, min_late_s=0.5 * step_s) | late_before_the_bus(part, 0.5 * step_s)
     after = part["att_time_s"] >= end
-    seen_whole = whole_steps(part, run.scenario.can) & ~held & after
-    assert seen_whole.sum() * step_s >= 1.0, f"whole {seen_whole.sum()}, host-held {held[after].sum()} of {after.sum()} steps"
-    recovery = loop_recovery_s(part, run.scenario.can, end, excused=held)
-    assert recovery is not None and recovery < 2.0, broken_steps_after(part, run, end, held)
+    seen_whole = whole_steps(part, run.scenario.can) & after
+    assert seen_whole.sum() * step_s >= 1.0, f"whole {seen_whole.sum()} of {after.sum()} steps"
+    recovery = loop_recovery_s(part, run.scenario.can, end)
+    assert recovery is not None and recovery < 2.0, broken_steps_after(part, run, end, np.zeros(len(part["att_time_s"]), bool))
     driver = json.loads((run.run_dir / "can" / "driver.json").read_text())
     kinds = {e["kind"] for e in driver["events"]}
     expected = {"board_death": {"heartbeat_timeout"}, "drop": {"board_command_timeout"},

@@ -10,11 +10,8 @@
 """
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 
-from bench.bus.can.host_lateness import load_host_late_records, longest_host_late_s
 from bench.gnc import quaternion as qt
 from bench.plant.mtq_acceptance import board_dipole_without_bus
 from bench.scenario import Scenario
@@ -171,8 +168,8 @@ def whole_steps(trajectory: dict, can) -> np.ndarray:
 
 def loop_recovery_s(trajectory: dict, can, after_sim_s: float, excused: np.ndarray | None = None) -> float | None:
     """Simulated time after `after_sim_s` until the loop is whole (`whole_steps`) at every later
-    step; None if never. excused: steps not to count against the loop (for example those the
-    host held up, see `host_held_steps`)."""
+    step; None if never. excused: steps not to count against the loop (for example those a
+    real-time run's host held up: bench.bus.can.host_lateness)."""
     times = trajectory["att_time_s"]
     whole = whole_steps(trajectory, can)
     if excused is not None:
@@ -183,44 +180,6 @@ def loop_recovery_s(trajectory: dict, can, after_sim_s: float, excused: np.ndarr
         return 0.0
     last = broken[-1]
     return float(times[last + 1] - after_sim_s) if last + 1 < len(times) else None
-
-
-def host_held_steps(trajectory: dict, run_dir: Path, min_late_s: float, window_s: float = 0.5) -> np.ndarray:
-    """Per step, whether a CAN node measured itself held up by the host for min_late_s or more at
-    once within window_s of the step's sensing stamp (real time only; bench.bus.can.host_lateness): a
-    broken step there may be the busy machine's doing, not the bus's. A few ms late is common on
-    a busy machine and breaks nothing; min_late_s near a plant step is what can.
-
-    A step whose command never reached the plant has no stamps (-1); its sensing time is
-    interpolated from the steps around it (real time: the plant ticks at fixed intervals). A CI run
-    with both cores busy lost a whole step so, 2 s after the babbling-node fault, amid the driver's
-    host overruns, and it was not excused for want of a stamp."""
-    stamps = trajectory.get("stamp_sensed_ns")
-    records = load_host_late_records(Path(run_dir) / "can")
-    if stamps is None or not records:
-        return np.zeros(len(trajectory["att_time_s"]), bool)
-    stamps = np.asarray(stamps, dtype=np.int64)
-    stamped = stamps > 0
-    if stamped.sum() < 2:
-        return np.zeros(len(stamps), bool)
-    steps = np.arange(len(stamps))
-    sensed_ns = np.interp(steps, steps[stamped], stamps[stamped]).astype(np.int64)
-    window_ns = int(window_s * 1e9)
-    return np.array([longest_host_late_s(records, int(s) - window_ns, int(s) + window_ns) >= min_late_s
-                     for s in sensed_ns])
-
-
-def late_before_the_bus(trajectory: dict, min_late_s: float) -> np.ndarray:
-    """Per step, whether its command left the controller min_late_s or more after the plant sensed
-    (stamps "sensed" -> "commanded": plant, estimator and controller over Zenoh, no CAN frame yet).
-    No bus fault can delay that part of the loop; on a busy host the scheduler can, and a step whose
-    command is that late cannot close through the board in time. Steps without both stamps: False."""
-    sensed = np.asarray(trajectory.get("stamp_sensed_ns", []), dtype=np.int64)
-    commanded = np.asarray(trajectory.get("stamp_commanded_ns", []), dtype=np.int64)
-    if len(sensed) == 0 or len(commanded) != len(sensed):
-        return np.zeros(len(trajectory["att_time_s"]), bool)
-    both = (sensed > 0) & (commanded > 0)
-    return both & ((commanded - sensed) >= int(min_late_s * 1e9))
 
 
 def fault_effect(clean: dict, faulted: dict, scenario: Scenario, fault_end_sim_s: float) -> dict:
