@@ -71,7 +71,11 @@ def test_forked_nodes_share_the_run_group_and_report_the_signal_that_killed_them
     first = zygote.spawn(_waiting_plant(tmp_path, "a"), tmp_path / "a.log", process_group=0)
     second = zygote.spawn(_waiting_plant(tmp_path, "b"), tmp_path / "b.log", process_group=first.pid)
     assert os.getpgid(first.pid) == first.pid and os.getpgid(second.pid) == first.pid
-    assert "bench.cli\0node\0plant" in open(f"/proc/{first.pid}/cmdline", "rb").read().decode()   # ps shows the node
+    # ps shows the node once the child has rewritten its command line, just after the fork
+    deadline = time.monotonic() + WAIT_S
+    while "bench.cli\0node\0plant" not in (cmdline := open(f"/proc/{first.pid}/cmdline", "rb").read().decode()):
+        assert time.monotonic() < deadline, cmdline
+        time.sleep(0.01)
     assert first.poll() is None and second.poll() is None
     second.kill()
     assert second.wait(timeout=WAIT_S) == -signal.SIGKILL          # as subprocess.Popen reports it
