@@ -182,7 +182,7 @@ def estimation_section(run: RunData, plot_dir: Path) -> tuple[Section | None, di
 
 
 def can_section(run: RunData, plot_dir: Path) -> tuple[Section | None, dict | None]:
-    load, m = canbus.can_metrics(run)
+    load, m, driver_rows = canbus.can_metrics(run)
     if load is None:
         return None, None
     rows = [["frames", fmt(m["frames"])], ["bitrate [bit/s]", fmt(m["bitrate_bps"])],
@@ -194,7 +194,6 @@ def can_section(run: RunData, plot_dir: Path) -> tuple[Section | None, dict | No
              for f in m["faults"]]
     rows += [[f"injected {what}", fmt(n)] for what, n in sorted(m["injections"].items())]
     section = Section("CAN bus", ["From can.log (candump format)."], [Table(["bus", "value"], rows)])
-    driver_rows = canbus.driver_event_rows(run.run_dir / "can" / "driver.json")
     driver_table = None if driver_rows is None else Table(
         ["driver event", "count", "first latency [ms]", "worst latency [ms]"], driver_rows)
     if driver_table is not None:

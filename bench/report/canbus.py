@@ -168,20 +168,18 @@ def driver_events(path: Path) -> tuple[list[list[str]] | None, dict | None]:
     return rows, metrics
 
 
-def driver_event_rows(path: Path) -> list[list[str]] | None:
-    return driver_events(path)[0]
 
-
-def can_metrics(run: RunData) -> tuple[BusLoad | None, dict | None]:
+def can_metrics(run: RunData) -> tuple[BusLoad | None, dict | None, list[list[str]] | None]:
     """The bus's figures for metrics.json (with or without the report): load, faults, injections,
-    whether commands are authenticated, and what the driver detected."""
+    whether commands are authenticated, and what the driver detected (also as the report's table
+    rows)."""
     load = bus_load(run)
     if load is None:
-        return None, None
+        return None, None, None
     m = load.to_metrics()
     can = getattr(run.scenario, "can", None)
     m["authenticated"] = can.security.authenticated if can is not None else None
-    _, driver_metrics = driver_events(run.run_dir / "can" / "driver.json")
+    driver_rows, driver_metrics = driver_events(run.run_dir / "can" / "driver.json")
     if driver_metrics is not None:
         m["driver"] = driver_metrics
-    return load, m
+    return load, m, driver_rows

@@ -58,7 +58,7 @@ def run_metrics(run_dir: Path, scenario: Scenario, processes: dict[str, dict], s
         # The bus's figures too, which criteria judge, whether or not a report is written.
 
         can_log = Path(run_dir) / CAN_LOG_FILE
-        _, can_bus = canbus.can_metrics(RunData(Path(run_dir), Path(run_dir).name, scenario, trajectory=trajectory or {},
+        _, can_bus, _ = canbus.can_metrics(RunData(Path(run_dir), Path(run_dir).name, scenario, trajectory=trajectory or {},
                                          can_log=can_log if can_log.is_file() else None))
         if can_bus is not None:
             metrics["can_bus"] = can_bus

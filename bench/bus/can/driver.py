@@ -200,8 +200,7 @@ class MagnetorquerDriver:
                 msg = self.bus.recv(timeout=0.0)
             self.frames_in_last_poll = handled
             self.check_deadlines(self.clock())
-            events, self._new_events = self._new_events, []
-        return events
+            return self.take_events()
 
     def take_events(self) -> list[FaultEvent]:
         """The events detected since the last `poll` or `take_events` (a caller that hands the
