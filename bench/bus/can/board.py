@@ -21,6 +21,11 @@ a plain NMT frame is refused (rejected as NMT_NOT_AUTHENTICATED, reported by EMC
 without the key can neither stop nor reset the board to switch its coils off. A cleared error (commands back after a timeout) is announced
 by an error-reset EMCY (code 0x0000).
 
+Its object dictionary is mtq.eds (CiA 306): the heartbeat time, EMCY inhibit time and command
+timeout come from it unless the scenario sets them, and a CANopen tool reads and writes them,
+the identity and the error history over SDO (canopen's SDO server, board_sdo.py), except while
+stopped.
+
 `step(now_s)` handles what arrived and what is due at `now_s`; `run(stop)` is the process loop.
 Time comes from the caller's clock, so unit tests drive the board deterministically.
 """
@@ -30,15 +35,18 @@ import logging
 import math
 import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass, field
 from typing import Callable
 
 import can
+import msgspec
 import numpy as np
 
+from bench.bus.can import canopen_od
 from bench.bus.can import protocol as p
 from bench.bus.can import secoc
+from bench.bus.can.board_sdo import BoardSdoServer
 from bench.bus.can.config import BoardConfig, SecurityConfig
 from bench.bus.can.host_lateness import HostLateLog
 
@@ -46,6 +54,7 @@ log = logging.getLogger(__name__)
 
 ERROR_REGISTER_GENERIC = 0x01
 ERROR_REGISTER_COMMUNICATION = 0x10
+ERROR_HISTORY_ENTRIES = 4        # 0x1003's standard error fields in mtq.eds
 
 
 @dataclass
@@ -87,9 +96,15 @@ class MagnetorquerBoard:
                  security: SecurityConfig | None = None):
         """on_applied: each accepted command. on_coils_changed: the coil target changed without a
         command (safe state entered, magnetometer window began or ended), so that whoever
-        publishes the applied dipole never leaves a stale one standing."""
+        publishes the applied dipole never leaves a stale one standing.
+
+        The CANopen parameters (heartbeat time, EMCY inhibit time, command timeout) are mtq.eds's
+        where `config` keeps BoardConfig's defaults; a CANopen tool may change them over SDO
+        (board_sdo.py), and NMT reset communication / reset node restores them."""
+        od = canopen_od.object_dictionary(protocol.node_id)
+        canopen_od.check_cob_ids(od, protocol)
         self.bus = bus
-        self.config = config
+        self.config = self._configured = canopen_od.board_config(config, od)
         self.protocol = protocol
         self.clock = clock
         self.on_applied = on_applied
@@ -129,6 +144,13 @@ class MagnetorquerBoard:
         self._next_telemetry_s = 0.0
         self.nmt_state = p.NMT_BOOT_UP
         self.ignored: Counter = Counter()      # frames not for this NMT state (CiA 301: not processed)
+        self.error_register = 0                # CiA 301 0x1001: as in the last EMCY sent
+        self.error_history: deque[int] = deque(maxlen=ERROR_HISTORY_ENTRIES)   # 0x1003, newest first
+        self._now_s = 0.0                      # the time of the frame being handled (SDO writes)
+        self.sdo = BoardSdoServer(protocol.node_id, self._send, read_parameter=lambda name: getattr(self.config, name),
+                                  write_parameter=self._write_parameter, error_register=lambda: self.error_register,
+                                  error_history=lambda: list(self.error_history),
+                                  clear_error_history=self.error_history.clear)
 
     @property
     def applied_dipole_am2(self) -> np.ndarray:
@@ -149,7 +171,7 @@ class MagnetorquerBoard:
             self._started_s = self._last_update_s = now_s
         self._send(self.protocol.encode(p.HEARTBEAT, {"NmtState": p.NMT_BOOT_UP}))
         self.nmt_state = p.NMT_PRE_OPERATIONAL
-        self._next_heartbeat_s = now_s + self.config.heartbeat_period_s
+        self._next_heartbeat_s = self._first_heartbeat_s(now_s)
         self._next_telemetry_s = now_s + self.config.telemetry_period_s
 
     # --- CiA 301 NMT slave ----------------------------------------------------------------
@@ -166,6 +188,9 @@ class MagnetorquerBoard:
             self._coils_off(now_s)
         elif command in (p.NMT_RESET_NODE, p.NMT_RESET_COMMUNICATION):
             self._coils_off(now_s)
+            # CiA 301: reset communication restores the communication parameters, reset node all.
+            restored = canopen_od.PARAMETERS if command == p.NMT_RESET_NODE else canopen_od.COMMUNICATION_PARAMETERS
+            self.config = msgspec.structs.replace(self.config, **{f: getattr(self._configured, f) for f in restored})
             self.e2e.reset()
             self._tx_counter.clear()
             self._pending_emcy.clear()
@@ -189,6 +214,16 @@ class MagnetorquerBoard:
             status = p.E2EStatus[verdict.value]
         self._reject(f"NMT_{status.name}", None, p.EMCY_E2E_CHECK_FAILED, int(status), now_s)
         return False
+
+    def _first_heartbeat_s(self, now_s: float) -> float:
+        period_s = self.config.heartbeat_period_s
+        return now_s + period_s if period_s > 0 else math.inf     # 0x1017 = 0: no heartbeat
+
+    def _write_parameter(self, name: str, value_s: float) -> None:
+        """A CANopen tool wrote a parameter over SDO; a new heartbeat time counts from now."""
+        self.config = msgspec.structs.replace(self.config, **{name: value_s})
+        if name == "heartbeat_period_s":
+            self._next_heartbeat_s = self._first_heartbeat_s(self._now_s)
 
     def _coils_off(self, now_s: float) -> None:
         """Leaving operational: no commands will come, the coils must not hold the last one."""
@@ -229,6 +264,10 @@ class MagnetorquerBoard:
         """One frame from the bus. Anything but a valid command is counted and ignored."""
         received_ns = time.monotonic_ns()
         self.received[p.frame_kind(self.protocol, msg)] += 1
+        if self.sdo.is_request(msg) and self.nmt_state != p.NMT_STOPPED:   # CiA 301: no SDO when stopped
+            self._now_s = now_s
+            if self.sdo.handle(msg):
+                return
         command_id = self.protocol.frame_ids[self.command_name]
         if (msg.arbitration_id == command_id and self.nmt_state == p.NMT_OPERATIONAL
                 and not msg.is_error_frame and not msg.is_remote_frame
@@ -318,6 +357,9 @@ class MagnetorquerBoard:
             return
         signals = self._pending_emcy.pop(0) | {"RejectedFrames": min(sum(self.rejected.values()), 0xFFFF)}
         self._last_emcy_s = now_s
+        self.error_register = signals["ErrorRegister"]
+        if signals["ErrorCode"] != p.EMCY_NO_ERROR:
+            self.error_history.appendleft(signals["ErrorCode"])
         self._send(self.protocol.encode(p.EMCY, signals))
 
     # --- time -----------------------------------------------------------------------------
@@ -422,7 +464,7 @@ class MagnetorquerBoard:
     def _send(self, msg: can.Message) -> None:
         try:
             self.bus.send(msg)
-            self.sent[self.protocol.name_of(msg.arbitration_id)] += 1
+            self.sent[p.frame_kind(self.protocol, msg)] += 1
         except can.CanError as exc:  # a full or broken bus must not kill the board
             self.sent["send_failed"] += 1
             log.warning("send failed: %s", exc)
