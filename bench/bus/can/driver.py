@@ -10,6 +10,9 @@ What the driver detects, and from what evidence:
 - board lost / back: heartbeat (CANopen consumer) and telemetry deadlines; as the NMT master it
   starts the board (NMT start; MTQ_NMT_AUTH on the secoc profile) whenever a heartbeat says
   boot-up or pre-operational;
+  the heartbeat, the EMCY and plain NMT are canopen's: a `RemoteNode` built from mtq.eds on a
+  passive `canopen.Network` (`node`), fed the board's heartbeat and EMCY frames from `handle`
+  (no listener thread, no timer: the deadlines stay on the driver's clock, real or simulated);
 - corrupted, repeated, out-of-sequence or lost telemetry: the E2E check of each telemetry frame;
 - commands the board rejected (corrupted, repeated, out of sequence, re-synchronising, forged,
   stale, wrong length), commands lost on the way (the board's E2E check saw the counter jump) and
@@ -41,14 +44,16 @@ from dataclasses import dataclass, field
 from typing import Callable
 
 import can
+import canopen
 import numpy as np
 
-from bench.bus.can import errors
+from bench.bus.can import canopen_od, errors
 from bench.bus.can import protocol as p
 from bench.bus.can.config import BoardConfig, CanConfig, DriverConfig
 
 MAX_EVENTS_KEPT = 10_000
 RECENT_COMMANDS = 64
+EMCY_KEPT = 64     # canopen's EMCY consumer keeps a log; a long run keeps only this many
 
 
 @dataclass(frozen=True)
@@ -155,6 +160,12 @@ class MagnetorquerDriver:
         self._mismatch_since_s: float | None = None
         self._start_s = clock()
         self._new_events: list[FaultEvent] = []
+        self._now_s = self._start_s      # the time of the frame being handled (canopen's callbacks)
+        self.canopen_network = canopen.Network(bus)
+        self.node = canopen.RemoteNode(protocol.node_id, canopen_od.object_dictionary(protocol.node_id))
+        self.canopen_network.add_node(self.node)
+        self.node.nmt.add_heartbeat_callback(self._on_heartbeat)
+        self.node.emcy.add_callback(self._on_emergency)
 
     @classmethod
     def from_config(cls, bus: can.BusABC, config: CanConfig, **clocks) -> "MagnetorquerDriver":
@@ -231,15 +242,18 @@ class MagnetorquerDriver:
         frame = self.protocol.decode(msg)
         if frame is None:
             return
-        if frame.name == p.HEARTBEAT:
-            self._on_heartbeat(frame, now_s)
-        elif frame.name == p.EMCY:
-            self._on_emergency(frame, msg)
+        if frame.name in (p.HEARTBEAT, p.EMCY):
+            # Checked by the DBC above (length, a known NMT state); canopen's NMT master and EMCY
+            # consumer parse them and call _on_heartbeat / _on_emergency.
+            self._now_s = now_s
+            self.canopen_network.notify(msg.arbitration_id, bytes(msg.data), msg.timestamp)
         elif frame.name in self._rx_e2e:
             self._on_telemetry(frame, msg, now_s)
 
-    def _on_heartbeat(self, frame: p.Frame, now_s: float) -> None:
-        state = int(frame.signals["NmtState"])
+    def _on_heartbeat(self, state: int) -> None:
+        """canopen's NMT master heard a heartbeat (state as sent: 0 is boot-up, which its
+        `node.nmt.state` already shows as pre-operational)."""
+        now_s = self._now_s
         if state == p.NMT_BOOT_UP and self._nmt_state is not None:
             self._event("board_rebooted", 0.0, p.HEARTBEAT)
         self._nmt_state = state
@@ -250,35 +264,41 @@ class MagnetorquerDriver:
     def nmt(self, command: int) -> None:
         """Send a CiA 301 NMT command (p.NMT_START, ...) to this driver's board."""
         try:
-            self.bus.send(self.protocol.nmt(command, sent_s=self.clock()))
+            if self.protocol.profile == "e2e":
+                self.node.nmt.send_command(command)    # plain CiA 301 NMT, identifier 0
+            else:
+                self.bus.send(self.protocol.nmt(command, sent_s=self.clock()))   # MTQ_NMT_AUTH (SecOC)
             self.nmt_sent[command] += 1
         except can.CanError:
             self.nmt_sent["send_failed"] += 1
 
-    def _on_emergency(self, frame: p.Frame, msg: can.Message) -> None:
-        code = int(frame.signals["ErrorCode"])
+    def _on_emergency(self, emcy: canopen.emcy.EmcyError) -> None:
+        """canopen's EMCY consumer heard an emergency; its manufacturer bytes (mtq.dbc's MTQ_EMCY)
+        are E2eStatus, RejectedCounter and RejectedFrames."""
+        for kept in (self.node.emcy.log, self.node.emcy.active):
+            del kept[:-EMCY_KEPT]
+        code = emcy.code
         if code == p.EMCY_NO_ERROR:
-            self._event("board_error_reset", 0.0, p.EMCY, f"error register {int(frame.signals['ErrorRegister']):#04x}")
+            self._event("board_error_reset", 0.0, p.EMCY, f"error register {emcy.register:#04x}")
         elif code == p.EMCY_COMMAND_TIMEOUT:
             # Our own silence longer than the board's timeout is the host's doing, not the bus's.
             host = self._largest_gap_s > self.board.command_timeout_s
             detail = f"cause host_overrun: driver command gap {self._largest_gap_s * 1e3:.1f} ms" if host else "cause bus"
             if self._sent and self._last_command_s is not None and self.clock() - self._last_command_s > self.board.command_timeout_s:
                 detail = "cause driver stopped commanding"
-            self._event("board_command_timeout", self._wire_age_s(msg), p.EMCY, detail)
+            self._event("board_command_timeout", self._age_s(emcy.timestamp), p.EMCY, detail)
             self._largest_gap_s = 0.0
         elif code in (p.EMCY_E2E_CHECK_FAILED, p.EMCY_PDO_LENGTH):
-            status = int(frame.signals["E2eStatus"])
-            counter = int(frame.signals["RejectedCounter"])
+            status, counter = emcy.data[0], emcy.data[1]
             if code == p.EMCY_E2E_CHECK_FAILED and status == p.E2EStatus.OK_SOME_LOST:
-                self._event("command_lost", self._command_age_s(counter, msg), p.EMCY,
+                self._event("command_lost", self._command_age_s(counter, emcy.timestamp), p.EMCY,
                             f"commands before counter {counter} lost")
                 return
             if code == p.EMCY_PDO_LENGTH:
                 reason = "WRONG_LENGTH"
             else:
                 reason = p.E2EStatus(status).name if status in p.E2EStatus._value2member_map_ else f"status {status}"
-            self._event("command_rejected", self._command_age_s(counter, msg), p.EMCY,
+            self._event("command_rejected", self._command_age_s(counter, emcy.timestamp), p.EMCY,
                         f"{reason} counter {counter}")
 
     def _on_telemetry(self, frame: p.Frame, msg: can.Message, now_s: float) -> None:
@@ -359,14 +379,17 @@ class MagnetorquerDriver:
         self.event_counts[kind] += 1
 
     def _wire_age_s(self, msg: can.Message) -> float:
-        # python-can stamps a received frame with the (wall-clock) time it was on the wire.
-        return self.wall_clock() - msg.timestamp if msg.timestamp else 0.0
+        return self._age_s(msg.timestamp)
 
-    def _command_age_s(self, counter: int, msg: can.Message) -> float:
+    def _age_s(self, timestamp: float) -> float:
+        # python-can stamps a received frame with the (wall-clock) time it was on the wire.
+        return self.wall_clock() - timestamp if timestamp else 0.0
+
+    def _command_age_s(self, counter: int, timestamp: float) -> float:
         for sent in reversed(self._sent):
             if sent.counter == counter:
                 return self.clock() - sent.sent_s
-        return self._wire_age_s(msg)
+        return self._age_s(timestamp)
 
     def health(self) -> BoardHealth:
         now_s = self.clock()
