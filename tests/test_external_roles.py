@@ -323,3 +323,34 @@ def test_an_external_board_closes_the_loop_in_real_time(runs):
           f"in process {np.degrees(rate_ref[-1]):.4f} deg/s; max |omega - omega_ref| "
           f"{np.degrees(np.abs(t['att_omega_radps'] - reference['att_omega_radps']).max()):.4f} deg/s; "
           f"max |applied - applied_ref| {np.abs(t['att_dipole_applied_am2'] - reference['att_dipole_applied_am2']).max():.4f} A m^2")
+
+
+def _echoing_detumble(runs) -> str:
+    """attitude_detumble with the simulated board acknowledging its commands (`[can.board]
+    setpoint_echo`): the hardware the test plugs in is one that sends MTQ_TLM_SETPOINT."""
+    text = (REPO / "bench" / "scenarios" / "attitude_detumble.toml").read_text()
+    marker = '[can]\ntransport = "zenoh"\n'
+    assert marker in text
+    path = runs / "attitude_detumble_echo.toml"
+    path.write_text(text.replace(marker, marker + "board = { setpoint_echo = true }\n"))
+    return str(path)
+
+
+def test_an_external_board_that_acknowledges_its_commands_equals_the_built_in_loop_in_lock_step(runs):
+    run, err = run_with_outside_node(runs, _echoing_detumble(runs), "board-lockstep", "mtq", "--steps", "40",
+                                     "--external", "board")
+    assert "the magnetorquer board is external" in err
+    assert run.scenario.run.mode == "lock-step" and run.scenario.can.board.setpoint_echo
+    reference = simulate_attitude_in_process(run.scenario)
+    for name in ("att_q_wxyz", "att_omega_radps", "att_dipole_applied_am2", "att_dipole_commanded_am2"):
+        np.testing.assert_allclose(run.trajectory[name], reference[name], rtol=0, atol=1e-9, err_msg=name)
+    assert run.trajectory["att_q_wxyz"].shape == (40, 4)
+    # Every step paired with its command's echo: none refused, none missing.
+    assert np.all(run.trajectory["att_alive_counter"] >= 0) and not run.trajectory["att_refused"].any()
+    heard = json.loads((run.run_dir / "can" / "plant_board_telemetry.json").read_text())
+    assert heard["source"] == p.TLM_SETPOINT and heard["reports"] >= 40 and not heard["refused"], heard
+    metrics = json.loads((run.run_dir / "metrics.json").read_text())
+    assert metrics["processes"]["mtq"]["host"] == "external" and "canbus" not in metrics["processes"]
+    # The driver heard the echoes as protocol frames, not as unknown identifiers.
+    driver = json.loads((run.run_dir / "can" / "driver.json").read_text())
+    assert driver["health"]["ok"] and not driver["health"]["bad_frames"], driver["health"]
