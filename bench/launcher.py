@@ -115,10 +115,11 @@ def external_parts(scenario: Scenario) -> dict[str, str]:
         if scenario.kind != "attitude" or scenario.can is None:
             raise ScenarioError("run.external: \"board\" is the magnetorquer board on the CAN bus: the attitude "
                                 "loop with [can] only")
-        if scenario.run.mode != "real-time":
-            raise ScenarioError("run.external: an external \"board\" runs in real time only (run.mode = "
-                                "\"real-time\"): a board's telemetry reports the coil current, which lags the "
-                                "command, on its own clock, so lock-step cannot pair it with a step (docs/contract.md)")
+        if scenario.run.mode == "lock-step" and scenario.can.lock_step_clock == "simulated":
+            raise ScenarioError("run.external: an external \"board\" runs on its own (wall) clock: in lock-step "
+                                "[can] lock_step_clock must be \"auto\" or \"wall\", not \"simulated\" "
+                                "(and the board must acknowledge its commands with MTQ_TLM_SETPOINT; a board "
+                                "without it runs in real time only: docs/can-bus.md)")
     return {name: EXTERNAL_HOST for name in external if name != "board"}
 
 

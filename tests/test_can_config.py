@@ -82,7 +82,8 @@ def test_periods_come_from_the_dbc_cycle_times_and_send_types():
     cycle_ms = {m.name: m.cycle_time for m in db.messages if m.send_type in ("Cyclic", "CyclicAndSpontaneous")}
     assert cycle_ms == {"MTQ_CMD": 20, "MTQ_CMD_AUTH": 20, "MTQ_TLM_DIPOLE": 50, "MTQ_TLM_COIL": 50,
                         "MTQ_HEARTBEAT": 100}
-    assert {m.name for m in db.messages if m.send_type == "Spontaneous"} == {"MTQ_EMCY", "NMT", "MTQ_NMT_AUTH"}
+    assert {m.name for m in db.messages if m.send_type == "Spontaneous"} == {"MTQ_EMCY", "NMT", "MTQ_NMT_AUTH",
+                                                                        "MTQ_TLM_SETPOINT"}
     # the commands are sent on change and every cycle (AUTOSAR COM's mixed mode): the driver's default
     assert {m.name for m in db.messages if m.send_type == "CyclicAndSpontaneous"} == {"MTQ_CMD", "MTQ_CMD_AUTH"}
     assert p.transmission_mode(p.CMD) == "mixed" and p.transmission_mode(p.TLM_DIPOLE) == "cyclic"

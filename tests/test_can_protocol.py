@@ -31,6 +31,30 @@ def test_dipole_beyond_the_dbc_range_saturates_instead_of_wrapping(proto):
     assert frame.signals["DipoleY"] == pytest.approx(-3.2768)
 
 
+def test_the_set_point_echo_is_a_protected_tpdo3_in_the_commands_units(proto):
+    from bench.bus.can.config import SETPOINT_ECHO_MAX_AM2
+
+    msg = proto.encode(p.TLM_SETPOINT, {"SetpointX": 0.1234, "SetpointY": -1.6384, "SetpointZ": 0.2, "CommandCounter": 9,
+                                        "CommandApplied": 1, "ActuationPaused": 1}, counter=4)
+    assert msg.arbitration_id == 0x390 and len(msg.data) == 8 and not msg.is_fd     # classic CAN: both profiles
+    frame = proto.decode(msg)
+    assert frame.name == p.TLM_SETPOINT and frame.crc_ok and frame.counter == 4
+    assert (frame.signals["CommandCounter"], frame.signals["CommandApplied"], frame.signals["ActuationPaused"],
+            frame.signals["SafeState"]) == (9, 1, 1, 0)
+    # The command's 1e-4 A m^2 step: a commanded value comes back as the same integer count.
+    command = proto.decode(proto.command([0.1234, -1.6384, 0.2], counter=0))
+    for axis in p.AXES:
+        assert round(frame.signals[f"Setpoint{axis}"] / 1e-4) == round(command.signals[f"Dipole{axis}"] / 1e-4)
+    # 15 bits: beyond the range the config allows an echoing board it saturates, never wraps.
+    assert proto.decode(proto.encode(p.TLM_SETPOINT, {"SetpointX": 3.0}, counter=0)).signals["SetpointX"] == \
+        pytest.approx(SETPOINT_ECHO_MAX_AM2)
+    # Its own data ids: the same bytes are no other protected frame (and the reverse).
+    for other in (p.CMD, p.TLM_DIPOLE, p.TLM_COIL):
+        assert not p.e2e_crc_ok(bytes(msg.data), proto.data_ids[other]), other
+    # Counted by name by the driver and the bus model (frame_kind), not as an unknown identifier.
+    assert p.TLM_SETPOINT in p.BOARD_FRAMES and p.frame_kind(proto, msg) == p.TLM_SETPOINT and not proto.bad.total
+
+
 def _flip(data: bytes, bits) -> bytes:
     corrupted = bytearray(data)
     for bit in bits:
@@ -96,6 +120,7 @@ def test_bad_frames_are_counted_by_reason_never_raised(proto):
 def test_node_id_moves_every_identifier_like_canopen():
     proto = p.Protocol(node_id=0x22)
     assert proto.frame_ids == {p.CMD: 0x222, p.CMD_AUTH: 0x322, p.TLM_DIPOLE: 0x1A2, p.TLM_COIL: 0x2A2,
+                               p.TLM_SETPOINT: 0x3A2,
                                p.HEARTBEAT: 0x722, p.EMCY: 0xA2, p.NMT: 0x000,   # NMT: 0 for every node
                                p.NMT_AUTH: 0x422}
     assert proto.decode(proto.command([0, 0, 0], counter=1)).crc_ok

@@ -22,6 +22,10 @@ the driver keeps commanding the current dipole every command period while the pl
 board never times out, and the plant pairs reports with commands by counter, not by time; that
 keeps lock-step deterministic without a simulated clock on the bus (fault windows, which are
 wall-clock, therefore belong in real-time runs).
+lock-step with an external board ([run] external = ["board"]: on the wall clock): the same, with
+the board's command acknowledgement (MTQ_TLM_SETPOINT, bench/plant/board_telemetry.py) as the
+report: the echo carrying step k's counter and, bit for bit, the set-point the command asks for.
+A board that sends no echo cannot run in lock-step: the run stops at the first step, saying so.
 real-time: step k at t0 + k * dt / time_factor on the monotonic clock; the board's latest report
 is held over the step (zero-order hold), and is used only if current (DipoleAcceptance).
 Without a [can] section the commanded dipole goes through the in-process board model.
@@ -78,15 +82,20 @@ class BoardReports:
             return list(self._reports)
 
     def wait_for_report(self, counter: int, expected_am2: np.ndarray, since_ns: int,
-                        exact_wait_s: float = EXACT_REPORT_WAIT_S) -> MtqApplied | None:
+                        exact_wait_s: float = EXACT_REPORT_WAIT_S,
+                        acknowledgements_only: bool = False) -> MtqApplied | None:
         """The board's report of the frame with alive counter `counter` carrying the expected
-        dipole; if that frame was lost (faults), of a later frame (c+1 .. c+7) carrying it."""
-        exact = self._wait(lambda m: m.alive_counter == counter and np.array_equal(m.dipole_am2, expected_am2),
-                           since_ns, exact_wait_s)
+        dipole; if that frame was lost (faults), of a later frame (c+1 .. c+7) carrying it.
+        acknowledgements_only: only reports of an applied command (an external board's echo with
+        CommandApplied), not those of a set-point change without a command."""
+        def answers(m: MtqApplied) -> bool:
+            return np.array_equal(m.dipole_am2, expected_am2) and (not acknowledgements_only or bool(m.command_applied))
+
+        exact = self._wait(lambda m: m.alive_counter == counter and answers(m), since_ns, exact_wait_s)
         if exact is not None:
             return exact
-        return self._wait(lambda m: (m.alive_counter - counter) % COUNTER_MODULO < COUNTER_WINDOW
-                          and np.array_equal(m.dipole_am2, expected_am2), since_ns, REPORT_WAIT_S)
+        return self._wait(lambda m: (m.alive_counter - counter) % COUNTER_MODULO < COUNTER_WINDOW and answers(m),
+                          since_ns, REPORT_WAIT_S)
 
     def wait_for_step(self, step: int, timeout_s: float) -> MtqApplied | None:
         """Lock-step on simulated time: the report of the coils over plant step `step`."""
@@ -230,7 +239,8 @@ def run(ctx: NodeContext) -> int:
                 if simulated_bus:
                     dipole, report = _simulated_bus_dipole(scenario, acceptance, reports, command, log, k)
                 else:
-                    dipole, report = _lockstep_dipole(scenario, acceptance, reports, command, step_started_ns, log, k)
+                    dipole, report = _lockstep_dipole(scenario, acceptance, reports, command, step_started_ns, log, k,
+                                                      telemetry)
             if report is not None:
                 log.board_applied_ns[k] = report.header.stamps_ns.get("applied", -1)
             applied_ns = time.monotonic_ns()
@@ -268,7 +278,11 @@ def _listen_to_external_board(ctx: NodeContext, reports: BoardReports):
 
     config = ctx.scenario.can
     bus = open_bus(config.bus_spec("driver"), run_id=ctx.run_id, session=ctx.session)
-    telemetry = BoardTelemetry(bus, config.protocol(), ctx.run_id, reports.add, config.driver.max_delta_counter)
+    # Lock-step pairs each step with the board's acknowledgement of its command; real time holds
+    # the coils' reported dipole.
+    source = "setpoint" if ctx.scenario.run.mode == "lock-step" else "dipole"
+    telemetry = BoardTelemetry(bus, config.protocol(), ctx.run_id, reports.add, config.driver.max_delta_counter,
+                               source=source)
     telemetry.start()
     return telemetry
 
@@ -283,7 +297,8 @@ def _stop_listening(ctx: NodeContext, telemetry) -> None:
     (can_dir(ctx.run_dir) / "plant_board_telemetry.json").write_text(json.dumps(telemetry.summary(), indent=1))
 
 
-def _lockstep_dipole(scenario, acceptance, reports, command, since_ns, log, k):
+def _lockstep_dipole(scenario, acceptance, reports, command, since_ns, log, k, external_board=None):
+    """external_board: the BoardTelemetry of an external board (its echoes are the reports)."""
     log.commanded[k] = command.dipole_am2
     log.counter[k] = command.alive_counter
     if scenario.can is None:
@@ -295,7 +310,14 @@ def _lockstep_dipole(scenario, acceptance, reports, command, since_ns, log, k):
     if command.alive_counter >= 0:
         expected = board_dipole_without_bus(command.dipole_am2, scenario.can)
         exact_wait_s = EXACT_REPORT_WAIT_S if scenario.can.faults else scenario.run.command_timeout_s
-        report = reports.wait_for_report(command.alive_counter, expected, since_ns, exact_wait_s)
+        if external_board is not None:
+            from bench.plant.board_telemetry import as_echoed
+
+            expected = as_echoed(external_board.protocol, expected)
+        report = reports.wait_for_report(command.alive_counter, expected, since_ns, exact_wait_s,
+                                         acknowledgements_only=external_board is not None)
+        if report is None and external_board is not None and not external_board.reports:
+            raise LoopBroken(_no_echo_message(external_board, k, exact_wait_s + REPORT_WAIT_S))
     if report is None:
         # No report of this command (never sent, or every frame lost for 2 s): coils as last
         # reported if that is current, else off. Counted as a refusal of the command.
@@ -310,6 +332,15 @@ def _lockstep_dipole(scenario, acceptance, reports, command, since_ns, log, k):
         log.safe_state[k] = report.safe_state
     log.reported[k] = dipole
     return dipole, report
+
+
+def _no_echo_message(telemetry, k: int, waited_s: float) -> str:
+    import bench.bus.can.protocol as p
+
+    heard = telemetry.frames[p.TLM_DIPOLE] + telemetry.frames[p.TLM_COIL]
+    return (f"step {k}: no {p.TLM_SETPOINT} from the external board within {waited_s:g} s ({heard} of its telemetry "
+            f"frames heard, {sum(telemetry.refused.values())} refused): lock-step with an external board needs the "
+            f"board's command acknowledgement; a board without it runs in real time only (docs/can-bus.md)")
 
 
 def _simulated_bus_dipole(scenario, acceptance, reports, command, log, k):

@@ -135,7 +135,8 @@ def deadline_section(result: DeadlineResult, plot_dir: Path) -> Section:
         rows.insert(0, ["provided from outside (not measured: cycle time, stamps)", ", ".join(nodes)])
     if "board" in result.external:
         rows.insert(0, ["magnetorquer board provided from outside (not measured: its command-to-coil time, the bus "
-                        "traffic; applied dipole: its telemetry's coil current, stamped on arrival at the plant)", "board"])
+                        "traffic; applied dipole: its telemetry's coil current in real time, its acknowledged set-point "
+                        "(MTQ_TLM_SETPOINT) in lock-step, stamped on arrival at the plant)", "board"])
     if "planner" in m:
         planner = m["planner"]
         rows += [["planner: plans", fmt(planner["plans"])],

@@ -329,6 +329,7 @@ class MagnetorquerBoard:
         if self.on_applied is not None:
             self.on_applied(AppliedCommand(s.target_dipole_am2.copy(), frame.counter, received_ns, time.monotonic_ns(),
                                            self.last_command_age_s if self.freshness is not None else None))
+        self._echo_setpoint(command_applied=True)
 
     def _reject(self, reason: str, counter: int | None, error_code: int, e2e_status: int, now_s: float) -> None:
         self.rejected[reason] += 1
@@ -380,6 +381,8 @@ class MagnetorquerBoard:
         s.actuation_paused = paused
         if changed and self.on_coils_changed is not None:
             self.on_coils_changed(s)
+        if changed:
+            self._echo_setpoint(command_applied=False)
         target = np.zeros(3) if (s.safe_state or s.actuation_paused) else s.target_dipole_am2
         self._advance_coils(target / c.coil_gain_am2_per_a, now_s)
         if now_s >= self._next_telemetry_s and self.nmt_state == p.NMT_OPERATIONAL:
@@ -455,6 +458,18 @@ class MagnetorquerBoard:
             "Temperature": self.config.ambient_temperature_c, "LastCommandCounter": s.last_command_counter,
         }))
         s.command_rejected_since_tlm = False
+
+    def _echo_setpoint(self, command_applied: bool) -> None:
+        """MTQ_TLM_SETPOINT (config.setpoint_echo): what the coil drivers are set to now, and the
+        counter of the command applied last; a TPDO, so only when operational."""
+        if not self.config.setpoint_echo or self.nmt_state != p.NMT_OPERATIONAL:
+            return
+        s = self.state
+        self._send(self._protected(p.TLM_SETPOINT, {
+            "CommandCounter": s.last_command_counter, "CommandApplied": command_applied,
+            "SafeState": s.safe_state, "ActuationPaused": s.actuation_paused,
+            **{f"Setpoint{a}": float(v) for a, v in zip(p.AXES, self.output_dipole_am2)},
+        }))
 
     def _protected(self, name: str, signals: dict) -> can.Message:
         counter = self._tx_counter[name]

@@ -18,6 +18,9 @@ def _dbc_cycle_s(name: str):
     override it (a deliberate deviation, e.g. a slow board)."""
     return msgspec.field(default_factory=lambda: cycle_time_s(name))
 
+# MTQ_TLM_SETPOINT's set-point signals: 15 bits of 1e-4 A m^2 (mtq.dbc).
+SETPOINT_ECHO_MAX_AM2 = 1.6383
+
 PositiveS = Annotated[float, msgspec.Meta(gt=0, le=3600.0)]
 NonNegS = Annotated[float, msgspec.Meta(ge=0, le=1e6)]
 Vec3 = Annotated[list[Annotated[float, msgspec.Meta(ge=-1e3, le=1e3)]], msgspec.Meta(min_length=3, max_length=3)]
@@ -44,10 +47,18 @@ class BoardConfig(msgspec.Struct, forbid_unknown_fields=True):
     # CiA 301 object 0x1015: least time between two emergency frames (a burst of bad frames must
     # not crowd the bus with EMCY at identifier 0x090, which out-ranks every command).
     emcy_inhibit_s: NonNegS = 0.01
+    # Command acknowledgement: MTQ_TLM_SETPOINT (TPDO3) with the coil drivers' set-point, right
+    # after each applied command and whenever the set-point changes without one. What lock-step
+    # with an external board pairs with each step's command (docs/can-bus.md). Off by default: a
+    # frame per command would change the bus load of every run.
+    setpoint_echo: bool = False
 
     def __post_init__(self):
         if self.mag_window_period_s and self.mag_window_s >= self.mag_window_period_s:
             raise ValueError("mag_window_s must be shorter than mag_window_period_s")
+        if self.setpoint_echo and self.max_dipole_am2 > SETPOINT_ECHO_MAX_AM2:
+            raise ValueError(f"setpoint_echo: MTQ_TLM_SETPOINT holds +-{SETPOINT_ECHO_MAX_AM2} A m^2, less than "
+                             f"max_dipole_am2 = {self.max_dipole_am2}")
 
 
 class SecurityConfig(msgspec.Struct, forbid_unknown_fields=True):

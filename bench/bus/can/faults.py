@@ -13,7 +13,7 @@ from typing import Annotated
 
 import msgspec
 
-BOARD_FRAMES = ("MTQ_TLM_DIPOLE", "MTQ_TLM_COIL", "MTQ_HEARTBEAT", "MTQ_EMCY")
+BOARD_FRAMES = ("MTQ_TLM_DIPOLE", "MTQ_TLM_COIL", "MTQ_TLM_SETPOINT", "MTQ_HEARTBEAT", "MTQ_EMCY")
 
 
 @dataclass(frozen=True)

@@ -44,13 +44,14 @@ COMMANDS = (CMD, CMD_AUTH)
 PROFILES = {"e2e": CMD, "secoc": CMD_AUTH}   # command profile -> the command frame it uses
 TLM_DIPOLE = "MTQ_TLM_DIPOLE"
 TLM_COIL = "MTQ_TLM_COIL"
+TLM_SETPOINT = "MTQ_TLM_SETPOINT"   # command acknowledgement: the coil drivers' set-point (BoardConfig.setpoint_echo)
 HEARTBEAT = "MTQ_HEARTBEAT"
 EMCY = "MTQ_EMCY"
 NMT = "NMT"                  # CiA 301 module control: identifier 0 whatever the node id
 NMT_AUTH = "MTQ_NMT_AUTH"    # the same, authenticated (secoc profile): RPDO3 0x400 + node id
 NMT_FRAMES = {"e2e": NMT, "secoc": NMT_AUTH}   # command profile -> the NMT frame the board obeys
 SECURED = (CMD_AUTH, NMT_AUTH)   # frames that carry a freshness value and a MAC
-BOARD_FRAMES = (TLM_DIPOLE, TLM_COIL, HEARTBEAT, EMCY)
+BOARD_FRAMES = (TLM_DIPOLE, TLM_COIL, TLM_SETPOINT, HEARTBEAT, EMCY)
 AXES = ("X", "Y", "Z")
 
 MODE_OFF = 0

@@ -96,13 +96,15 @@ class OutboxBus:
 def bus_on_simulated_time(scenario) -> bool:
     """Whether this run's CAN bus runs on simulated time: the attitude loop in lock-step with every
     part of the bus the bench's own, over the portable transport (no `driver_bus` or `board_bus`
-    of another interface), and `[can] lock_step_clock`
-    "simulated" (or "auto" with bus faults). Otherwise the driver and the board keep the wall clock
-    (real time, a kernel bus, a part from outside, a fault-free "auto") and the lock-step plant
-    pairs the board's reports with commands by counter."""
+    of another interface), the board the bench's own (not `[run] external = ["board"]`), and
+    `[can] lock_step_clock` "simulated" (or "auto" with bus faults). Otherwise the driver and the
+    board keep the wall clock (real time, a kernel bus, a part from outside, a fault-free "auto")
+    and the lock-step plant pairs the board's reports with commands by counter."""
     can_config = getattr(scenario, "can", None)
     if can_config is None or scenario.kind != "attitude" or scenario.run.mode != "lock-step":
         return False
+    if "board" in scenario.run.external:
+        return False        # hardware keeps its own clock: nothing on the bus can run on simulated time
     clock = can_config.lock_step_clock
     own_bus = can_config.transport == "zenoh" and can_config.driver_bus is None and can_config.board_bus is None
     return own_bus and (clock == "simulated" or (clock == "auto" and bool(can_config.faults)))
