@@ -16,7 +16,7 @@ DUMMY_TYPES = {0x0001: 1, 0x0005: 8}   # CiA 301 dummy mapping: BOOLEAN, UNSIGNE
 
 # PDO communication parameter -> its mapping parameter and the DBC frame it is.
 PDOS = {0x1400: (0x1600, "MTQ_CMD"), 0x1401: (0x1601, "MTQ_CMD_AUTH"), 0x1402: (0x1602, "MTQ_NMT_AUTH"),
-        0x1800: (0x1A00, "MTQ_TLM_DIPOLE"), 0x1801: (0x1A01, "MTQ_TLM_COIL")}
+        0x1800: (0x1A00, "MTQ_TLM_DIPOLE"), 0x1801: (0x1A01, "MTQ_TLM_COIL"), 0x1802: (0x1A02, "MTQ_TLM_SETPOINT")}
 
 
 @pytest.fixture(scope="module")

@@ -36,7 +36,7 @@ COMMUNICATION_PARAMETERS = tuple(f for f, (index, _) in PARAMETERS.items() if in
 
 # The frames that are PDOs or CiA 301 services, by their COB-ID object in the dictionary.
 PDO_COMMUNICATION = {p.CMD: 0x1400, p.CMD_AUTH: 0x1401, p.NMT_AUTH: 0x1402,
-                     p.TLM_DIPOLE: 0x1800, p.TLM_COIL: 0x1801}
+                     p.TLM_DIPOLE: 0x1800, p.TLM_COIL: 0x1801, p.TLM_SETPOINT: 0x1802}
 
 
 @lru_cache(maxsize=8)
