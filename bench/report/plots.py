@@ -103,6 +103,13 @@ def latency_cdfs(series_s: dict[str, np.ndarray], path: Path, title: str) -> Pat
     return _save(fig, path)
 
 
+def _histogram(ax, values, bins: int, **style) -> None:
+    """A filled histogram as one step artist, not one bar patch per bin as ax.hist draws it: the
+    same picture in about half the drawing time (a report's 11 latency histograms)."""
+    counts, edges = np.histogram(values, bins=bins)
+    ax.stairs(counts, edges, fill=True, **style)
+
+
 def latency_histograms(series_s: dict[str, np.ndarray], path: Path) -> Path:
     """One histogram per hop, each on its own scale (hops differ by orders of magnitude)."""
     n = len(series_s)
@@ -111,7 +118,7 @@ def latency_histograms(series_s: dict[str, np.ndarray], path: Path) -> Path:
     fig, axes = plt.subplots(rows, cols, figsize=(13, 3.2 * rows), squeeze=False)
     for ax, (label, samples_s) in zip(axes.flat, series_s.items()):
         ms = np.asarray(samples_s) * 1e3
-        ax.hist(ms, bins=min(50, max(5, ms.size // 4)), color="tab:blue")
+        _histogram(ax, ms, bins=min(50, max(5, ms.size // 4)), color="tab:blue")
         ax.axvline(np.percentile(ms, 50), color="k", linewidth=1, label="p50")
         ax.axvline(np.percentile(ms, 99), color="tab:red", linewidth=1, label="p99")
         ax.set_title(label, fontsize="medium")
@@ -166,7 +173,7 @@ def solve_times(series_s: dict[str, np.ndarray], path: Path) -> Path:
     for label, samples_s in series_s.items():
         ms = np.asarray(samples_s) * 1e3
         if ms.size:
-            hist_ax.hist(ms, bins=40, alpha=0.6, label=label)
+            _histogram(hist_ax, ms, bins=40, alpha=0.6, label=label)
             _cdf(cdf_ax, ms, label)
     hist_ax.set_xlabel("solve time [ms]")
     hist_ax.set_ylabel("cycles")
