@@ -36,6 +36,14 @@ def builtin(name: str) -> dict:
 # A starved guest held a lock-step run's plant (running, CPU time advancing) off Zenoh for over
 # 60 s (measured at host load 13-18 with two runs at once: the launcher ended the run as hung).
 UML_HANG_TIMEOUT_S = 300.0
+# SecOC's freshness window is one command period plus freshness_margin_s (30 ms by default): a
+# frame from the driver crosses two vcans and the bus model's process before the board checks it,
+# and on a starved guest that took longer. Measured at host load 3-5 with the default margin: the
+# board refused 3,628 of ~4,000 commands of a 40-step hold as STALE (each step then waited out the
+# plant's wait for the board's report: 4 s a step) and every NMT start of the slew beside it (the
+# board never became operational). These runs test the kernel's CAN path, not the replay window
+# (tests/test_can_freshness.py does), so the guest's margin is one second.
+UML_FRESHNESS_MARGIN_S = 1.0
 
 
 def uml_liveliness() -> dict:
@@ -55,6 +63,7 @@ def over_socketcan(name: str, flight_channel: str, board_channel: str) -> dict:
     data["name"] = f"{name}_socketcan"
     data["can"].update(transport="socketcan", flight_channel=flight_channel, board_channel=board_channel)
     data["run"]["liveliness"] = uml_liveliness()
+    data["can"].setdefault("security", {})["freshness_margin_s"] = UML_FRESHNESS_MARGIN_S
     return data
 
 
