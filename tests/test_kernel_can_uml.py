@@ -102,10 +102,9 @@ def test_can_utils_on_kernel_vcan(can_utils_guest, name):
 # --- the attitude loop over the kernel's SocketCAN (tests/uml_guest_attitude/) -------------------
 # Real-time `bench run`s, one after the other: attitude_detumble_socketcan (clean, dropped
 # commands; 12 s of real time each) and attitude_fault_all (30 s); then the planned slew and the
-# pointing hold cut short (lock-step, both at once). Six processes a run on UML's one CPU:
-# start-up 1-3 min under host load (up to the scenarios' 600 s startup_timeout_s).
-# Measured (the fixture's setup): 106 s for the two detumbles alone at host load 2-5; 525 s with
-# the rest at host load 8-15 (attitude_fault_all 137 s, the two lock-step runs 270 s), 389 s at 5-9.
+# pointing hold cut short (lock-step, both at once). Six processes a run on UML's one CPU.
+# Measured (the fixture's setup, host load 2-3): 333 s: the detumbles 86 s, attitude_fault_all
+# 81 s, the two lock-step runs 152 s (docs/can-bus.md).
 ATTITUDE_TEST_TIMEOUT_S = 960     # each guest test; its `bench run` is bounded at 900 s inside
 # Hang bounds: the three real-time runs, and the two lock-step runs that go at once.
 ATTITUDE_BOOT_TIMEOUT_S = 4 * ATTITUDE_TEST_TIMEOUT_S + 120

@@ -8,10 +8,9 @@ its own. Each test checks what the scenario's own run checks over the portable Z
   30 s): the criteria verdict PASS (the detumble goes on, the driver detected each fault's kind,
   the board is healthy at the end), the driver's event kinds for each fault injected (as
   tests/test_attitude_processes.py), and no command applied that the law did not give (plant and
-  board side). It runs alone: seven real-time runs at once on the guest's one CPU starved each
-  other (measured: telemetry timeouts of 10 s, a process's liveliness lapsed for 60 s, partial
-  runs). The four single-fault scenarios (30 s of real time each, one after the other: 4-5 min
-  more of this boot) run over both transports with their verdicts in
+  board side). It runs alone: real-time runs at once on the guest's one CPU starve each other.
+  The four single-fault scenarios (each injects one of attitude_fault_all's faults; 30 s of real
+  time each) run over both transports with their verdicts in
   benchmarks/can_fault_latency_transports.py;
 - the planned slew and the hold (lock-step, where timing does not matter: both at once, after
   the real-time run) cut short with --steps: the run equals the in-process loop to 1e-9 (as
@@ -53,9 +52,7 @@ from bench.sim import simulate_attitude_in_process  # noqa: E402
 pytestmark = pytest.mark.skipif(not (kernel_has_can() and interface_exists("vcan1")),
                                 reason="runs inside user-mode Linux (tests/test_kernel_can_uml.py)")
 # Lock-step runs cut short: the slew's first plan comes at 30 s (first_plan_after_s) and is
-# tracked for 10 steps; the hold's first 40 s. Measured in UML at host load 13-18, with another
-# UML beside it: 443 s for a 60-step slew and a 160-step hold at once (99 of the hold's steps
-# waited out the plant's 1.5 s for the board's report).
+# tracked for 10 steps; the hold's first 40 s. Both at once: 152 s at host load 2-3.
 STEPS = {SLEW: 40, HOLD: 40}
 FAULT_SCENARIOS = ("attitude_fault_all",)
 # The real-time runs alone, one after the other; then the lock-step runs at once.
