@@ -42,7 +42,7 @@ from bench.runtime.ownership import CpuProgress, child_environment, kill_group, 
 from bench.runtime import zygote as node_zygote
 from bench.runtime.reports import REPORT_KEY_ENV, is_signed_by, new_report_key
 from bench.runtime.process import start_node
-from bench.scenario import LivelinessConfig, Scenario, ScenarioError, builtin_names, load_scenario, parse_scenario
+from bench.scenario import EXTERNAL_PARTS, LivelinessConfig, Scenario, ScenarioError, builtin_names, load_scenario, parse_scenario
 
 EXIT_FAILED = 1
 EXIT_BAD_INPUT = 2
@@ -884,7 +884,7 @@ def add_commands(subparsers) -> None:
                      help="mutual TLS and access control on loopback, with certificates made for this run")
     run.add_argument("--cert-dir", help="with --secure: certificates to use (default: new ones in the run directory)")
     run.add_argument("--deployment", help="deployment TOML: which node runs on which host (see docs/security.md)")
-    run.add_argument("--external", action="append", choices=["controller", "board"],
+    run.add_argument("--external", action="append", choices=list(EXTERNAL_PARTS),
                      help="a part provided from outside: not started, waited for under its name (docs/contract.md)")
     run.add_argument("--no-progress", action="store_true", help="no progress bar")
     run.add_argument("--no-report", action="store_true", help="skip report.html/report.md (bench report RUN_DIR later)")

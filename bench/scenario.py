@@ -19,7 +19,7 @@ import sys
 import tomllib
 from importlib import resources
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Literal, get_args
 
 import msgspec
 
@@ -76,6 +76,11 @@ MAX_WALL_PERIOD_S = 60.0
 NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,39}$"
 
 
+# Parts a user may provide from outside the bench ([run] external, `bench run --external`).
+ExternalPart = Literal["controller", "estimator", "board"]
+EXTERNAL_PARTS: tuple[str, ...] = get_args(ExternalPart)
+
+
 class LivelinessConfig(msgspec.Struct, forbid_unknown_fields=True):
     """[run.liveliness]: how a hung process is told from a slow one (launcher and plant).
 
@@ -109,9 +114,10 @@ class RunConfig(msgspec.Struct, forbid_unknown_fields=True):
     # Parts provided from outside the bench (docs/contract.md). "controller": the controller process,
     # which in the attitude loop over [can] is the flight software (the law and the magnetorquer
     # driver on the bus); the launcher starts no such node and waits for one to join under its name.
-    # "board": a magnetorquer board on the CAN bus (no simulated board, no bus model; the plant reads
-    # the board's telemetry frames); rules in bench.launcher.external_parts.
-    external: Annotated[list[Literal["controller", "board"]], msgspec.Meta(max_length=2)] = msgspec.field(
+    # "estimator": the navigation filter, the same way. "board": a magnetorquer board on the CAN bus
+    # (no simulated board, no bus model; the plant reads the board's telemetry frames); rules in
+    # bench.launcher.external_parts.
+    external: Annotated[list[ExternalPart], msgspec.Meta(max_length=len(EXTERNAL_PARTS))] = msgspec.field(
         default_factory=list)
 
 

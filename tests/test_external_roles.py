@@ -13,11 +13,15 @@ real board would be, and `bench run` starts everything else.
   acknowledge each command (MTQ_TLM_SETPOINT, `[can.board] setpoint_echo = true` for the simulated
   board): the plant pairs each step's command with the echo carrying its alive counter and applies
   the echoed set-point, and the run equals the in-process loop to 1e-9.
+- estimator external (`--external estimator`): the attitude smoother is `bench node estimator`,
+  started by the test; in lock-step the run and its estimates equal the in-process loop to 1e-9.
 """
 import json
 import subprocess
 import sys
 import time
+import tomllib
+from importlib import resources
 
 import msgspec
 import numpy as np
@@ -297,6 +301,27 @@ def test_external_flight_software_equals_the_built_in_loop_in_lock_step(runs):
     assert metrics["processes"]["mtq"]["exit_code"] == 0
     # The outside driver wrote what it saw of the bus where a built-in one does.
     assert json.loads((run.run_dir / "can" / "driver.json").read_text())
+
+
+def test_an_external_estimator_equals_the_built_in_loop_in_lock_step(runs):
+    """The navigation filter from outside: attitude_pointing's smoother (the sensors on their own
+    topics, a star-tracker fix at t = 0), without the CAN bus so the estimator is the only part
+    not the bench's own."""
+    data = tomllib.loads(resources.files("bench.scenarios").joinpath("attitude_pointing.toml").read_text())
+    data.pop("can")
+    data["name"] = "attitude_pointing_external_estimator"
+    path = runs / "attitude_pointing_external_estimator.json"
+    path.write_text(json.dumps(data))
+    run, err = run_with_outside_node(runs, str(path), "est", "estimator", "--steps", "40", "--external", "estimator")
+    assert "waiting for the external estimator" in err
+    assert run.scenario.estimator.mode == "smoother"
+    reference = simulate_attitude_in_process(run.scenario)
+    for name in ("att_q_wxyz", "att_omega_radps", "att_dipole_applied_am2", "att_dipole_commanded_am2"):
+        np.testing.assert_allclose(run.trajectory[name], reference[name], rtol=0, atol=1e-9, err_msg=name)
+    estimates = np.array([m.body["q_wxyz"] for m in run.on("estimate/attitude")])
+    np.testing.assert_allclose(estimates, reference["att_estimate_q_wxyz"], rtol=0, atol=1e-9)
+    metrics = json.loads((run.run_dir / "metrics.json").read_text())
+    assert metrics["processes"]["estimator"] == {"host": "external", "pid": None, "exit_code": None}
 
 
 BOARD_STEPS = 100      # 10 s of attitude_detumble_rt (10 Hz, real time)
