@@ -4,6 +4,7 @@ from mtq.eds, on python-can's virtual bus, talking to a MagnetorquerBoard at the
 The board runs in a small thread on its own simulated clock (1 ms per step), so what is checked
 about its heartbeat is its period on that clock, not the host's timing.
 """
+import contextlib
 import itertools
 import threading
 import time
@@ -25,9 +26,9 @@ _channels = itertools.count()
 class BoardThread:
     """A board stepped on a simulated clock; records the clock at each heartbeat it sends."""
 
-    def __init__(self, channel: str):
+    def __init__(self, channel: str, protocol: p.Protocol | None = None):
         self.bus = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
-        self.board = MagnetorquerBoard(self.bus, BoardConfig(), p.Protocol(NODE_ID, "e2e"))
+        self.board = MagnetorquerBoard(self.bus, BoardConfig(), protocol or p.Protocol(NODE_ID, "e2e"))
         self.now_s = 0.0
         self.heartbeats: list[tuple[float, int]] = []      # (board clock, NMT state)
         send = self.bus.send
@@ -56,17 +57,37 @@ class BoardThread:
         self.bus.shutdown()
 
 
-@pytest.fixture
-def tool():
+@contextlib.contextmanager
+def tool_and_board(protocol: p.Protocol | None = None):
     channel = f"canopen-tool-{next(_channels)}"
     network = canopen.Network()
     network.connect(interface="virtual", channel=channel, receive_own_messages=False)
     node = network.add_node(canopen.RemoteNode(NODE_ID, str(EDS_PATH)))
     try:
-        with BoardThread(channel) as board:
+        with BoardThread(channel, protocol) as board:
             yield network, node, board
     finally:
         network.disconnect()
+
+
+@pytest.fixture
+def tool():
+    with tool_and_board() as parts:
+        yield parts
+
+
+def test_on_the_secoc_profile_a_tool_reads_but_cannot_write_the_board():
+    """SDO has no authentication: where the board obeys only authenticated commands and NMT, a
+    write from anyone on the bus (a longer command timeout, no heartbeat) is refused."""
+    with tool_and_board(p.Protocol(NODE_ID, "secoc", key=bytes(range(16)))) as (network, node, board):
+        node.nmt.wait_for_heartbeat(timeout=3.0)
+        assert node.sdo[0x1018][2].raw == 0x4D545131
+        for index, value in ((0x2100, 60_000), (0x1017, 0)):
+            with pytest.raises(canopen.SdoAbortedError) as refused:
+                node.sdo[index].raw = value
+            assert refused.value.code == 0x08000021        # CiA 301: refused by local control
+        assert board.board.config.command_timeout_s == 0.1 and board.board.config.heartbeat_period_s == 0.1
+        assert board.board.sdo.refused_writes == 2
 
 
 def _intervals_s(heartbeats):

@@ -150,7 +150,8 @@ class MagnetorquerBoard:
         self.sdo = BoardSdoServer(protocol.node_id, self._send, read_parameter=lambda name: getattr(self.config, name),
                                   write_parameter=self._write_parameter, error_register=lambda: self.error_register,
                                   error_history=lambda: list(self.error_history),
-                                  clear_error_history=self.error_history.clear)
+                                  clear_error_history=self.error_history.clear,
+                                  writable=protocol.profile == "e2e")
 
     @property
     def applied_dipole_am2(self) -> np.ndarray:

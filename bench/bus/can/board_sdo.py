@@ -7,6 +7,11 @@ Transfers are canopen's `SdoServer` in a `LocalNode`; the network is passive: th
 it each SDO request from its own `handle` (no listener thread), and its answers go out through
 the board's own send. Nothing here runs a timer: the board produces its heartbeat on its own
 clock (real or simulated), so canopen's NMT slave heartbeat task is never started.
+
+SDO carries no authentication (CiA 301 has none), so on the secoc profile, where the board obeys
+only authenticated commands and NMT, the dictionary is read-only over SDO: a write from anyone on
+the bus could otherwise lengthen the command timeout (the board would hold a stale command for
+longer) or silence the heartbeat. Writes are served on the e2e profile only.
 """
 from __future__ import annotations
 
@@ -20,6 +25,7 @@ from canopen.sdo import SdoAbortedError
 from bench.bus.can import canopen_od as od_
 
 SDO_ABORT_VALUE_TOO_LOW = 0x06090032      # CiA 301 SDO abort codes
+SDO_ABORT_LOCAL_CONTROL = 0x08000021      # data cannot be stored because of local control
 SDO_FRAME_BYTES = 8
 
 
@@ -59,7 +65,8 @@ class BoardSdoServer:
     def __init__(self, node_id: int, send: Callable[[can.Message], None],
                  read_parameter: Callable[[str], float], write_parameter: Callable[[str, float], None],
                  error_register: Callable[[], int], error_history: Callable[[], list[int]],
-                 clear_error_history: Callable[[], None]):
+                 clear_error_history: Callable[[], None], writable: bool = True):
+        self.writable = writable
         self.node = canopen.LocalNode(node_id, od_.object_dictionary(node_id))
         self.network = _BoardNetwork(send)
         self.network.add_node(self.node)
@@ -69,6 +76,7 @@ class BoardSdoServer:
         self._error_register = error_register
         self._error_history = error_history
         self._clear_error_history = clear_error_history
+        self.refused_writes = 0     # SDO writes refused on the secoc profile (board.json)
         self._fields = {index: (field, per_s) for field, (index, per_s) in od_.PARAMETERS.items()}
         self.node.add_read_callback(self._on_read)
         self.node.add_write_callback(self._on_write)
@@ -98,6 +106,9 @@ class BoardSdoServer:
         return None    # the EDS's value (identity, name, PDO parameters)
 
     def _on_write(self, index: int, subindex: int, od, data: bytes) -> None:
+        if not self.writable:
+            self.refused_writes += 1
+            raise SdoAbortedError(SDO_ABORT_LOCAL_CONTROL)
         if index == 0x1003 and subindex == 0:
             if data != b"\x00":
                 raise SdoAbortedError(0x06090030)   # CiA 301: only 0 may be written (clears the history)

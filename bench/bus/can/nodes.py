@@ -105,7 +105,7 @@ def _write_board_summary(ctx, board: MagnetorquerBoard, applied: list[dict]) -> 
     summary = {"sent": dict(board.sent), "received": dict(board.received), "accepted": board.accepted,
                "rejected": dict(board.rejected), "bad_frames": dict(board.protocol.bad.counts),
                "ignored": dict(board.ignored), "lost_commands": board.lost_commands, "nmt_state": board.nmt_state,
-               **board.host_lateness.report(), "applied": applied}
+               "sdo_writes_refused": board.sdo.refused_writes, **board.host_lateness.report(), "applied": applied}
     (can_dir(ctx.run_dir) / BOARD_NAME).write_text(json.dumps(summary))
     ctx.log.info("board: sent %s, accepted %d, rejected %s", dict(board.sent), board.accepted, dict(board.rejected))
 
