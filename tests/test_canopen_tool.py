@@ -63,6 +63,9 @@ def tool_and_board(protocol: p.Protocol | None = None):
     network = canopen.Network()
     network.connect(interface="virtual", channel=channel, receive_own_messages=False)
     node = network.add_node(canopen.RemoteNode(NODE_ID, str(EDS_PATH)))
+    # canopen's 0.3 s default is a tool's wait for a board on a quiet bus; here the board is a
+    # thread of this test on a possibly busy host. A hang bound, not a speed check.
+    node.sdo.RESPONSE_TIMEOUT = 10.0
     try:
         with BoardThread(channel, protocol) as board:
             yield network, node, board

@@ -45,6 +45,11 @@ EXIT_TIMEOUT_S = 10.0
 # flood works through thousands of queued frames first (5 s was not enough with both cores busy).
 # A hang bound: the wait normally ends within milliseconds.
 DRAIN_TIMEOUT_S = 20.0
+# After the run's silence has lasted the board's command timeout and a little more, how much longer
+# to listen for the board's report of its safe state (the command-timeout EMCY): a board process the
+# host held up sends it late (seen in UML on a loaded host: not within the 0.45 s window). A hang
+# bound: whether it came in time is judged on the event's time and the lateness the nodes measured.
+SAFE_STATE_WAIT_S = 10.0
 
 
 @dataclass
@@ -195,6 +200,7 @@ class CanBench:
                 quiet_left_s = quiet_until_s - time.monotonic()
                 if quiet_left_s > 0:
                     self.drive(quiet_left_s, commanding=False)
+                self._await_safe_state_report(quiet_until_s + SAFE_STATE_WAIT_S)
             events = list(self.events)   # what happens while the nodes shut down is not the run's
             self._terminate("mtq")
             self.drive(0.2, commanding=False)
@@ -204,6 +210,15 @@ class CanBench:
             return self._collect()
         finally:
             self.close()
+
+    def _await_safe_state_report(self, until_s: float) -> None:
+        """Listen (silent) until the driver heard the board's command timeout after the last
+        command, or until `until_s` (monotonic s)."""
+        def heard() -> bool:
+            return any(e.kind == "board_command_timeout" and e.detected_ns >= self.last_command_ns for e in self.events)
+
+        while not heard() and time.monotonic() < until_s:
+            self.drive(0.05, commanding=False)
 
     def _await_last_command_at_board(self) -> float | None:
         """Poll (silent) until the board applied the last command sent, at most DRAIN_TIMEOUT_S:
