@@ -168,7 +168,6 @@ def driver_events(path: Path) -> tuple[list[list[str]] | None, dict | None]:
     return rows, metrics
 
 
-
 def can_metrics(run: RunData) -> tuple[BusLoad | None, dict | None, list[list[str]] | None]:
     """The bus's figures for metrics.json (with or without the report): load, faults, injections,
     whether commands are authenticated, and what the driver detected (also as the report's table

@@ -52,6 +52,11 @@ DRAIN_TIMEOUT_S = 20.0
 SAFE_STATE_WAIT_S = 10.0
 
 
+def first_event(events: list[FaultEvent], kind: str, after_ns: int = 0, detail: str = "") -> FaultEvent | None:
+    """The first driver event of `kind` detected at or after after_ns whose detail contains `detail`."""
+    return next((e for e in events if e.kind == kind and e.detected_ns >= after_ns and detail in e.detail), None)
+
+
 @dataclass
 class CanRunResult:
     board: dict
@@ -79,7 +84,7 @@ class CanRunResult:
         return min(times) if times else None
 
     def first_event(self, kind: str, after_ns: int = 0, detail: str = "") -> FaultEvent | None:
-        return next((e for e in self.events if e.kind == kind and e.detected_ns >= after_ns and detail in e.detail), None)
+        return first_event(self.events, kind, after_ns, detail)
 
     def kinds(self) -> Counter:
         return Counter(e.kind for e in self.events)
@@ -214,10 +219,8 @@ class CanBench:
     def _await_safe_state_report(self, until_s: float) -> None:
         """Listen (silent) until the driver heard the board's command timeout after the last
         command, or until `until_s` (monotonic s)."""
-        def heard() -> bool:
-            return any(e.kind == "board_command_timeout" and e.detected_ns >= self.last_command_ns for e in self.events)
-
-        while not heard() and time.monotonic() < until_s:
+        while (first_event(self.events, "board_command_timeout", self.last_command_ns) is None
+               and time.monotonic() < until_s):
             self.drive(0.05, commanding=False)
 
     def _await_last_command_at_board(self) -> float | None:

@@ -380,9 +380,9 @@ class MagnetorquerBoard:
         paused = self._in_mag_window(now_s)
         changed |= paused != s.actuation_paused
         s.actuation_paused = paused
-        if changed and self.on_coils_changed is not None:
-            self.on_coils_changed(s)
         if changed:
+            if self.on_coils_changed is not None:
+                self.on_coils_changed(s)
             self._echo_setpoint(command_applied=False)
         target = np.zeros(3) if (s.safe_state or s.actuation_paused) else s.target_dipole_am2
         self._advance_coils(target / c.coil_gain_am2_per_a, now_s)
