@@ -239,6 +239,40 @@ def test_frames_during_recovery_count_once_each_and_a_lone_transmitter_stops_at_
     assert bus.stats.bus_errors["ack"] == 128          # then the flight side ACKs again
 
 
+def test_stepping_from_event_to_event_through_a_bus_off_recovery_delivers_as_one_run():
+    """The lock-step bus runs the model from one `next_event_ns` to the next. Each must lie after
+    the time the model ran to, or that caller steps a nanosecond at a time: a frame in flight
+    holds a bus-off node's recovery until its end. The frames equal one run over the whole span."""
+    def bus_off_with_board_frames(board_at_ns=()) -> BusModel:
+        bus = model(FaultSpec("error_frames", start_s=0.0, count=32, params={"restart_delay_s": 0.001}))
+        for k in range(5):
+            bus.submit(FLIGHT, PROTO.command([0.1, 0, 0], counter=k), T0)
+        for k, t_ns in enumerate(board_at_ns):
+            bus.submit(BOARD, PROTO.encode(p.TLM_DIPOLE, {}, counter=k), t_ns)
+        return bus
+
+    probe = bus_off_with_board_frames().run_until(T0 + 10 * MS)
+    bus_off_ns = next(round(d.msg.timestamp * 1e9) for d in probe if d.msg.is_error_frame
+                      and errors.read_error_frame(d.msg) == (errors.ErrorState.BUS_OFF, False))
+    # Recovery is due 1408 bit times (1.408 ms) after the restart; a board frame starts 8 us
+    # before that and is in flight when it falls due. Others come before and after.
+    due_ns = bus_off_ns + MS + 1408 * 1000
+    board_at_ns = (due_ns - 700_000, due_ns - 8_000, due_ns + 500_000)
+    deliveries = bus_off_with_board_frames(board_at_ns).run_until(T0 + 50 * MS)
+    assert (errors.ErrorState.ACTIVE, True) in [errors.read_error_frame(d.msg) for d in deliveries if d.msg.is_error_frame]
+    whole = [(d.msg.arbitration_id, d.msg.timestamp, d.destinations) for d in deliveries]
+    bus = bus_off_with_board_frames(board_at_ns)
+    stepped, t_ns, steps = [], T0, 0
+    while t_ns <= T0 + 50 * MS:
+        stepped += [(d.msg.arbitration_id, d.msg.timestamp, d.destinations) for d in bus.run_until(t_ns)]
+        next_ns = bus.next_event_ns()
+        if next_ns is None:
+            break
+        assert next_ns > t_ns, (steps, t_ns, next_ns)
+        t_ns, steps = next_ns, steps + 1
+    assert stepped == whole
+
+
 def test_a_copy_that_starts_with_the_next_command_collides_and_only_the_command_is_retried():
     """A starved driver sends its next command while the last one is still on the wire. The
     duplicate fault's copy (injected once the original is sent) and that command then start

@@ -1,10 +1,14 @@
-"""Each fault against the running board and bus model (separate processes) on the Zenoh transport.
+"""Each fault against the board and the bus model, on simulated time and, for a few, in real time.
 
-The driver runs here, commanding the scripted profile every 20 ms; the board sends heartbeat every
-100 ms and telemetry every 50 ms and times out after 100 ms without a valid command. Each fault
-starts 1 s after commanding starts. Every test asserts:
+The driver commands the scripted profile every 20 ms; the board sends heartbeat every 100 ms and
+telemetry every 50 ms and times out after 100 ms without a valid command. Each fault starts 1 s
+after commanding starts. Each test runs on simulated time (`SimulatedCanBench`: the lock-step
+loop's driver, bus model and board in this process, no host in the run); the tests marked
+`both_clocks` also run as their real-time twin (`CanBench`: bus model and board as separate
+processes on the Zenoh transport, the driver here on the wall clock), with the same checks and
+bounds. Every test asserts:
 - the driver detects the fault within a bound stated in the test, measured from the injector's
-  log (same monotonic clock across processes on this host) to the driver's event;
+  log to the driver's event (one clock: bus time, or the host's monotonic clock across processes);
 - every frame a node sent is on the wire or in the drop capture, and every frame on the wire
   reached the nodes that listen for it;
 - no command outside what the driver commanded was ever applied (except where E2E cannot know:
@@ -26,6 +30,7 @@ from bench.bus.can import host_lateness
 from bench.bus.can import protocol as p
 from bench.bus.can.config import SecurityConfig
 from bench.runtime.can_bench import CanBench, CanRunResult, write_scenario
+from bench.runtime.can_bench_simulated import SimulatedCanBench
 
 HEARTBEAT_PERIOD_S = 0.1
 TELEMETRY_PERIOD_S = 0.05
@@ -43,6 +48,12 @@ HOST_EXPLAINED_KINDS = ("telemetry_timeout", "heartbeat_timeout", "heartbeat_res
 HOST_WINDOW_NS = 500_000_000
 _runs = itertools.count()
 
+SIMULATED, WALL = "simulated", "wall"
+simulated = pytest.mark.parametrize("clock", [SIMULATED])
+# The real-time twins: what the processes and the transport add (every frame across processes, a
+# timeout over the wall clock, a flood through the transport's queues, freshness across processes).
+both_clocks = pytest.mark.parametrize("clock", [SIMULATED, WALL])
+
 # A hang bound above CanBench's own (two 60 s start-ups, two 10 s exits) and the re-runs of a
 # starved run; a run takes 5-10 s.
 pytestmark = pytest.mark.timeout(600)
@@ -56,12 +67,14 @@ ZENOH = {"transport": "zenoh", **E2E_ONLY}
 SOCKETCAN = {"transport": "socketcan", "flight_channel": "vcan0", "board_channel": "vcan1", **E2E_ONLY}
 
 
-def run_fault(tmp_path, *faults: dict, drive_s: float = DRIVE_S, transport: dict = ZENOH) -> CanRunResult:
-    """One bench run with these faults. A run the host starved so badly that a fault never acted
-    (the injector affected no frame, and the driver or the board counted host overruns) proves
-    nothing about the bus: it is run again, at most STARVED_RETRIES times, and said so."""
+def run_fault(tmp_path, *faults: dict, drive_s: float = DRIVE_S, transport: dict = ZENOH,
+              clock: str = WALL) -> CanRunResult:
+    """One bench run with these faults, on simulated time or the wall clock (then on `transport`).
+    A real-time run the host starved so badly that a fault never acted (the injector affected no
+    frame, and the driver or the board counted host overruns) proves nothing about the bus: it is
+    run again, at most STARVED_RETRIES times, and said so."""
     for attempt in range(STARVED_RETRIES + 1):
-        result = _run_once(tmp_path / (f"retry{attempt}" if attempt else "."), faults, drive_s, transport)
+        result = _run_once(tmp_path / (f"retry{attempt}" if attempt else "."), faults, drive_s, transport, clock)
         _report_host_overruns(tmp_path, result)
         if not (faults and starved(result)):
             return result
@@ -71,10 +84,11 @@ def run_fault(tmp_path, *faults: dict, drive_s: float = DRIVE_S, transport: dict
     return result
 
 
-def _run_once(tmp_path, faults, drive_s, transport) -> CanRunResult:
+def _run_once(tmp_path, faults, drive_s, transport, clock) -> CanRunResult:
     tmp_path.mkdir(parents=True, exist_ok=True)
     scenario = write_scenario(tmp_path / "scenario", {**transport, "faults": list(faults)})
-    bench = CanBench(scenario, tmp_path / "run", f"canfault-{os.getpid()}-{next(_runs)}")
+    bench_class = SimulatedCanBench if clock == SIMULATED else CanBench
+    bench = bench_class(scenario, tmp_path / "run", f"canfault-{os.getpid()}-{next(_runs)}")
     try:
         bench.start()
         bench.drive(drive_s)
@@ -230,9 +244,21 @@ def before_silence(r: CanRunResult) -> list:
     return [e for e in r.events if e.detected_ns <= r.last_command_ns and id(e) not in host]
 
 
+def check_twin(r: CanRunResult, tmp_path, *faults: dict) -> None:
+    """A real-time run detects every kind of event its simulated-time twin detects; anything else
+    it detects, the host caused (host_caused: a node measured itself late around it)."""
+    twin = run_fault(tmp_path / "simulated-twin", *faults, clock=SIMULATED)
+    expected = {e.kind for e in twin.events}
+    assert expected <= {e.kind for e in r.events}, f"simulated twin: {twin.kinds()}; {diagnosis(r)}"
+    host = {id(e) for e in host_caused(r)}
+    unexplained = [e for e in r.events if e.kind not in expected and id(e) not in host]
+    assert unexplained == [], f"simulated twin: {twin.kinds()}; {diagnosis(r)}"
+
+
 # ------------------------------------------------------------------------------------------------
-def test_no_fault_no_event_and_every_frame_delivered(tmp_path):
-    r = run_fault(tmp_path)
+@both_clocks
+def test_no_fault_no_event_and_every_frame_delivered(tmp_path, clock):
+    r = run_fault(tmp_path, clock=clock)
     assert before_silence(r) == [], "false alarm on a clean bus"
     assert r.board["accepted"] == r.driver_sent and r.board["rejected"] == {}
     check_all(r)
@@ -243,86 +269,101 @@ def test_no_fault_no_event_and_every_frame_delivered(tmp_path):
     assert decoded.returncode == 0, decoded.stderr
     assert decoded.stdout.count("MTQ_CMD(") == r.wire[p.CMD]
     assert "MTQ_TLM_DIPOLE(" in decoded.stdout and "Unknown frame" not in decoded.stdout
+    if clock == WALL:
+        check_twin(r, tmp_path)
 
 
-def test_dropped_commands_put_the_board_in_safe_state(tmp_path):
-    r = run_fault(tmp_path, {"name": "drop", "start_s": FAULT_START_S, "count": 10})
+@both_clocks
+def test_dropped_commands_put_the_board_in_safe_state(tmp_path, clock):
+    drop = {"name": "drop", "start_s": FAULT_START_S, "count": 10}
+    r = run_fault(tmp_path, drop, clock=clock)
     first_drop = r.first_injection_ns("dropped")
     # 10 commands (200 ms) missing: the board times out after 100 ms, says so in its next frames.
     assert latency_s(r, "board_command_timeout", first_drop) <= 3 * COMMAND_TIMEOUT_S
     assert r.dropped[p.CMD] == 10
     check_all(r)
+    if clock == WALL:
+        check_twin(r, tmp_path, drop)
 
 
-def test_a_delayed_command_arriving_late_is_rejected(tmp_path):
-    r = run_fault(tmp_path, {"name": "delay", "start_s": FAULT_START_S, "count": 1, "params": {"delay_s": 0.2}})
+@simulated
+def test_a_delayed_command_arriving_late_is_rejected(tmp_path, clock):
+    r = run_fault(tmp_path, {"name": "delay", "start_s": FAULT_START_S, "count": 1, "params": {"delay_s": 0.2}}, clock=clock)
     # Stale by 10 counter steps when it arrives: out of sequence.
     assert latency_s(r, "command_rejected", r.first_injection_ns("delayed"), "WRONG_SEQUENCE") <= 0.2 + 0.1
     check_all(r)
 
 
-def test_duplicated_commands_are_rejected_as_repeated(tmp_path):
-    r = run_fault(tmp_path, {"name": "duplicate", "start_s": FAULT_START_S, "count": 5, "every": 10})
+@simulated
+def test_duplicated_commands_are_rejected_as_repeated(tmp_path, clock):
+    r = run_fault(tmp_path, {"name": "duplicate", "start_s": FAULT_START_S, "count": 5, "every": 10}, clock=clock)
     assert r.board["rejected"] == {"REPEATED": injected_frames_on_the_wire(r)}, diagnosis(r)
     assert latency_s(r, "command_rejected", first_injection_on_the_wire_ns(r), "REPEATED") <= 5 * COMMAND_PERIOD_S
     assert r.kinds()["spoofed_command"] == injected_frames_on_the_wire(r)   # the copy was not sent by this driver
     check_all(r)
 
 
-def test_replayed_commands_are_seen_as_foreign(tmp_path):
+@simulated
+def test_replayed_commands_are_seen_as_foreign(tmp_path, clock):
     r = run_fault(tmp_path, {"name": "replay", "start_s": FAULT_START_S, "count": 3, "every": 10,
-                             "params": {"after_s": 0.3}})
+                             "params": {"after_s": 0.3}}, clock=clock)
     assert len(r.injected(p.CMD)) == affected(r)
     assert latency_s(r, "spoofed_command", first_injection_on_the_wire_ns(r)) <= 5 * COMMAND_PERIOD_S
     assert r.kinds()["spoofed_command"] == injected_frames_on_the_wire(r), diagnosis(r)
     check_all(r)   # a replayed command is an old genuine one: never a value nobody commanded
 
 
-def test_corrupted_commands_fail_the_crc_and_are_never_applied(tmp_path):
+@simulated
+def test_corrupted_commands_fail_the_crc_and_are_never_applied(tmp_path, clock):
     r = run_fault(tmp_path, {"name": "corrupt", "start_s": FAULT_START_S, "count": 5, "every": 10,
-                             "params": {"bits": 3}})
+                             "params": {"bits": 3}}, clock=clock)
     assert r.board["rejected"] == {"WRONG_CRC": affected(r)}, diagnosis(r)
     assert latency_s(r, "command_rejected", r.first_injection_ns("replaced"), "WRONG_CRC") <= 5 * COMMAND_PERIOD_S
     check_all(r)
 
 
-def test_corruption_before_protection_is_applied_but_caught_by_plausibility(tmp_path):
+@simulated
+def test_corruption_before_protection_is_applied_but_caught_by_plausibility(tmp_path, clock):
     # A valid CRC over wrong data (seed 1 flips the sign bit of DipoleX): E2E cannot see it, the
     # board applies it, and the driver notices the applied dipole is not what it commanded.
     r = run_fault(tmp_path, {"name": "corrupt", "start_s": FAULT_START_S, "duration_s": 0.5,
-                             "params": {"bits": 3, "recompute_crc": True, "seed": 1}})
+                             "params": {"bits": 3, "recompute_crc": True, "seed": 1}}, clock=clock)
     assert r.board["rejected"] == {}
     bound_s = 0.06 + 0.15 + 2 * TELEMETRY_PERIOD_S + 0.1   # settle + mismatch time + telemetry
     assert latency_s(r, "actuator_mismatch", r.first_injection_ns("replaced")) <= bound_s
     check_all(r, only_commanded=False)
 
 
-def test_spoofed_commands_are_rejected_and_reported(tmp_path):
+@simulated
+def test_spoofed_commands_are_rejected_and_reported(tmp_path, clock):
     r = run_fault(tmp_path, {"name": "spoof", "start_s": FAULT_START_S, "count": 3, "every": 10,
-                             "params": {"dipole_am2": 0.15}})
+                             "params": {"dipole_am2": 0.15}}, clock=clock)
     assert r.board["rejected"] == {"WRONG_CRC": injected_frames_on_the_wire(r)}, diagnosis(r)
     assert latency_s(r, "spoofed_command", first_injection_on_the_wire_ns(r)) <= 5 * COMMAND_PERIOD_S
     assert latency_s(r, "command_rejected", first_injection_on_the_wire_ns(r), "WRONG_CRC") <= 5 * COMMAND_PERIOD_S
     check_all(r)
 
 
-def test_frozen_counter_is_rejected_and_the_board_goes_safe(tmp_path):
-    r = run_fault(tmp_path, {"name": "counter_freeze", "start_s": FAULT_START_S, "duration_s": 0.4})
+@simulated
+def test_frozen_counter_is_rejected_and_the_board_goes_safe(tmp_path, clock):
+    r = run_fault(tmp_path, {"name": "counter_freeze", "start_s": FAULT_START_S, "duration_s": 0.4}, clock=clock)
     start = r.first_injection_ns("replaced")
     assert latency_s(r, "command_rejected", start, "REPEATED") <= 5 * COMMAND_PERIOD_S
     assert latency_s(r, "board_command_timeout", start) <= 3 * COMMAND_TIMEOUT_S
     check_all(r)
 
 
-def test_offset_counter_is_out_of_sequence(tmp_path):
+@simulated
+def test_offset_counter_is_out_of_sequence(tmp_path, clock):
     r = run_fault(tmp_path, {"name": "counter_offset", "start_s": FAULT_START_S, "duration_s": 0.4,
-                             "params": {"offset": 5}})
+                             "params": {"offset": 5}}, clock=clock)
     assert latency_s(r, "command_rejected", r.first_injection_ns("replaced"), "WRONG_SEQUENCE") <= 5 * COMMAND_PERIOD_S
     check_all(r)
 
 
-def test_babbling_node_starves_the_bus_and_the_board_is_lost(tmp_path):
-    r = run_fault(tmp_path, {"name": "flood", "start_s": FAULT_START_S, "duration_s": 0.5})
+@both_clocks
+def test_babbling_node_starves_the_bus_and_the_board_is_lost(tmp_path, clock):
+    r = run_fault(tmp_path, {"name": "flood", "start_s": FAULT_START_S, "duration_s": 0.5}, clock=clock)
     assert latency_s(r, "heartbeat_timeout", window_start_ns(r)) <= 3 * HEARTBEAT_PERIOD_S
     report = r.report
     assert report["peak_load_pct"] > 99
@@ -331,23 +372,26 @@ def test_babbling_node_starves_the_bus_and_the_board_is_lost(tmp_path):
     check_all(r)
 
 
-def test_board_death_is_detected_within_three_heartbeat_periods(tmp_path):
-    r = run_fault(tmp_path, {"name": "board_death", "start_s": FAULT_START_S, "duration_s": 0.6})
+@simulated
+def test_board_death_is_detected_within_three_heartbeat_periods(tmp_path, clock):
+    r = run_fault(tmp_path, {"name": "board_death", "start_s": FAULT_START_S, "duration_s": 0.6}, clock=clock)
     assert latency_s(r, "heartbeat_timeout", window_start_ns(r)) <= 3 * HEARTBEAT_PERIOD_S
     assert latency_s(r, "heartbeat_resumed", window_start_ns(r, FAULT_START_S + 0.6)) <= 2 * HEARTBEAT_PERIOD_S
     check_all(r)
 
 
-def test_stuck_actuator_is_caught_by_plausibility(tmp_path):
-    r = run_fault(tmp_path, {"name": "stuck_actuator", "start_s": FAULT_START_S, "duration_s": 0.8})
+@simulated
+def test_stuck_actuator_is_caught_by_plausibility(tmp_path, clock):
+    r = run_fault(tmp_path, {"name": "stuck_actuator", "start_s": FAULT_START_S, "duration_s": 0.8}, clock=clock)
     # The profile changes every 0.3 s; then settle 0.06 s, 0.15 s of mismatch, telemetry 0.05 s.
     assert latency_s(r, "actuator_mismatch", window_start_ns(r)) <= 0.3 + 0.06 + 0.15 + 2 * TELEMETRY_PERIOD_S + 0.1
     check_all(r)
 
 
-def test_error_frames_take_the_driver_bus_off_and_back(tmp_path):
+@simulated
+def test_error_frames_take_the_driver_bus_off_and_back(tmp_path, clock):
     r = run_fault(tmp_path, {"name": "error_frames", "start_s": FAULT_START_S, "count": 32,
-                             "params": {"restart_delay_s": 0.2}})
+                             "params": {"restart_delay_s": 0.2}}, clock=clock)
     start = r.first_injection_ns("destroyed")
     # The order on the wall clock; the bound less what the host held the loop up.
     assert latency_s(r, "error_passive", start, host_excused=False) < latency_s(r, "bus_off", start, host_excused=False)
@@ -396,11 +440,12 @@ def test_garbage_from_a_rogue_node_is_counted_and_never_fatal(tmp_path):
     check_safe_when_commands_stop(r)
 
 
-def test_on_the_secoc_profile_replays_and_a_data_id_aware_spoofer_never_reach_the_coils(tmp_path):
+@both_clocks
+def test_on_the_secoc_profile_replays_and_a_data_id_aware_spoofer_never_reach_the_coils(tmp_path, clock):
     secoc = {**ZENOH, "security": {"profile": "secoc"}}
     r = run_fault(tmp_path, {"name": "replay", "start_s": FAULT_START_S, "every": 3, "params": {"after_s": 0.6}},
                   {"name": "spoof", "start_s": FAULT_START_S, "every": 3, "params": {"knows_data_id": True}},
-                  transport=secoc)
+                  transport=secoc, clock=clock)
     injected = Counter(i["fault"].split(":")[1] for i in r.injections if i["action"] == "injected")
     assert injected["replay"] >= 2 and injected["spoof"] >= 5
     # Every forgery was rejected by its MAC and every replay as stale, across processes. On a

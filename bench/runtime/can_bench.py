@@ -110,6 +110,8 @@ class CanBench:
     events: list = field(default_factory=list)
     commanded: list = field(default_factory=list)
     sent: list = field(default_factory=list)          # (alive counter, monotonic ns) per command
+    command_start_ns: int = 0                         # monotonic ns of the first command, and the last
+    last_command_ns: int = 0
     _applied_before_last_command: int = 0             # len(mtq_applied) when the last command left
     board_drain_s: float | None = None                # how long stop() waited for the board; None: gave up
 
@@ -272,32 +274,37 @@ class CanBench:
             if not path.is_file():
                 log = (self.run_dir / f"{name}.log").read_text(errors="replace")[-3000:]
                 raise RuntimeError(f"node {name} left no {path.name} (exit {self.procs[name].returncode}):\n{log}")
-        protocol = p.Protocol(self.config.node_id)
+        return read_run(self.run_dir, self.config, self.driver, events=list(self.events),
+                        commanded=list(self.commanded), sent=list(self.sent), mtq_applied=list(self.mtq_applied),
+                        command_start_ns=self.command_start_ns, last_command_ns=self.last_command_ns,
+                        board_drain_s=self.board_drain_s)
 
-        def names(path: Path, channel: str | None = None) -> Counter:
-            if not path.is_file():
-                return Counter()
-            return Counter(p.frame_kind(protocol, m) for m in can.LogReader(str(path))
-                           if channel is None or m.channel == channel)
 
-        injections = [json.loads(line) for line in (can_dir / INJECTIONS_NAME).read_text().splitlines() if line]
-        return CanRunResult(
-            board=json.loads((can_dir / BOARD_NAME).read_text()),
-            report=json.loads((can_dir / REPORT_NAME).read_text()),
-            injections=injections,
-            wire=names(self.run_dir / CAPTURE_NAME),
-            dropped=names(can_dir / ACCOUNTING_NAME, channel="dropped"),
-            events=list(self.events),
-            driver_sent=self.driver.sent_frames,
-            driver_received=Counter(self.driver.received),
-            commanded=list(self.commanded),
-            sent=list(self.sent),
-            mtq_applied=list(self.mtq_applied),
-            run_dir=self.run_dir,
-            command_start_ns=getattr(self, "command_start_ns", 0),
-            last_command_ns=getattr(self, "last_command_ns", 0),
-            board_drain_s=self.board_drain_s,
-        )
+def read_run(run_dir: Path, config: CanConfig, driver: MagnetorquerDriver, **flight_side) -> CanRunResult:
+    """A run's CanRunResult: what the board and the bus model wrote into <run_dir>/can/
+    (bench.bus.can.nodes), the capture, the driver's counts, and the flight side's own record
+    (`flight_side`: the remaining CanRunResult fields)."""
+    can_dir = run_dir / "can"
+    protocol = p.Protocol(config.node_id)
+
+    def names(path: Path, channel: str | None = None) -> Counter:
+        if not path.is_file():
+            return Counter()
+        return Counter(p.frame_kind(protocol, m) for m in can.LogReader(str(path))
+                       if channel is None or m.channel == channel)
+
+    injections = [json.loads(line) for line in (can_dir / INJECTIONS_NAME).read_text().splitlines() if line]
+    return CanRunResult(
+        board=json.loads((can_dir / BOARD_NAME).read_text()),
+        report=json.loads((can_dir / REPORT_NAME).read_text()),
+        injections=injections,
+        wire=names(run_dir / CAPTURE_NAME),
+        dropped=names(can_dir / ACCOUNTING_NAME, channel="dropped"),
+        driver_sent=driver.sent_frames,
+        driver_received=Counter(driver.received),
+        run_dir=run_dir,
+        **flight_side,
+    )
 
 
 def write_scenario(path: Path, can_section: dict, name: str = "can-faults", seed: int = 1) -> Path:

@@ -161,9 +161,12 @@ class BusModel:
         return deliveries
 
     def next_event_ns(self) -> int | None:
-        """When run_until next has something to do (None: nothing pending)."""
-        times = [self.in_flight.end_ns] if self.in_flight else []
-        times += list(self.recover_at_ns.values())
+        """When run_until next has something to do (None: nothing pending). A frame in flight
+        holds everything else until its end, a node's bus-off recovery too: run_until restarts
+        the node after the frame, so the recovery's time may then be past."""
+        if self.in_flight is not None:
+            return self.in_flight.end_ns
+        times = list(self.recover_at_ns.values())
         start = self._next_start_ns()
         if start is not None:
             times.append(start)

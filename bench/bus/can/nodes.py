@@ -82,8 +82,7 @@ def run_board(ctx) -> int:
         ctx.publish(keys.ACTUATOR_MTQ, message)
 
     def on_applied(command: AppliedCommand) -> None:
-        applied.append({"counter": command.alive_counter, "dipole_am2": command.dipole_am2.tolist(),
-                        "applied_ns": command.applied_ns, "age_s": command.age_s})
+        applied.append(applied_record(command))
         publish(command.received_ns, command.alive_counter)
 
     def on_coils_changed(state) -> None:
@@ -96,18 +95,26 @@ def run_board(ctx) -> int:
         ctx.declare_ready([])   # the plant starts the loop once every node is ready
         board.run(ctx.stop)
     finally:
-        _write_board_summary(ctx, board, applied)
+        summary = write_board_summary(ctx.run_dir, board, applied)
+        ctx.log.info("board: sent %s, accepted %d, rejected %s", summary["sent"], board.accepted, summary["rejected"])
         bus.shutdown()
     return 0
 
 
-def _write_board_summary(ctx, board: MagnetorquerBoard, applied: list[dict]) -> None:
+def applied_record(command: AppliedCommand) -> dict:
+    """One command the board applied, as board.json lists it."""
+    return {"counter": command.alive_counter, "dipole_am2": command.dipole_am2.tolist(),
+            "applied_ns": command.applied_ns, "age_s": command.age_s}
+
+
+def write_board_summary(run_dir: Path, board: MagnetorquerBoard, applied: list[dict]) -> dict:
+    """<run_dir>/can/board.json: the board's counts and every command it applied (`applied_record`)."""
     summary = {"sent": dict(board.sent), "received": dict(board.received), "accepted": board.accepted,
                "rejected": dict(board.rejected), "bad_frames": dict(board.protocol.bad.counts),
                "ignored": dict(board.ignored), "lost_commands": board.lost_commands, "nmt_state": board.nmt_state,
                "sdo_writes_refused": board.sdo.refused_writes, **board.host_lateness.report(), "applied": applied}
-    (can_dir(ctx.run_dir) / BOARD_NAME).write_text(json.dumps(summary))
-    ctx.log.info("board: sent %s, accepted %d, rejected %s", dict(board.sent), board.accepted, dict(board.rejected))
+    (can_dir(run_dir) / BOARD_NAME).write_text(json.dumps(summary))
+    return summary
 
 
 # --- node "canbus" ------------------------------------------------------------------------------
@@ -152,20 +159,25 @@ def run_bus_model(ctx) -> int:
         report.update(bridge.report())
         report["t0_ns"] = t0_ns
         report["wall_offset_s"] = wall_offset_s   # can.log's wall timestamps = monotonic + this
-        _write_bus_results(ctx, capture, report, injector)
+        write_bus_results(ctx.run_dir, capture, report, injector)
+        _log_bus_load(ctx, report)
         for bus in buses.values():
             bus.shutdown()
     return 0
 
 
-def _write_bus_results(ctx, capture: Capture | None, report: dict, injector: FaultInjector) -> None:
-    out = can_dir(ctx.run_dir)
+def write_bus_results(run_dir: Path, capture: Capture | None, report: dict, injector: FaultInjector) -> None:
+    """<run_dir>/can/: the bus model's report and the injector's log; closes the capture."""
+    out = can_dir(run_dir)
     if capture is not None:
         capture.stop()
     (out / REPORT_NAME).write_text(json.dumps(report, indent=1))
     with open(out / INJECTIONS_NAME, "w") as f:
         for record in injector.records:
             f.write(json.dumps(record.__dict__) + "\n")
+
+
+def _log_bus_load(ctx, report: dict) -> None:
     if "bus_load_pct" in report:
         ctx.log.info("bus load %.1f %%, frames %s, dropped %s", report["bus_load_pct"], report["frames"], report["dropped"])
 
@@ -202,10 +214,8 @@ def run_lockstep_bus(ctx, config: CanConfig) -> int:
         if bus.t_ns is not None:
             # Bus time throughout: can.log stamps are t_ns / 1e9 (wall_offset_s 0), events t_ns.
             report = bus.report() | {"clock": "simulated", "sim_zero_ns": SIM_ZERO_NS, "wall_offset_s": 0.0}
-            _write_bus_results(ctx, capture, report, bus.injector)
-            _write_board_summary(ctx, bus.board, [
-                {"counter": c.alive_counter, "dipole_am2": c.dipole_am2.tolist(), "applied_ns": c.applied_ns,
-                 "age_s": c.age_s} for c in bus.applied])
+            write_bus_results(ctx.run_dir, capture, report, bus.injector)
+            write_board_summary(ctx.run_dir, bus.board, [applied_record(c) for c in bus.applied])
         elif capture is not None:
             capture.stop()
     return 0

@@ -57,6 +57,11 @@ class WindowedDriver:
         self._checks_ns = checks + [end_ns]
         return self.outbox.take(start_ns), counter, sent_ns
 
+    def silence(self) -> None:
+        """The flight side stops commanding (a bench run's end, to see the board go safe): no
+        keep-alive from the next window on, until a dipole is given again."""
+        self._next_slot_ns = None
+
     def heard(self, frames: list[SimFrame]) -> list[FaultEvent]:
         """The frames the flight side heard during the last window, handled at their times; the
         events the driver detected."""
