@@ -4,9 +4,11 @@ Runs inside user-mode Linux (tests/test_kernel_can_uml.py boots it): `bench run`
 attitude_detumble_socketcan in real time, as separate processes: the controller's driver on
 vcan0, the bus model and fault injector (`bench node canbus`) bridging vcan0 and vcan1, the board
 (`bench node mtq`) on vcan1, plant, estimator and recorder over Zenoh. The same checks as the
-portable-transport runs of tests/test_attitude_processes.py: the board applied only what the law
-commanded (or zero), the body slowed; with commands dropped, the board timed out, the driver
-said so, and the board applied the law's commands again after the fault. UML's one CPU is far
+portable-transport runs of tests/test_attitude_processes.py, on one run with 25 commands dropped
+(a clean run shows nothing this one does not): the loop closed through the kernel's CAN, the
+board applied only what the law commanded (or zero), the body slowed; the board timed out while
+the commands were dropped, the driver said so, and the board applied the law's commands again
+after the fault. UML's one CPU is far
 from keeping a 10 Hz real-time loop on time under host load, so the checks are the safety ones
 (nothing uncommanded applied) and the effect (the body slowed), not timing.
 """
@@ -106,16 +108,6 @@ def closed_through_can(run) -> np.ndarray:
     back in time for the step."""
     t = run.trajectory
     return (t["stamp_can_sent_ns"] > 0) & (t["stamp_board_received_ns"] > 0)
-
-
-def test_attitude_detumble_over_kernel_socketcan(tmp_path):
-    run = bench_run(tmp_path, SCENARIO, "socketcan-clean")
-    # UML's one CPU under a loaded host misses most 100 ms steps in real time (measured at host
-    # load average ~9: 20 of 120 steps closed in time, the board counted 240 of its own late
-    # periods): the loop must close through the kernel's CAN, not on every step.
-    assert_closed_through_can_unless_the_host_stalled(run)
-    check_only_commanded_applied(run)
-    assert_the_coils_slowed_the_body(run)
 
 
 def test_attitude_detumble_with_dropped_commands_over_kernel_socketcan(tmp_path):
