@@ -138,7 +138,7 @@ def slew_run(tmp_path_factory):
     injector.start()
     try:
         result = run_bench_cli("run", "attitude_slew_milqr", "--run-id", run_id, "--runs-dir", str(runs),
-                               "--no-progress", "--port", str(port), timeout_s=RUN_TIMEOUT_S)
+                               "--no-progress", "--no-report", "--port", str(port), timeout_s=RUN_TIMEOUT_S)
     finally:
         stop.set()
         injector.join(timeout=10)
@@ -190,7 +190,7 @@ def test_lock_step_planned_slew_as_processes_equals_the_in_process_loop_with_a_s
     path = tmp_path / "slow_planner.json"
     path.write_text(json.dumps(data))
     result = run_bench_cli("run", str(path), "--steps", "100", "--run-id", "slow_planner", "--runs-dir",
-                           str(tmp_path), "--no-progress", timeout_s=RUN_TIMEOUT_S)
+                           str(tmp_path), "--no-progress", "--no-report", timeout_s=RUN_TIMEOUT_S)
     assert result.returncode == 0, result.stderr + result.stdout
     run = load_run(tmp_path / "slow_planner")
     planner = json.loads((run.run_dir / "planner.json").read_text())

@@ -16,14 +16,15 @@ from __future__ import annotations
 
 import json
 import sys
-import tomllib
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 from conftest import run_bench_cli  # noqa: E402
+from socketcan_scenarios import over_socketcan  # noqa: E402
 
 from bench.bus.can.host_lateness import host_late_s, load_host_late_records, longest_host_late_s  # noqa: E402
 from bench.bus.can.transport import interface_exists, kernel_has_can  # noqa: E402
@@ -35,7 +36,6 @@ from bench.scenario import load_scenario  # noqa: E402
 pytestmark = pytest.mark.skipif(not (kernel_has_can() and interface_exists("vcan1")),
                                 reason="runs inside user-mode Linux (tests/test_kernel_can_uml.py)")
 SCENARIO = "attitude_detumble_socketcan"
-SCENARIO_FILE = Path(__file__).resolve().parents[2] / "bench" / "scenarios" / f"{SCENARIO}.toml"
 # Six processes start on UML's one CPU (1-2 min in all at host load average ~9, over 2 min for
 # the estimator alone at 12-17; the scenario allows 600 s), then 12 s of real time and the
 # shutdown: a hang bound, inside the guest's per-test timeout (tests/test_kernel_can_uml.py),
@@ -111,7 +111,9 @@ def closed_through_can(run) -> np.ndarray:
 
 
 def test_attitude_detumble_with_dropped_commands_over_kernel_socketcan(tmp_path):
-    scenario = tomllib.loads(SCENARIO_FILE.read_text())
+    # On vcan0/vcan1 as built in, with the guest's SecOC freshness margin (socketcan_scenarios:
+    # a starved guest's board otherwise refuses the driver's NMT start and commands as stale).
+    scenario = over_socketcan(SCENARIO, "vcan0", "vcan1")
     scenario["name"] = f"{SCENARIO}_drop"
     scenario["can"]["faults"] = [{"name": "drop", "frames": ["MTQ_CMD"], "start_s": DROP_START_S, "count": DROP_COUNT}]
     path = tmp_path / "scenario.json"      # load_scenario reads JSON like TOML
