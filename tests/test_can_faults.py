@@ -288,7 +288,8 @@ def test_dropped_commands_put_the_board_in_safe_state(tmp_path, clock):
 
 @simulated
 def test_a_delayed_command_arriving_late_is_rejected(tmp_path, clock):
-    r = run_fault(tmp_path, {"name": "delay", "start_s": FAULT_START_S, "count": 1, "params": {"delay_s": 0.2}}, clock=clock)
+    r = run_fault(tmp_path, {"name": "delay", "start_s": FAULT_START_S, "count": 1, "params": {"delay_s": 0.2}},
+                  clock=clock)
     # Stale by 10 counter steps when it arrives: out of sequence.
     assert latency_s(r, "command_rejected", r.first_injection_ns("delayed"), "WRONG_SEQUENCE") <= 0.2 + 0.1
     check_all(r)
