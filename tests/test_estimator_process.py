@@ -22,7 +22,7 @@ def test_a_process_run_flies_on_range_and_bearing(tmp_path, runs_dir):
     path = tmp_path / "rb.toml"
     path.write_text(SCENARIO)
     result = run_bench_cli("run", str(path), "--run-id", "rb-process", "--runs-dir", str(runs_dir), "--no-progress",
-                           timeout_s=300)
+                           "--no-report", timeout_s=300)
     assert result.returncode == 0, result.stderr[-2000:]
     run = load_run(runs_dir / "rb-process")
     sensed = run.on(keys.SENSE_RANGE_BEARING)
