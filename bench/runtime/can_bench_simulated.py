@@ -17,14 +17,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
-
 from bench.bus.can import run_key
 from bench.bus.can.config import CanConfig
-from bench.bus.can.lockstep_bus import LockStepBus, StepCoils
-from bench.bus.can.nodes import ACCOUNTING_NAME, CAPTURE_NAME, Capture, applied_record, can_dir, \
+from bench.bus.can.lockstep_bus import LockStepBus
+from bench.bus.can.nodes import ACCOUNTING_NAME, CAPTURE_NAME, Capture, applied_record, can_dir, step_applied, \
     write_board_summary, write_bus_results
-from bench.bus.can.sim_window import SIM_ZERO_NS
+from bench.bus.can.sim_window import SIM_ZERO_NS, mission_s
 from bench.bus.can.windowed_driver import BOOT_WINDOWS, WindowedDriver
 from bench.bus.schemas import MtqApplied, header
 from bench.runtime.can_bench import CanRunResult, first_event, read_run
@@ -95,20 +93,10 @@ class SimulatedCanBench:
         sent_ns = next((f.t_ns for f in frames if f.arbitration_id == self.command_id), None)
         heard, coils = self.bus.advance(start_ns, end_ns, frames)
         self.events += self.driver.heard(heard)
-        if start_ns >= SIM_ZERO_NS:
-            self.mtq_applied.append(self._applied_message(start_ns, coils))
+        if start_ns >= SIM_ZERO_NS:   # after the boot: what the canbus process publishes for the plant
+            step = len(self.mtq_applied)
+            self.mtq_applied.append(step_applied(self.bus, coils, header(self.run_id, step, mission_s(start_ns)), step))
         return counter, sent_ns
-
-    def _applied_message(self, start_ns: int, coils: StepCoils) -> MtqApplied:
-        """As the canbus process publishes it in lock-step: the window's average output."""
-        step = len(self.mtq_applied)
-        counter = coils.applied_counter if coils.applied_counter is not None else \
-            self.bus.board.state.last_command_counter
-        return MtqApplied(header(self.run_id, step, (start_ns - SIM_ZERO_NS) / 1e9),
-                          dipole_am2=np.asarray(coils.dipole_am2).tolist(),
-                          coil_current_a=coils.coil_current_a.tolist(), safe_state=coils.safe_state,
-                          actuation_paused=coils.actuation_paused, alive_counter=counter, step=step,
-                          command_applied=coils.applied_counter is not None)
 
     def stop(self) -> CanRunResult:
         """Silence until the board reported its safe state (its command timeout after the last

@@ -25,7 +25,7 @@ from bench.bus.can.board import AppliedCommand, MagnetorquerBoard
 from bench.bus.can.busmodel import BOARD, CHANNEL_BUS, FLIGHT, BusModel, RealTimeBridge
 from bench.bus.can.config import CanConfig
 from bench.bus.can.injector import FaultInjector
-from bench.bus.can.lockstep_bus import LockStepBus
+from bench.bus.can.lockstep_bus import LockStepBus, StepCoils
 from bench.bus.can.sim_window import SIM_ZERO_NS, CanWindow, bus_on_simulated_time
 from bench.bus.can.transport import open_bus
 from bench.bus.schemas import MtqApplied, header
@@ -203,13 +203,9 @@ def run_lockstep_bus(ctx, config: CanConfig) -> int:
                                                      window.step, window.start_ns, window.end_ns, heard))
             if window.step < 0:
                 continue        # the board's boot, before step 0
-            counter = coils.applied_counter if coils.applied_counter is not None else bus.board.state.last_command_counter
-            ctx.publish(keys.ACTUATOR_MTQ, MtqApplied(
-                header(ctx.run_id, window.step, window.header.sim_time_s, board_received=received_ns,
-                       applied=time.monotonic_ns()),
-                dipole_am2=coils.dipole_am2.tolist(), coil_current_a=coils.coil_current_a.tolist(),
-                safe_state=coils.safe_state, actuation_paused=coils.actuation_paused, alive_counter=counter,
-                step=window.step, command_applied=coils.applied_counter is not None))
+            ctx.publish(keys.ACTUATOR_MTQ, step_applied(
+                bus, coils, header(ctx.run_id, window.step, window.header.sim_time_s, board_received=received_ns,
+                                   applied=time.monotonic_ns()), window.step))
     finally:
         if bus.t_ns is not None:
             # Bus time throughout: can.log stamps are t_ns / 1e9 (wall_offset_s 0), events t_ns.
@@ -219,6 +215,15 @@ def run_lockstep_bus(ctx, config: CanConfig) -> int:
         elif capture is not None:
             capture.stop()
     return 0
+
+
+def step_applied(bus: LockStepBus, coils: StepCoils, message_header, step: int) -> MtqApplied:
+    """What the plant integrates over lock-step step `step`: the coils' output averaged over it."""
+    counter = coils.applied_counter if coils.applied_counter is not None else bus.board.state.last_command_counter
+    return MtqApplied(message_header, dipole_am2=coils.dipole_am2.tolist(),
+                      coil_current_a=coils.coil_current_a.tolist(), safe_state=coils.safe_state,
+                      actuation_paused=coils.actuation_paused, alive_counter=counter, step=step,
+                      command_applied=coils.applied_counter is not None)
 
 
 def run(ctx) -> int:
