@@ -8,9 +8,9 @@ portable-transport runs of tests/test_attitude_processes.py, on one run with 25 
 (a clean run shows nothing this one does not): the loop closed through the kernel's CAN, the
 board applied only what the law commanded (or zero), the body slowed; the board timed out while
 the commands were dropped, the driver said so, and the board applied the law's commands again
-after the fault. UML's one CPU is far
-from keeping a 10 Hz real-time loop on time under host load, so the checks are the safety ones
-(nothing uncommanded applied) and the effect (the body slowed), not timing.
+after the fault. UML's one CPU is far from keeping a 10 Hz real-time loop on time under host
+load, so the checks are the safety ones (nothing uncommanded applied) and the effect (the body
+slowed), not timing.
 """
 from __future__ import annotations
 
