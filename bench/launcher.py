@@ -86,9 +86,9 @@ class RunIdTaken(ValueError):
 # Which processes a scenario needs
 # ------------------------------------------------------------------------------------------------
 def nodes_for(scenario: Scenario) -> list[str]:
-    """In start order; they stop in reverse. The recorder first and last, so it sees everything;
-    the CAN bus and board before the flight side and after it, so the driver never sees the board
-    vanish at shutdown."""
+    """In start order (they stop in stop_stages' order). The recorder first and last, so it sees
+    everything; the CAN bus and board before the flight side and after it, so the driver never sees
+    the board vanish at shutdown."""
     names = ["recorder"] if "recorder" in NODES else []
     if scenario.can is not None:
         # On simulated time the board runs with the bus model, in canbus (bench/bus/can/lockstep_bus.py).
@@ -167,7 +167,7 @@ class ProcessGroup:
 
     def popen_kwargs(self) -> dict:
         # A group of their own: a terminal's Ctrl-C reaches the launcher only, which stops the
-        # nodes in order (the recorder last) instead of all at once. Each node gets its own
+        # nodes in stages (the recorder last) instead of all at once. Each node gets its own
         # report key in its environment (bench/runtime/reports.py), never on its command line.
         self._next_key = new_report_key()
         return {"process_group": self.pgid or 0, "env": child_environment({REPORT_KEY_ENV: self._next_key.hex()})}
@@ -193,29 +193,51 @@ def _spawn(name: str, run_id: str, scenario_path: Path, hub: str, run_dir: Path,
     return Child(name, process, log_path)
 
 
+BOARD_SIDE_STOP = {"canbus", "mtq"}
+
+
+def stop_stages(names: list[str]) -> list[list[str]]:
+    """The order nodes stop in, each stage's nodes at once: the loop and the flight side, then
+    the bus and the board (so the driver never sees the board vanish), then the recorder (so it
+    records every other node's last messages)."""
+    stages = [[n for n in names if n not in BOARD_SIDE_STOP | {"recorder"}],
+              [n for n in names if n in BOARD_SIDE_STOP],
+              [n for n in names if n == "recorder"]]
+    return [stage for stage in stages if stage]
+
+
 def _stop_children(children: list[Child], grace_s: float = SHUTDOWN_GRACE_S) -> None:
-    """SIGTERM in reverse start order (recorder last), then SIGKILL whatever is left. A child
-    still working after grace_s (its CPU time advancing: a recorder finishing its file on a busy
-    host) is given up to three times that; one that idles is killed at grace_s."""
-    for child in reversed(children):
-        if child.process.poll() is None:
-            try:
-                child.process.send_signal(signal.SIGTERM)
-                _wait_exit_while_working(child.process, grace_s)
-            except ProcessLookupError:
-                pass
+    """SIGTERM stage by stage (stop_stages), then SIGKILL whatever is left. A child still working
+    after grace_s (its CPU time advancing: a recorder finishing its file on a busy host) is given
+    up to three times that; one that idles is killed at grace_s."""
+    by_name = {c.name: c for c in children}
+    for stage in stop_stages([c.name for c in children]):
+        stopping = []
+        for child in (by_name[n] for n in stage):
+            if child.process.poll() is None:
+                try:
+                    child.process.send_signal(signal.SIGTERM)
+                    stopping.append(child)
+                except ProcessLookupError:
+                    pass
+        for child in stopping:
+            _wait_exit_while_working(child.process, grace_s)
     _kill_children(children)
 
 
 def _wait_exit_while_working(process: subprocess.Popen, grace_s: float) -> None:
     started = time.monotonic()
     progress = CpuProgress(process.pid)
-    while process.poll() is None:
+    while True:
+        try:
+            process.wait(timeout=0.02)    # a forked node's wait returns as soon as the zygote reports its exit
+            return
+        except subprocess.TimeoutExpired:
+            pass
         now = time.monotonic()
         idle_s = progress.idle_s(now)
         if now - started > grace_s and (idle_s > STARTUP_IDLE_S or now - started > 3 * grace_s):
             return
-        time.sleep(0.05)
 
 
 def _kill_children(children: list[Child]) -> None:
@@ -495,6 +517,16 @@ class StatsCollector:
     def accept(self) -> None:
         self.accepting = True
 
+    def wait_for_stats(self, names: set[str], timeout_s: float) -> None:
+        """Until every process in `names` has reported its stats (each sends them as it stops), at
+        most timeout_s: a node killed before it could send them never will."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            with self._lock:
+                if names <= set(self.stats):
+                    return
+            time.sleep(0.005)
+
     def finish(self) -> None:
         """At the end of the run: a remote process whose stats came only before the window takes its
         latest early one, marked as such; the forged reports are counted under each process."""
@@ -741,7 +773,7 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
                 collector.accept()
                 _stop_remote(session, run_id, launcher_token, remote)
                 _stop_children(children)
-                time.sleep(0.1)   # the last stats samples are on their way
+                collector.wait_for_stats({c.name for c in children}, 0.1)   # the last ones are on their way
                 _check_children(children, allowed_done={c.name for c in children})
                 ending = RunEnding(0, None)
             except NodeFailed as exc:

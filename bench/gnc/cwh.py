@@ -12,7 +12,6 @@ from dataclasses import dataclass, field, replace
 from functools import cached_property
 
 import numpy as np
-from scipy.linalg import expm
 
 from bench.data import load_reference
 
@@ -50,6 +49,8 @@ def discretise_zoh(a_c: np.ndarray, b_c: np.ndarray, time_step_s: float) -> tupl
     block = np.zeros((n_x + n_u, n_x + n_u))
     block[:n_x, :n_x] = a_c
     block[:n_x, n_x:] = b_c
+    from scipy.linalg import expm   # here, not at the top: the launcher imports this module for its types
+
     phi = expm(block * time_step_s)
     return phi[:n_x, :n_x], phi[:n_x, n_x:]
 
