@@ -51,6 +51,10 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     command = next((a for a in argv if not a.startswith("-")), None)
+    if command == "run" and not {"-h", "--help"} & set(argv):
+        # The nodes' imports (about a second) start now, beside the launcher's (bench/runtime/zygote.py).
+        from bench.runtime.zygote import Zygote
+        Zygote.start_early()
     args = build_parser(command).parse_args(argv)
     return int(args.func(args) or 0)
 

@@ -709,7 +709,7 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
     hub = placement.hub_endpoint
     # The zygote before any session of ours: it imports the nodes' packages while the launcher
     # goes on, and is started by fork+exec, never forked from a process running Zenoh's threads.
-    zygote = node_zygote.Zygote.start(child_environment(), show_progress) if node_zygote.enabled() else None
+    zygote = node_zygote.Zygote.for_launcher(child_environment(), show_progress)
     # The session first: a taken port must fail before anything is written or started.
     lease_ms = int(round(scenario.run.liveliness.lease_s * 1000))
     try:
@@ -892,6 +892,8 @@ def cmd_run(args) -> int:
     except (ScenarioError, SessionConfigError, DeploymentError, CertificateError, ValueError) as exc:
         print(f"bench: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
+    finally:
+        node_zygote.Zygote.close_early()    # started by bench.cli for this run, if run_bench never took it
 
 
 # ------------------------------------------------------------------------------------------------

@@ -136,3 +136,44 @@ def test_bench_node_start_exec_turns_the_zygote_off(monkeypatch):
     assert not zyg.enabled()
     monkeypatch.setenv(zyg.NODE_START_ENV, "zygote")
     assert zyg.enabled()
+
+
+
+def test_the_zygote_started_early_serves_the_launcher_only_if_it_matches(monkeypatch):
+    """`bench run` starts the zygote before the launcher's imports; the launcher takes it only if
+    its nodes' environment and directory are the launcher's, else starts its own and kills it."""
+    monkeypatch.chdir(REPO)
+    zyg.Zygote.start_early()
+    early = zyg._early
+    assert early is not None
+    taken = zyg.Zygote.for_launcher(child_environment())
+    try:
+        assert taken is early and zyg._early is None
+    finally:
+        taken.close()
+    zyg.Zygote.start_early()
+    early = zyg._early
+    other = zyg.Zygote.for_launcher(child_environment({"BENCH_SOMETHING_ELSE": "1"}))
+    try:
+        assert other is not early and early.process.poll() is not None
+        assert other.env["BENCH_SOMETHING_ELSE"] == "1"
+    finally:
+        other.close()
+    zyg.Zygote.start_early()
+    early = zyg._early
+    zyg.Zygote.close_early()       # bad input: nobody took it
+    assert zyg._early is None and early.process.wait(timeout=WAIT_S) is not None
+
+# Imported by no node: each costs every run's zygote 0.2-0.5 s of start-up; the few functions that
+# need them import them where they are called (the tube MPC's pole placement, the nonlinear plant's
+# integrator, the report's figures).
+NOT_AT_START = ("scipy.stats", "scipy.signal", "scipy.integrate", "matplotlib")
+
+
+def test_the_zygote_preloads_no_package_a_node_needs_only_for_some_scenarios():
+    code = ("import sys; from bench.runtime import zygote; zygote._preload(); "
+            f"print(sorted(m for m in {NOT_AT_START!r} if m in sys.modules))")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO,
+                            env=child_environment(), timeout=WAIT_S)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip() == "[]", f"imported at every node's start: {result.stdout.strip()}"

@@ -24,10 +24,10 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 from scipy.linalg import block_diag
-from scipy.stats import chi2
 
 from bench.estimator import factors
 from bench.estimator.config import AttitudeSmootherConfig
+from bench.estimator.gating import nis_gate
 from bench.gnc.quaternion import skew
 
 log = logging.getLogger(__name__)
@@ -154,7 +154,7 @@ class AttitudeSmoother:
         self._nis = self._innovation(magnetometer_t, field_inertial_t, star_tracker_wxyz)
         self._rejected = False
         nis, dof = self._nis
-        if self.config.gate_probability is not None and nis is not None and nis > chi2.ppf(self.config.gate_probability, dof):
+        if self.config.gate_probability is not None and nis is not None and nis > nis_gate(self.config.gate_probability, dof):
             # The gyro alone still constrains the new keys (AHRS and bias-walk factors).
             self._rejected = True
             self.rejected_measurements += 1

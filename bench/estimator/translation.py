@@ -27,10 +27,10 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 import scipy.linalg
-from scipy.stats import chi2
 
 from bench.estimator import factors
 from bench.estimator.config import TranslationSmootherConfig
+from bench.estimator.gating import nis_gate
 from bench.estimator.kalman import POSITION_MATRIX, Gaussian, predict
 from bench.estimator.motion_model import CwhMotionModel
 from bench.estimator.two_body_model import TwoBodyRelativeModel
@@ -151,7 +151,7 @@ class TranslationSmoother:
         self.late_measurements_applied = 0
         self.late_measurements_dropped = 0     # older than the window: too late to use
         self._gate = (None if config.gate_probability is None
-                      else {dof: float(chi2.ppf(config.gate_probability, dof)) for dof in (3,)})
+                      else {dof: nis_gate(config.gate_probability, dof) for dof in (3,)})
         self._smoother: gtsam.IncrementalFixedLagSmoother | None = None
         self._last: _GoodEstimate | None = None
         self._innovation: tuple[float | None, int, bool] = (None, 0, False)

@@ -13,7 +13,6 @@ from functools import lru_cache
 from typing import Literal
 
 import numpy as np
-from scipy.integrate import solve_ivp
 
 from bench.gnc.cwh import RendezvousParams
 
@@ -57,6 +56,8 @@ def propagate(state_m_mps: np.ndarray, thrust_n: np.ndarray, dt_s: float, params
         a_d, b_d = _discrete_si(params)
         return a_d @ state + b_d @ thrust
     if model == "nonlinear":
+        from scipy.integrate import solve_ivp   # here: only this model integrates (0.2 s of a plant's start)
+
         def rhs(_t, s):
             return np.concatenate([s[3:], relative_acceleration_mps2(s, thrust, params)])
 

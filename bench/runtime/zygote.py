@@ -31,7 +31,7 @@ import time
 from pathlib import Path
 
 from bench.runtime.ownership import (LAUNCHER_PID_ENV, ORPHAN_EXIT_CODE, PARENT_PID_ENV, CpuProgress,
-                                     _set_parent_death_signal, process_state)
+                                     _set_parent_death_signal, child_environment, process_state)
 from bench.runtime.reports import REPORT_KEY_ENV
 
 NODE_START_ENV = "BENCH_NODE_START"          # "exec": every node by fork+exec, as before the zygote
@@ -48,6 +48,9 @@ CMDLINE_ROOM_CHARS = 4096
 STUCK_IDLE_S = 10.0       # a zygote that has not answered and whose CPU time stood still this long is stuck
 ANSWER_TIMEOUT_S = 300.0  # a zygote still importing after this is given up on (exec path instead)
 CLOSE_GRACE_S = 1.0
+
+
+_early: "Zygote | None" = None    # started by `bench run` before the launcher's imports (start_early)
 
 
 class ZygoteFailed(RuntimeError):
@@ -138,6 +141,38 @@ class Zygote:
         finally:
             os.close(report_w)
         return cls(process, report_r, dict(env), os.getcwd(), show)
+
+    @classmethod
+    def start_early(cls) -> None:
+        """Start this process's zygote now, before the launcher's own imports and checks, so its
+        imports run beside them (`bench run` calls this first). `for_launcher` hands it over."""
+        global _early
+        if enabled() and _early is None:
+            _early = cls.start(child_environment())
+
+    @classmethod
+    def for_launcher(cls, env: dict[str, str], show: bool = False) -> "Zygote | None":
+        """The launcher's zygote: the one started early if it serves `env` from this directory and
+        still runs, else a new one (None with BENCH_NODE_START=exec, or if none can start)."""
+        global _early
+        early, _early = _early, None
+        if early is not None:
+            if early.env == env and early.cwd == os.getcwd() and early.process.poll() is None:
+                early.show = show
+                return early
+            early.process.kill()
+            early.close()
+        return cls.start(env, show) if enabled() else None
+
+    @staticmethod
+    def close_early() -> None:
+        """End a zygote started early that no launcher took (the run stopped at bad input): at
+        once, it has started nothing and may still be importing."""
+        global _early
+        early, _early = _early, None
+        if early is not None:
+            early.process.kill()
+            early.close()
 
     # --- starting a node ---------------------------------------------------------------------
     def extra_env(self, popen_kwargs: dict) -> dict[str, str] | None:
