@@ -707,8 +707,9 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
         # a deployment's node on another host opens its channel there.
         check_run_buses(scenario.can, roles_on_this_host(scenario.can, {**placement.remote, **external, **board_side}))
     hub = placement.hub_endpoint
-    # The zygote before any session of ours: it imports the nodes' packages while the launcher
-    # goes on, and is started by fork+exec, never forked from a process running Zenoh's threads.
+    # The zygote before any session of ours (the one `bench run` started first, if it matches): it
+    # imports the nodes' packages while the launcher goes on, and is started by fork+exec, never
+    # forked from a process running Zenoh's threads.
     zygote = node_zygote.Zygote.for_launcher(child_environment(), show_progress)
     # The session first: a taken port must fail before anything is written or started.
     lease_ms = int(round(scenario.run.liveliness.lease_s * 1000))

@@ -1,9 +1,10 @@
 """Starting nodes from one pre-imported parent (a "zygote"), so a run's processes start in about
 the time one import takes instead of each importing numpy, scipy, gtsam, proxsuite and zenoh anew.
 
-The launcher starts the zygote with fork+exec (`python -m bench.runtime.zygote`): a fresh
-interpreter that never opens a Zenoh session, so forking it is safe (forking a process that runs
-Zenoh's runtime threads is not). It imports every node's module once, then forks one child per
+The zygote is started with fork+exec (`python -m bench.runtime.zygote`): a fresh interpreter
+that never opens a Zenoh session, so forking it is safe (forking a process that runs Zenoh's
+runtime threads is not). `bench run` starts it first of all, so its imports run beside the
+launcher's (`Zygote.start_early`, taken over by `Zygote.for_launcher`). It imports every node's module once, then forks one child per
 request. The child takes the node's log file as stdout and stderr, /dev/null as stdin, joins the
 run's process group, shows the node's command line in `ps`, and runs `bench.cli.main` with the
 same arguments as `python -m bench.cli node NAME ...` would.
