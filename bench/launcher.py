@@ -193,15 +193,12 @@ def _spawn(name: str, run_id: str, scenario_path: Path, hub: str, run_dir: Path,
     return Child(name, process, log_path)
 
 
-BOARD_SIDE_STOP = {"canbus", "mtq"}
-
-
 def stop_stages(names: list[str]) -> list[list[str]]:
     """The order nodes stop in, each stage's nodes at once: the loop and the flight side, then
     the bus and the board (so the driver never sees the board vanish), then the recorder (so it
     records every other node's last messages)."""
-    stages = [[n for n in names if n not in BOARD_SIDE_STOP | {"recorder"}],
-              [n for n in names if n in BOARD_SIDE_STOP],
+    stages = [[n for n in names if n not in (*BOARD_SIDE_NODES, "recorder")],
+              [n for n in names if n in BOARD_SIDE_NODES],
               [n for n in names if n == "recorder"]]
     return [stage for stage in stages if stage]
 

@@ -4,10 +4,10 @@ the time one import takes instead of each importing numpy, scipy, gtsam, proxsui
 The zygote is started with fork+exec (`python -m bench.runtime.zygote`): a fresh interpreter
 that never opens a Zenoh session, so forking it is safe (forking a process that runs Zenoh's
 runtime threads is not). `bench run` starts it first of all, so its imports run beside the
-launcher's (`Zygote.start_early`, taken over by `Zygote.for_launcher`). It imports every node's module once, then forks one child per
-request. The child takes the node's log file as stdout and stderr, /dev/null as stdin, joins the
-run's process group, shows the node's command line in `ps`, and runs `bench.cli.main` with the
-same arguments as `python -m bench.cli node NAME ...` would.
+launcher's (`Zygote.start_early`, taken over by `Zygote.for_launcher`). It imports every node's
+module once, then forks one child per request. The child takes the node's log file as stdout and
+stderr, /dev/null as stdin, joins the run's process group, shows the node's command line in `ps`,
+and runs `bench.cli.main` with the same arguments as `python -m bench.cli node NAME ...` would.
 
 Its children are the zygote's, not the launcher's, so the zygote reaps them and reports each exit
 status over a pipe; `ForkedProcess` gives the launcher the subprocess.Popen methods it relies on
@@ -156,13 +156,12 @@ class Zygote:
         """The launcher's zygote: the one started early if it serves `env` from this directory and
         still runs, else a new one (None with BENCH_NODE_START=exec, or if none can start)."""
         global _early
-        early, _early = _early, None
-        if early is not None:
-            if early.env == env and early.cwd == os.getcwd() and early.process.poll() is None:
-                early.show = show
-                return early
-            early.process.kill()
-            early.close()
+        early = _early
+        if early is not None and early.env == env and early.cwd == os.getcwd() and early.process.poll() is None:
+            _early = None
+            early.show = show
+            return early
+        cls.close_early()
         return cls.start(env, show) if enabled() else None
 
     @staticmethod
