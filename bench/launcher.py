@@ -546,8 +546,14 @@ def _wait_alive(session, run_id: str, children: list[Child], timeout_s: float = 
     started = time.monotonic()
     progress = {c.name: CpuProgress(c.process.pid) for c in children}
     announced: set[str] = set()
+    plant = next((c for c in children if c.name == "plant"), None)
     while True:
-        _check_children(children, allowed_done=set())
+        # The plant steps only once it has seen every peer, so a plant that ended cleanly ran the
+        # whole loop: a short run can end before this query sees every token (seen through a
+        # router: 20 steps in 60 ms). The run's end is judged after this, by _follow_run.
+        _check_children(children, allowed_done={"plant"})
+        if plant is not None and plant.process.poll() == 0:
+            return
         alive = set()
         for reply in session.liveliness().get(keys.key(run_id, f"{keys.ALIVE}/*"), timeout=0.5):
             if reply.ok is not None:

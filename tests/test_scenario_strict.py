@@ -10,7 +10,7 @@ import msgspec.inspect as mi
 import pytest
 
 from bench.bus.deployment import DeploymentError, load_deployment
-from bench.launcher import Child, NodeFailed, _check_children
+from bench.launcher import Child, NodeFailed, _check_children, _wait_alive
 from bench.scenario import MAX_NESTING, Scenario, ScenarioError, load_scenario, parse_scenario
 from conftest import bench_processes, run_bench_cli
 
@@ -143,7 +143,7 @@ class Exited:
 
 def test_the_process_that_failed_is_named(tmp_path):
     # The plant ended cleanly after the controller died, both seen by the same poll (start order
-    # puts the plant first); as during start-up, nobody is allowed to be done.
+    # puts the plant first); nobody is allowed to be done here.
     children = [Child("plant", Exited(0, 10), tmp_path / "plant.log"),
                 Child("controller", Exited(1, 11), tmp_path / "controller.log"),
                 Child("estimator", Exited(None, 12), tmp_path / "estimator.log")]
@@ -151,3 +151,31 @@ def test_the_process_that_failed_is_named(tmp_path):
         _check_children(children, allowed_done=set())
     with pytest.raises(NodeFailed, match=r"^process 'plant' \(pid 10\) exited with code 0"):
         _check_children(children[:1] + children[2:], allowed_done=set())
+
+
+class NoTokensYet:
+    """A session whose liveliness query has seen no node's token yet (as through a router, where
+    the tokens can arrive after a 20-step run has ended)."""
+
+    def liveliness(self):
+        return self
+
+    def get(self, key, timeout):
+        return []
+
+
+def test_a_plant_that_ended_cleanly_during_start_up_ran_the_loop(tmp_path):
+    # The plant steps only once it has seen every peer's token: its clean exit is a finished run,
+    # not a node that died while the others were starting.
+    children = [Child("plant", Exited(0, 10), tmp_path / "plant.log"),
+                Child("controller", Exited(None, 11), tmp_path / "controller.log")]
+    _wait_alive(NoTokensYet(), "r", children, timeout_s=0.2)
+    # A node that failed is still named, whatever the plant did.
+    children[1] = Child("controller", Exited(1, 11), tmp_path / "controller.log")
+    with pytest.raises(NodeFailed, match=r"^process 'controller' \(pid 11\) exited with code 1"):
+        _wait_alive(NoTokensYet(), "r", children, timeout_s=0.2)
+    # Any other node that ends during start-up has failed, even cleanly.
+    children = [Child("plant", Exited(None, 10), tmp_path / "plant.log"),
+                Child("controller", Exited(0, 11), tmp_path / "controller.log")]
+    with pytest.raises(NodeFailed, match=r"^process 'controller' \(pid 11\) exited with code 0"):
+        _wait_alive(NoTokensYet(), "r", children, timeout_s=0.2)
