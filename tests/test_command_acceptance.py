@@ -73,8 +73,7 @@ class Rogue:
         self.command_key = keys.key(run_id, keys.COMMAND_THRUST)
         self.seen_commands: list[bytes] = []     # the controller's, to replay
         # Counted under the lock: Zenoh may run this session's callbacks on more than one thread.
-        self.sent = 0
-        self.answers = 0                         # truth samples answered, each with one 1e400
+        self.answers = 0                         # 1e400 commands put: one per truth sample answered
         self.answered_steps: set[int] = set()    # the steps those samples were of
         self._lock = threading.Lock()
         self.session.declare_subscriber(keys.key(run_id, keys.TRUTH), self._on_truth)
@@ -95,10 +94,11 @@ class Rogue:
             k = decode(sample.payload.to_bytes(), TruthState).header.seq
         except Exception:
             return
+        malformed = self._thrust(k, "[1e400,0.0,0.0]")  # non-finite (decodes to inf)
         payloads = [
             self._thrust(k, "[777.0,0.0,0.0]"),          # out of envelope
             self._thrust(k, "[1e308,-1000.0,0.0]"),      # out of envelope, finite
-            self._thrust(k, "[1e400,0.0,0.0]"),          # non-finite (decodes to inf)
+            malformed,
             # Future, inside the envelope; far enough ahead that it can never become current
             # (a command for the current step inside the envelope is indistinguishable from the
             # controller's without authentication, which is the multi-host issue's job).
@@ -108,12 +108,15 @@ class Rogue:
         with self._lock:
             if self.seen_commands:
                 payloads.append(self.seen_commands[-1])  # a replay of the controller's last one
-        for payload in payloads:
-            self.session.put(self.command_key, payload, attachment=self.signer(self.command_key, payload))
         with self._lock:
-            self.sent += len(payloads)
-            self.answers += 1
             self.answered_steps.add(k)
+        for payload in payloads:
+            # Counted before the put: a put that the test's close() interrupts in this callback
+            # thread (an answer late under load) may still have reached the plant.
+            if payload is malformed:
+                with self._lock:
+                    self.answers += 1
+            self.session.put(self.command_key, payload, attachment=self.signer(self.command_key, payload))
 
     def close(self) -> None:
         self.session.close()
@@ -144,7 +147,6 @@ def run_with_rogue(runs_dir, run_id: str, *extra: str) -> tuple[subprocess.Compl
 def test_rogue_commands_never_change_the_lock_step_trajectory(runs_dir):
     result, rogue = run_with_rogue(runs_dir, "rogue-lockstep")
     assert result.returncode == 0, result.stderr
-    assert rogue.sent >= 5 * rogue.answers
     run_dir = runs_dir / "rogue-lockstep"
     assert_rendezvous_lqr_run_equals_in_process(run_dir, STEPS)
     metrics = json.loads((run_dir / "metrics.json").read_text())
@@ -165,9 +167,11 @@ def test_rogue_commands_never_change_the_lock_step_trajectory(runs_dir):
     # the plant stopped (CI with both cores busy: 38 of 40 counted in one run, 32 of 40 in another):
     # a bound on how many is a bound on the rogue's scheduling. A plant that dies or stops reading on
     # them fails the exit code and the trajectory above; one that counts none or twice fails here.
-    # The upper bound is what the rogue sent (one per truth sample it answered: a fresh MAC counter
-    # each, so none of them is a replay the plant drops): a CI run had it answer 42 samples for the
-    # plant's 40, every one of them counted by the plant and the recorder alike.
+    # The upper bound is how many 1e400 commands the rogue put (one per truth sample it answered,
+    # each under a fresh MAC counter, so none is a replay the plant drops). Zenoh may hand the
+    # rogue a truth sample twice (a CI run had it answer 42 samples of the plant's 40, each of the
+    # 42 counted by the plant and the recorder alike), and a put is counted before it is made
+    # (a CI run counted 41 in the plant against 40 counted after their puts).
     malformed = metrics["process_stats"]["plant"]["malformed"][keys.COMMAND_THRUST]
     assert len(rogue.answered_steps) // 2 <= malformed <= rogue.answers, (
         f"plant counted {malformed}; rogue answered {rogue.answers} samples of {len(rogue.answered_steps)} steps")
