@@ -49,6 +49,38 @@ def bench_processes(run_id: str) -> list[int]:
     return pids
 
 
+def process_cmdline(pid: int) -> list[bytes]:
+    """A process's command line, one element per argument ([] once it is gone)."""
+    try:
+        return open(f"/proc/{pid}/cmdline", "rb").read().split(b"\0")
+    except OSError:
+        return []
+
+
+def parent_pid(pid: int) -> int | None:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            text = f.read()
+    except OSError:
+        return None
+    return int(text[text.rindex(")") + 2:].split()[1])
+
+
+def node_pids(pids: list[int]) -> list[int]:
+    """The nodes among pids: `bench node NAME`, and not a node's own watchdog (a fork of the node,
+    with its command line; pids wrap around during the suite, so a watchdog's can be the lower)."""
+    nodes = [p for p in pids if b"node" in process_cmdline(p)]
+    return [p for p in nodes if parent_pid(p) not in nodes]
+
+
+def node_pid(run_id: str, name: str) -> int:
+    """The pid of node `name` of a live run."""
+    for pid in node_pids(bench_processes(run_id)):
+        if name.encode() in process_cmdline(pid):
+            return pid
+    raise AssertionError(f"no {name} process for {run_id}")
+
+
 @pytest.fixture
 def runs_dir(tmp_path) -> Path:
     return tmp_path / "runs"

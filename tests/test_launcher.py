@@ -12,7 +12,7 @@ from bench.bus import data_auth
 from bench.bus.session import SessionOptions, free_loopback_port, loopback_endpoint, open_session
 from bench.scenario import load_scenario
 from bench.sim import simulate_in_process
-from conftest import REPO, bench_processes, run_bench_cli
+from conftest import REPO, bench_processes, node_pid, run_bench_cli
 
 
 def load_run(run_dir):
@@ -123,22 +123,13 @@ def _wait_gone(run_id, timeout_s=10.0):
 def test_launcher_stops_everything_when_a_child_dies(runs_dir, victim):
     run_id = f"kill-{victim}"
     proc = _start_long_run(runs_dir, run_id)
-    pid = json_pid(runs_dir / run_id, victim)
+    pid = node_pid(run_id, victim)
     import os
     os.kill(pid, signal.SIGKILL)
     _, stderr = proc.communicate(timeout=120)
     assert proc.returncode == 1
     assert f"process '{victim}'" in stderr and "exited with code -9" in stderr
     assert _wait_gone(str(runs_dir / run_id)) == []
-
-
-def json_pid(run_dir, name):
-    """A node's pid, read from /proc by its command line (metrics.json is written only at the end)."""
-    for pid in bench_processes(run_dir.name):
-        cmdline = open(f"/proc/{pid}/cmdline", "rb").read().split(b"\0")
-        if b"node" in cmdline and name.encode() in cmdline:
-            return pid
-    raise AssertionError(f"no {name} process for {run_dir.name}")
 
 
 def test_ctrl_c_stops_everything(runs_dir):
@@ -210,7 +201,7 @@ def test_hung_process_is_noticed_through_its_liveliness_token(runs_dir):
 
     run_id = "hung-controller"
     proc = _start_long_run(runs_dir, run_id)
-    pid = json_pid(runs_dir / run_id, "controller")
+    pid = node_pid(run_id, "controller")
     os.kill(pid, signal.SIGSTOP)
     try:
         _, stderr = proc.communicate(timeout=120)

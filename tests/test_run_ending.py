@@ -18,7 +18,7 @@ from bench.plant.node import STATE_NAMES
 from bench.report.jsonout import dumps_finite
 from bench.scenario import load_scenario
 from bench.sim import simulate_in_process
-from conftest import REPO, bench_processes, run_bench_cli
+from conftest import REPO, bench_processes, node_pids, parent_pid, process_cmdline, run_bench_cli
 
 ORPHAN_LIMIT_S = 2.0
 
@@ -51,7 +51,7 @@ def start_run(runs_dir, run_id, *extra, node_start="zygote"):
 def children_of(proc) -> list[int]:
     """Every process below the launcher: its nodes, their watchdogs and, on the zygote path, the
     zygote the nodes were forked from."""
-    parent_of = {p: _ppid(p) for p in bench_processes_all()}
+    parent_of = {p: parent_pid(p) for p in bench_processes_all()}
     pids, frontier = [], {proc.pid}
     while frontier:
         frontier = {p for p, parent in parent_of.items() if parent in frontier}
@@ -60,30 +60,8 @@ def children_of(proc) -> list[int]:
     return pids
 
 
-def _cmdline(pid: int) -> list[bytes]:
-    try:
-        return open(f"/proc/{pid}/cmdline", "rb").read().split(b"\0")
-    except OSError:
-        return []
-
-
-def node_pids(pids: list[int]) -> list[int]:
-    """The nodes among pids (`bench node NAME` and not a node's own watchdog, a fork of it)."""
-    nodes = [p for p in pids if b"node" in _cmdline(p)]
-    return [p for p in nodes if _ppid(p) not in nodes]
-
-
 def bench_processes_all() -> list[int]:
     return [int(e) for e in os.listdir("/proc") if e.isdigit()]
-
-
-def _ppid(pid: int) -> int | None:
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            text = f.read()
-    except OSError:
-        return None
-    return int(text[text.rindex(")") + 2:].split()[1])
 
 
 def alive_by_ps(pids: list[int]) -> list[str]:
@@ -99,9 +77,9 @@ def test_children_die_with_the_launcher(runs_dir, sig, node_start):
     run_id = f"owner-{sig.name.lower()}-{node_start}"
     proc = start_run(runs_dir, run_id, node_start=node_start)
     pids = children_of(proc)
-    parents = {_ppid(p) for p in node_pids(pids)}
+    parents = {parent_pid(p) for p in node_pids(pids)}
     if node_start == "zygote":       # the path under test was taken: every node forked by the zygote
-        assert len(parents) == 1 and b"bench.runtime.zygote" in _cmdline(parents.pop())
+        assert len(parents) == 1 and b"bench.runtime.zygote" in process_cmdline(parents.pop())
     else:
         assert parents == {proc.pid}
     proc.send_signal(sig)
@@ -147,7 +125,7 @@ def test_ctrl_c_leaves_partial_metrics_and_report(runs_dir):
 def test_a_killed_child_leaves_partial_metrics_and_report(runs_dir):
     run_id = "killed-estimator"
     proc = start_run(runs_dir, run_id)
-    victim = next(p for p in node_pids(children_of(proc)) if b"estimator" in _cmdline(p))
+    victim = next(p for p in node_pids(children_of(proc)) if b"estimator" in process_cmdline(p))
     os.kill(victim, signal.SIGKILL)
     _, stderr = proc.communicate(timeout=60)
     assert proc.returncode == 1 and "process 'estimator'" in stderr
