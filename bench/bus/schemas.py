@@ -63,10 +63,21 @@ class RelativePosition(Message, tag="relpos"):
 
 
 class RangeBearing(Message, tag="range_bearing"):
-    """Noisy range, azimuth atan2(y, x) and elevation asin(z / r) of the chaser in LVLH."""
-    range_m: Annotated[float, msgspec.Meta(gt=0)]
-    azimuth_rad: float
-    elevation_rad: float
+    """Noisy range, azimuth atan2(y, x) and elevation asin(z / r) of the chaser in LVLH; all three
+    None when the sensor has no fix (its measured range at or below its minimum range: near the
+    target, where noise can take the range to zero or below)."""
+    range_m: Annotated[float, msgspec.Meta(gt=0)] | None = None
+    azimuth_rad: float | None = None
+    elevation_rad: float | None = None
+
+    def __post_init__(self):
+        if (self.range_m is None) != (self.azimuth_rad is None) or (self.range_m is None) != (self.elevation_rad is None):
+            raise ValueError("range_m, azimuth_rad and elevation_rad are given together or not at all (no fix)")
+
+    @property
+    def fix(self) -> list[float] | None:
+        """[range m, azimuth rad, elevation rad], or None without a fix."""
+        return None if self.range_m is None else [self.range_m, self.azimuth_rad, self.elevation_rad]
 
 
 class TruthState(Message, tag="truth"):

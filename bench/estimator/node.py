@@ -73,7 +73,7 @@ def run(ctx: NodeContext) -> int:
         if history is None:
             estimate = estimator.step(k, hdr.sim_time_s, truth_m_mps=sample.state_m_mps)
         else:
-            measured = (dict(range_bearing=[sample.range_m, sample.azimuth_rad, sample.elevation_rad])
+            measured = (dict(range_bearing=sample.fix)     # None without a fix: a prediction step
                         if isinstance(sample, RangeBearing) else dict(position_m=sample.position_m))
             if estimator.is_late(k):
                 # Applied at its sensing step; the controller gets it in the next step's estimate.

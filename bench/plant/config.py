@@ -37,6 +37,9 @@ class RangeBearingSensorConfig(msgspec.Struct, forbid_unknown_fields=True):
     # chaser in the target's LVLH frame, each with white Gaussian noise.
     range_noise_std_m: NonNegative = 10.0
     bearing_noise_std_rad: NonNegative = 1.0e-4
+    # A measured range at or below this is no fix (a sensor's minimum range; 0: only a range that
+    # noise took to zero or below, which a range sensor cannot report).
+    min_range_m: NonNegative = 0.0
 
 
 class CommandAcceptanceConfig(msgspec.Struct, forbid_unknown_fields=True):

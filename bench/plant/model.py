@@ -29,15 +29,22 @@ class RelativePositionSensor:
 
 @dataclass
 class RangeBearingSensor:
-    """Range, azimuth and elevation of the relative position with white Gaussian noise."""
+    """Range, azimuth and elevation of the relative position with white Gaussian noise; no fix
+    when the measured range is at or below min_range_m."""
 
     range_noise_std_m: float
     bearing_noise_std_rad: float
     rng: np.random.Generator
+    min_range_m: float = 0.0
 
-    def measure(self, position_m: np.ndarray) -> np.ndarray:
+    def measure(self, position_m: np.ndarray) -> np.ndarray | None:
         sigmas = np.array([self.range_noise_std_m, self.bearing_noise_std_rad, self.bearing_noise_std_rad])
-        return range_bearing(position_m) + sigmas * self.rng.standard_normal(3)
+        # Drawn with or without a fix, so that the noise of every later fix stays the same.
+        noise = sigmas * self.rng.standard_normal(3)
+        if np.linalg.norm(position_m) == 0.0:    # on the target: no bearing to measure
+            return None
+        measured = range_bearing(position_m) + noise
+        return measured if measured[0] > self.min_range_m else None
 
 
 @dataclass
@@ -63,7 +70,7 @@ class TranslationPlant:
         rb = scenario.plant.range_bearing_sensor
         # Its own generator: adding this sensor leaves the relative-position noise bit-identical.
         rb_sensor = RangeBearingSensor(rb.range_noise_std_m, rb.bearing_noise_std_rad,
-                                       np.random.default_rng([scenario.run.seed, 2]))
+                                       np.random.default_rng([scenario.run.seed, 2]), rb.min_range_m)
         plant = cls(scenario.params(), scenario.plant.dynamics, x0, sensor, rb_sensor,
                     navigation_frame=scenario.plant.navigation_frame)
         plant.states_m_mps.append(x0.copy())
@@ -89,8 +96,9 @@ class TranslationPlant:
         fix_m = self.sensor.measure(self.state_m_mps[:3])
         return position_to_curvilinear_m(fix_m, self.params.target_radius_m) if self.curvilinear else fix_m
 
-    def measure_range_bearing(self) -> np.ndarray:
-        """[range m, azimuth rad, elevation rad] of the chaser, with the sensor's noise."""
+    def measure_range_bearing(self) -> np.ndarray | None:
+        """[range m, azimuth rad, elevation rad] of the chaser, with the sensor's noise; None
+        without a fix."""
         return self.range_bearing_sensor.measure(self.state_m_mps[:3])
 
     def apply(self, thrust_n: np.ndarray) -> None:

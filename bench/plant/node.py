@@ -41,8 +41,8 @@ def _publish_sample(ctx: NodeContext, plant: TranslationPlant, last_thrust_n: np
     ctx.publish(keys.TRUTH, TruthState(hdr, plant.navigation_state_m_mps.tolist(), last_thrust_n.tolist()))
     noise = ctx.scenario.plant.relpos_sensor.noise_std_m
     ctx.publish(keys.SENSE_RELPOS, RelativePosition(hdr, position_m.tolist(), noise))
-    rng_m, azimuth_rad, elevation_rad = plant.measure_range_bearing()
-    ctx.publish(keys.SENSE_RANGE_BEARING, RangeBearing(hdr, float(rng_m), float(azimuth_rad), float(elevation_rad)))
+    fix = plant.measure_range_bearing()
+    ctx.publish(keys.SENSE_RANGE_BEARING, RangeBearing(hdr) if fix is None else RangeBearing(hdr, *map(float, fix)))
 
 
 def run(ctx: NodeContext) -> int:
