@@ -5,6 +5,8 @@ from pathlib import Path
 
 import pytest
 
+from bench.runtime.ownership import process_state
+
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -58,12 +60,8 @@ def process_cmdline(pid: int) -> list[bytes]:
 
 
 def parent_pid(pid: int) -> int | None:
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            text = f.read()
-    except OSError:
-        return None
-    return int(text[text.rindex(")") + 2:].split()[1])
+    state = process_state(pid)
+    return None if state is None else state.parent_pid
 
 
 def node_pids(pids: list[int]) -> list[int]:

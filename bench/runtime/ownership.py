@@ -108,6 +108,7 @@ def kill_group(pgid: int | None, sig: int = signal.SIGKILL) -> None:
 class ProcessState:
     state: str             # R running, S sleeping, D disk wait, T stopped, t traced, Z zombie, ...
     cpu_ticks: int         # utime + stime, in clock ticks
+    parent_pid: int
 
     @property
     def stopped(self) -> bool:
@@ -115,7 +116,7 @@ class ProcessState:
 
 
 def process_state(pid: int) -> ProcessState | None:
-    """State and CPU time of a process from /proc/PID/stat; None if it is gone (or not Linux)."""
+    """State, CPU time and parent of a process from /proc/PID/stat; None if it is gone (or not Linux)."""
     try:
         with open(f"/proc/{pid}/stat") as f:
             text = f.read()
@@ -123,7 +124,7 @@ def process_state(pid: int) -> ProcessState | None:
         return None
     # The command name (field 2) is in parentheses and may itself hold spaces or ')'.
     fields = text[text.rindex(")") + 2:].split()
-    return ProcessState(state=fields[0], cpu_ticks=int(fields[11]) + int(fields[12]))
+    return ProcessState(state=fields[0], cpu_ticks=int(fields[11]) + int(fields[12]), parent_pid=int(fields[1]))
 
 
 class CpuProgress:
