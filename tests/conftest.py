@@ -35,28 +35,26 @@ def assert_rendezvous_lqr_run_equals_in_process(run_dir: Path, steps: int) -> No
     np.testing.assert_allclose(trajectory["thrust_n"], reference["thrust_n"], rtol=1e-9, atol=1e-15)
 
 
-def bench_processes(run_id: str) -> list[int]:
-    """Pids of live processes whose command line names this run id (children left behind)."""
-    pids = []
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit() or int(entry.name) == os.getpid():
-            continue
-        try:
-            cmdline = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
-            state = (entry / "stat").read_text().split()[2]
-        except OSError:
-            continue
-        if run_id in cmdline and "bench.cli" in cmdline and state != "Z":
-            pids.append(int(entry.name))
-    return pids
-
-
 def process_cmdline(pid: int) -> list[bytes]:
     """A process's command line, one element per argument ([] once it is gone)."""
     try:
         return open(f"/proc/{pid}/cmdline", "rb").read().split(b"\0")
     except OSError:
         return []
+
+
+def bench_processes(run_id: str) -> list[int]:
+    """Pids of live processes whose command line names this run id (children left behind)."""
+    pids = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit() or int(entry.name) == os.getpid():
+            continue
+        pid = int(entry.name)
+        cmdline = b" ".join(process_cmdline(pid)).decode(errors="replace")
+        state = process_state(pid)
+        if run_id in cmdline and "bench.cli" in cmdline and state is not None and state.state != "Z":
+            pids.append(pid)
+    return pids
 
 
 def parent_pid(pid: int) -> int | None:
