@@ -262,3 +262,26 @@ def test_a_recording_cut_short_is_read_up_to_its_last_whole_chunk(tmp_path):
     assert 0 < len(seqs) < 2000 and seqs == list(range(len(seqs)))
     write_report(run_dir)
     assert "ends early" in (run_dir / "report.md").read_text()
+
+
+def test_latency_histograms_put_every_hop_in_its_row_with_its_percentiles(tmp_path, monkeypatch):
+    """One row per hop in the given order (top first), each row's p50 and p99 marks at the hop's
+    own percentiles, on a log axis that takes a latency of zero without failing."""
+    import matplotlib.pyplot as plt
+    from bench.report import plots
+
+    rng = np.random.default_rng(5)
+    hops = {"plant → estimator": rng.lognormal(np.log(3e-4), 0.3, 200),
+            "controller compute": np.concatenate([[0.0], rng.lognormal(np.log(5e-5), 0.5, 99)]),
+            "CAN → board": rng.lognormal(np.log(2e-3), 0.2, 50)}
+    figures = []
+    monkeypatch.setattr(plt, "close", figures.append)    # keep the figure to read it
+    plots.latency_histograms(hops, tmp_path / "hist.png")
+    assert (tmp_path / "hist.png").stat().st_size > 10_000
+    (ax,) = figures[0].axes
+    assert ax.get_xscale() == "log"
+    labels = [t.get_text() for t in ax.get_yticklabels()]
+    assert labels == ["CAN → board (n=50)", "controller compute (n=100)", "plant → estimator (n=200)"]
+    marks = [line.get_xdata()[0] for line in ax.get_lines()]
+    expected = [np.percentile(ms * 1e3, q) for ms in hops.values() for q in (50, 99)]
+    np.testing.assert_allclose(marks, expected)
