@@ -80,9 +80,15 @@ class Rogue:
         self.session.declare_subscriber(self.command_key, self._on_command)
 
     def _on_command(self, sample) -> None:
+        # Only the controller's: this subscriber also hears the rogue's own puts, and a replay of
+        # its own 1e400 command would be one more malformed command than `answers` counts.
+        payload = sample.payload.to_bytes()
+        opened = data_auth.open_tag(self.signer.key, self.command_key, payload, data_auth.attachment_bytes(sample))
+        if opened is None or opened[0] != b"controller":
+            return
         with self._lock:
             if len(self.seen_commands) < 1000:
-                self.seen_commands.append(sample.payload.to_bytes())
+                self.seen_commands.append(payload)
 
     def _thrust(self, k: int, thrust_text: str) -> bytes:
         good = encode(ThrustCommand(header(self.run_id, k, 0.0), [0.0, 0.0, 0.0], True, "rogue", 0.0))
@@ -170,8 +176,9 @@ def test_rogue_commands_never_change_the_lock_step_trajectory(runs_dir):
     # The upper bound is how many 1e400 commands the rogue put (one per truth sample it answered,
     # each under a fresh MAC counter, so none is a replay the plant drops). Zenoh may hand the
     # rogue a truth sample twice (a CI run had it answer 42 samples of the plant's 40, each of the
-    # 42 counted by the plant and the recorder alike), and a put is counted before it is made
-    # (a CI run counted 41 in the plant against 40 counted after their puts).
+    # 42 counted by the plant and the recorder alike). Its replays are of the controller's commands
+    # only: a replay of its own 1e400 command, which its command subscriber also hears, was one more
+    # malformed command than it counted (43 against 40 answers; 41 against 40 in a CI run).
     malformed = metrics["process_stats"]["plant"]["malformed"][keys.COMMAND_THRUST]
     assert len(rogue.answered_steps) // 2 <= malformed <= rogue.answers, (
         f"plant counted {malformed}; rogue answered {rogue.answers} samples of {len(rogue.answered_steps)} steps")
