@@ -277,11 +277,45 @@ def test_a_lock_step_fault_run_detects_what_its_real_time_twin_detects(fault_run
     expected = {"board_death": {"heartbeat_timeout"}, "drop": {"board_command_timeout"},
                 "corrupt": {"command_rejected"}, "stuck_actuator": {"actuator_mismatch", "telemetry_repeated"},
                 "flood": {"board_command_timeout", "telemetry_timeout", "heartbeat_timeout", "command_rejected"}}
+    held_s = flight_side_held_s(fault_runs[1])
+    compared = []
     for name, (kinds, first_s) in lock_step.items():
+        assert kinds & expected[name], (name, kinds)
+        # Real time is compared where the host kept up: a window in which the driver or the board
+        # ran late by more than REAL_TIME_HELD_S in all is the host's, not the fault's (a loaded
+        # suite run: the driver 0.69 s late in the stuck-actuator window, the board refusing
+        # commands that came 0.4 s late as stale, and no stuck actuator seen).
+        if held_s[name] > REAL_TIME_HELD_S:
+            print(f"{name}: real time not compared, the host held the flight side {held_s[name]:.3f} s")
+            continue
         rt_kinds, rt_first_s = real_time[name]
-        assert kinds & expected[name] and rt_kinds & expected[name], (name, kinds, rt_kinds)
+        assert rt_kinds & expected[name], (name, kinds, rt_kinds)
         if name != "stuck_actuator":
             assert abs(first_s - rt_first_s) < 0.25, (name, first_s, rt_first_s)
+        compared.append(name)
+    assert compared, f"the host held the flight side in every fault window: {held_s}"
+
+
+REAL_TIME_HELD_S = 0.25      # a quarter of the loop's 1 s step
+
+
+def flight_side_held_s(run) -> dict[str, float]:
+    """Per fault window (to 0.5 s after it): how long the host held up the driver or the board,
+    whichever longer, each one's lateness summed (their own records, can/). The bus model's
+    records are left out: they include frames the fault itself delays (6 s summed over an idle
+    run's board death)."""
+    from bench.report.timebase import RunClock
+    clock = RunClock.from_run(run.trajectory, run.scenario)
+    records = [r for r in load_host_late_records(run.run_dir / "can") if r.node in ("driver", "board")]
+    times = np.atleast_1d(clock.sim_s([r.t_ns for r in records])) if records else []
+    held = {}
+    for name, start, end in fault_windows_sim_s(run.run_dir, run.scenario, run.trajectory):
+        per_node: dict[str, float] = {}
+        for t, r in zip(times, records):
+            if start <= t <= end + 0.5:
+                per_node[r.node] = per_node.get(r.node, 0.0) + r.late_s
+        held[name] = max(per_node.values(), default=0.0)
+    return held
 
 
 def test_fault_effect_and_compare_report(fault_runs, runs):
