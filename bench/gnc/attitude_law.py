@@ -82,7 +82,7 @@ def dipole_for_torque(torque_body_nm: np.ndarray, field_body_t: np.ndarray,
     field_sq = float(field_t @ field_t)
     if not np.isfinite(field_sq) or field_sq < MIN_FIELD_T**2 or not np.all(np.isfinite(torque)):
         return np.zeros(3), {"weak_or_bad_field": True, "saturated": False}
-    dipole, saturated = saturate_dipole(np.cross(field_t, torque) / field_sq, dipole_limit_am2)
+    dipole, saturated = saturate_dipole(qt.cross3(field_t, torque) / field_sq, dipole_limit_am2)
     return dipole, {"weak_or_bad_field": False, "saturated": saturated}
 
 
@@ -130,13 +130,13 @@ class SlidingModeTracking:
         sign = _sign(q_e[0])
         q_ev = q_e[1:]
         # q_e_dot = 1/2 q_e (x) [0, omega_e]  =>  vector part 1/2 (q0 omega_e + q_v x omega_e)
-        q_ev_dot = 0.5 * (q_e[0] * omega_e + np.cross(q_ev, omega_e))
+        q_ev_dot = 0.5 * (q_e[0] * omega_e + qt.cross3(q_ev, omega_e))
         # d/dt (C omega_d) = C omega_d_dot - omega_e x C omega_d (C = body-from-target rotation)
-        omega_r_dot = c_bt @ target.omega_dot_radps2 - np.cross(omega_e, omega_r)
+        omega_r_dot = c_bt @ target.omega_dot_radps2 - qt.cross3(omega_e, omega_r)
         s = omega_e + self.sliding_gain_radps * sign * q_ev
         j = self.inertia_kgm2
         w = x.omega_radps
-        torque = (np.cross(w, j @ w) + j @ omega_r_dot
+        torque = (qt.cross3(w, j @ w) + j @ omega_r_dot
                   - self.sliding_gain_radps * sign * (j @ q_ev_dot) - self.convergence_gain_radps * (j @ s))
         return torque, {"sliding_variable": s, "error_angle_rad": qt.angle_between_rad(target.q_wxyz, x.q_wxyz)}
 
@@ -215,7 +215,7 @@ class RateDamping:
         field_sq = float(field_t @ field_t)
         if not np.isfinite(field_sq) or field_sq < MIN_FIELD_T**2 or not np.all(np.isfinite(omega)):
             return np.zeros(3), {"weak_or_bad_field": True, "saturated": False}
-        dipole, saturated = saturate_dipole(self.gain_nms * np.cross(omega, field_t) / field_sq, self.dipole_limit_am2)
+        dipole, saturated = saturate_dipole(self.gain_nms * qt.cross3(omega, field_t) / field_sq, self.dipole_limit_am2)
         return dipole, {"weak_or_bad_field": False, "saturated": saturated}
 
 

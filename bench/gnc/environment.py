@@ -24,6 +24,8 @@ from scipy.interpolate import CubicSpline
 from sgp4.api import SGP4_ERRORS, WGS72, Satrec, jday
 from sgp4.propagation import gstime
 
+from bench.gnc.quaternion import cross3
+
 EARTH_MU_M3PS2 = 3.986004418e14
 IGRF_REFERENCE_RADIUS_KM = 6371.2   # IGRF's reference radius a (Alken et al. 2021)
 
@@ -36,12 +38,6 @@ class Orbit(Protocol):
 class GeomagneticField(Protocol):
     def field_t(self, position_m: np.ndarray, time_s: float) -> np.ndarray:
         """Inertial field vector at `position_m` and `time_s`, T."""
-
-
-def cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """a x b for 3-vectors; np.cross costs ~10x more per call (argument handling), and the attitude
-    plant calls it a dozen times per step."""
-    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
 
 
 # ---- time ---------------------------------------------------------------------------------------

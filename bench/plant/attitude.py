@@ -22,7 +22,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from bench.gnc import quaternion as qt
-from bench.gnc.environment import cross3
+from bench.gnc.quaternion import cross3
 
 EARTH_RADIUS_M = 6.3712e6
 EARTH_ROTATION_RADPS = 7.2921159e-5
