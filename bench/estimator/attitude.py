@@ -23,7 +23,6 @@ from dataclasses import dataclass
 
 import gtsam
 import numpy as np
-from scipy.linalg import block_diag
 
 from bench.estimator import factors
 from bench.estimator.config import AttitudeSmootherConfig
@@ -243,7 +242,9 @@ class AttitudeSmoother:
         if not rows:
             return None, 0
         h, innovation = np.vstack(rows), np.concatenate(innovations)
-        s = h @ covariance @ h.T + block_diag(*noise)
+        s = h @ covariance @ h.T
+        for i, block in enumerate(noise):     # the 3x3 noise blocks on the diagonal (scipy's block_diag: ~0.3 ms a call)
+            s[3 * i:3 * i + 3, 3 * i:3 * i + 3] += block
         return float(innovation @ np.linalg.solve(s, innovation)), innovation.size
 
     def _bias_walk_factor(self, previous: int, seq: int):
