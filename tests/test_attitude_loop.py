@@ -183,6 +183,7 @@ def test_pointing_with_the_smoother_in_the_loop_closes_in_on_the_target():
     assert trajectory["att_estimate_valid"].all()
 
 
+@pytest.mark.study
 def test_sliding_mode_from_200_degrees_converges_the_short_way_over_three_orbits():
     """`attitude_slew` (1 Hz, truth estimate, IGRF, gravity gradient, residual dipole calibrated to
     1 %, the board's rounding with the law's error feedback): seed 002's sliding mode with
@@ -207,6 +208,7 @@ def test_sliding_mode_from_200_degrees_converges_the_short_way_over_three_orbits
     assert applied_is_commanded_or_zero(trajectory, scenario.can).all()
 
 
+@pytest.mark.study
 def test_pointing_hold_with_the_smoother_stays_within_5_degrees_over_two_orbits():
     """`attitude_pointing_hold` (1 Hz, gtsam smoother through a star-tracker outage, the slew's
     sliding-mode gains, 1 %-calibrated residual dipole): from 3 deg the error stays below 5 deg for

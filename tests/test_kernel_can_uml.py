@@ -18,8 +18,10 @@ import uml
 from bench.bus.can.transport import kernel_has_can
 
 
-def _boot(tmp_path_factory, guest_dir: str, name: str, boot_timeout_s: float, **kwargs):
-    return uml.guest_session(guest_dir, tmp_path_factory.mktemp(name), boot_timeout_s, **kwargs)
+def _boot(pytestconfig, tmp_path_factory, guest_dir: str, name: str, boot_timeout_s: float, **kwargs):
+    """One UML boot of a guest directory, selecting as this run does (`-m`: studies or not)."""
+    return uml.guest_session(guest_dir, tmp_path_factory.mktemp(name), boot_timeout_s,
+                             markexpr=pytestconfig.getoption("markexpr"), **kwargs)
 
 
 # --- the socketcan transport on vcan0/vcan1 (tests/uml_guest/) ------------------------------------
@@ -35,8 +37,8 @@ GUEST_SOCKETCAN = [
 
 
 @pytest.fixture(scope="module")
-def socketcan_guest(tmp_path_factory):
-    return _boot(tmp_path_factory, "tests/uml_guest", "uml-socketcan", SOCKETCAN_BOOT_TIMEOUT_S)
+def socketcan_guest(pytestconfig, tmp_path_factory):
+    return _boot(pytestconfig, tmp_path_factory, "tests/uml_guest", "uml-socketcan", SOCKETCAN_BOOT_TIMEOUT_S)
 
 
 @pytest.mark.timeout(SOCKETCAN_BOOT_TIMEOUT_S + 60)
@@ -58,8 +60,8 @@ GUEST_FAULTS = [
 
 
 @pytest.fixture(scope="module")
-def faults_guest(tmp_path_factory):
-    return _boot(tmp_path_factory, "tests/uml_guest_can", "uml-can-faults", FAULTS_BOOT_TIMEOUT_S,
+def faults_guest(pytestconfig, tmp_path_factory):
+    return _boot(pytestconfig, tmp_path_factory, "tests/uml_guest_can", "uml-can-faults", FAULTS_BOOT_TIMEOUT_S,
                  per_test_timeout_s=uml.CAN_BENCH_TEST_TIMEOUT_S)
 
 
@@ -82,12 +84,12 @@ GUEST_CAN_UTILS = [
 
 
 @pytest.fixture(scope="module")
-def can_utils_guest(tmp_path_factory):
+def can_utils_guest(pytestconfig, tmp_path_factory):
     if not shutil.which("cansend"):   # installed by the project's system-deps script where it can
         subprocess.run(["bash", str(uml.INSTALL_DEPS)], capture_output=True, timeout=uml.INSTALL_TIMEOUT_S)
         if not shutil.which("cansend"):
             pytest.skip("can-utils is not installed (tools/install-system-deps.sh installs it as root)")
-    return _boot(tmp_path_factory, "tests/uml_guest_canutils", "uml-can-utils", CAN_UTILS_BOOT_TIMEOUT_S)
+    return _boot(pytestconfig, tmp_path_factory, "tests/uml_guest_canutils", "uml-can-utils", CAN_UTILS_BOOT_TIMEOUT_S)
 
 
 @pytest.mark.timeout(CAN_UTILS_BOOT_TIMEOUT_S + 60)
@@ -98,7 +100,8 @@ def test_can_utils_on_kernel_vcan(can_utils_guest, name):
 
 # --- the attitude loop over the kernel's SocketCAN (tests/uml_guest_attitude/) -------------------
 # Real-time `bench run`s, one after the other: attitude_detumble_socketcan with dropped commands
-# (12 s of real time) and attitude_fault_all (30 s); then the pointing hold cut short (lock-step).
+# (12 s of real time) and, as a study (`make studies`: 66 s of the guest's one CPU),
+# attitude_fault_all (30 s); then the pointing hold cut short (lock-step).
 # Six processes a run on UML's one CPU. Measured: docs/can-bus.md.
 ATTITUDE_TEST_TIMEOUT_S = 960     # each guest test; its `bench run` is bounded at 900 s inside
 # Hang bounds: the two real-time runs and the lock-step run.
@@ -109,14 +112,14 @@ ATTITUDE_BOOT_TIMEOUT_S = 3 * ATTITUDE_TEST_TIMEOUT_S + 120
 ATTITUDE_GUEST_MEM = "3G"
 GUEST_ATTITUDE = [
     "test_attitude_detumble_with_dropped_commands_over_kernel_socketcan",
-    "test_attitude_fault_scenario_over_kernel_socketcan[attitude_fault_all]",
+    pytest.param("test_attitude_fault_scenario_over_kernel_socketcan[attitude_fault_all]", marks=pytest.mark.study),
     "test_pointing_hold_over_kernel_socketcan",
 ]
 
 
 @pytest.fixture(scope="module")
-def attitude_guest(tmp_path_factory):
-    return _boot(tmp_path_factory, "tests/uml_guest_attitude", "uml-can-attitude", ATTITUDE_BOOT_TIMEOUT_S,
+def attitude_guest(pytestconfig, tmp_path_factory):
+    return _boot(pytestconfig, tmp_path_factory, "tests/uml_guest_attitude", "uml-can-attitude", ATTITUDE_BOOT_TIMEOUT_S,
                  per_test_timeout_s=ATTITUDE_TEST_TIMEOUT_S, mem=ATTITUDE_GUEST_MEM)
 
 

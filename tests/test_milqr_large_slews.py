@@ -98,7 +98,8 @@ def test_wall_time_cap_covers_all_starts(model):
     assert result.info["starts_skipped"] == ["long", "given"]
 
 
-@pytest.mark.parametrize("angle_deg,seed", [(160.0, 5), (179.0, 6)])
+# The near-180-degree edge in every test run; 160 degrees as a study.
+@pytest.mark.parametrize("angle_deg,seed", [pytest.param(160.0, 5, marks=pytest.mark.study), (179.0, 6)])
 def test_large_slew_reaches_ipopt_cost(model, angle_deg, seed):
     """IPOPT from zero dipoles (nothing of MILQR's) and from MILQR's answer (can it still be improved?);
     MILQR within 1 % of the better. Before issue 27's remedy MILQR ended at 0.4384 on the 179-degree

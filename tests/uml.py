@@ -117,12 +117,14 @@ def run_pytest(selection: list[str], job_dir: Path, *, timeout_s: float = 60,
 
 
 def guest_session(guest_dir: Path, job_dir: Path, timeout_s: float, per_test_timeout_s: float = PER_TEST_TIMEOUT_S,
-                  mem: str = DEFAULT_MEM):
-    """Run a guest pytest directory in one UML boot; skip (with UML's reason) where it cannot boot."""
+                  mem: str = DEFAULT_MEM, markexpr: str = ""):
+    """Run a guest pytest directory in one UML boot; skip (with UML's reason) where it cannot boot.
+    markexpr: the host run's -m, so the guest selects what the host does (studies or not)."""
     import pytest
 
+    selection = [*(("-m", markexpr) if markexpr else ()), str(guest_dir)]
     try:
-        return run_pytest([guest_dir], job_dir, timeout_s=timeout_s, per_test_timeout_s=per_test_timeout_s, mem=mem)
+        return run_pytest(selection, job_dir, timeout_s=timeout_s, per_test_timeout_s=per_test_timeout_s, mem=mem)
     except UmlUnavailable as exc:
         pytest.skip(str(exc))
 

@@ -4,8 +4,8 @@ Runs inside user-mode Linux (tests/test_kernel_can_uml.py boots it, with the det
 guest_attitude_socketcan.py in the same boot). Each built-in scenario keeps everything but its
 bus (tests/uml_guest_attitude/socketcan_scenarios.py): `transport = "socketcan"` on a vcan pair of
 its own. Each test checks what the scenario's own run checks over the portable Zenoh transport:
-- attitude_fault_all (real time, whole: every fault the bench injects, one after the other, in
-  30 s): the criteria verdict PASS (the detumble goes on, the driver detected each fault's kind,
+- attitude_fault_all (a study, `make studies`; real time, whole: every fault the bench injects,
+  one after the other, in 30 s): the criteria verdict PASS (the detumble goes on, the driver detected each fault's kind,
   the board is healthy at the end), the driver's event kinds for each fault injected (as
   tests/test_attitude_processes.py), and no command applied that the law did not give (plant and
   board side). It runs alone: real-time runs at once on the guest's one CPU starve each other.
@@ -78,14 +78,24 @@ def one_run(runs_dir: Path, name: str, index: int):
                          timeout_s=RUN_TIMEOUT_S)
 
 
+def selected_runs(session) -> set[str]:
+    """The scenarios of the tests this session runs (attitude_fault_all is a study: `-m study`)."""
+    names = set()
+    for item in session.items:
+        if item.module.__name__ == __name__:
+            names.add(item.callspec.params["scenario"] if hasattr(item, "callspec") else HOLD)
+    return names
+
+
 @pytest.fixture(scope="module")
-def runs(tmp_path_factory) -> dict[str, Future]:
-    """Every run started in the background (the real-time ones one at a time, then the lock-step
-    ones at once); each test waits for its own."""
+def runs(request, tmp_path_factory) -> dict[str, Future]:
+    """Every selected run started in the background (the real-time ones one at a time, then the
+    lock-step ones at once); each test waits for its own."""
     runs_dir = tmp_path_factory.mktemp("socketcan-runs")
+    selected = selected_runs(request.session)
     vcan.up(tuple(name for i in range(len(ORDER)) for name in vcan_pair(i)))
     real_time, lock_step = ThreadPoolExecutor(max_workers=1), ThreadPoolExecutor(max_workers=len(LOCK_STEP))
-    futures = {name: real_time.submit(one_run, runs_dir, name, ORDER.index(name)) for name in REAL_TIME}
+    futures = {name: real_time.submit(one_run, runs_dir, name, ORDER.index(name)) for name in REAL_TIME if name in selected}
     real_time_runs = list(futures.values())
 
     def after_the_real_time_runs(name):
@@ -93,7 +103,7 @@ def runs(tmp_path_factory) -> dict[str, Future]:
             future.exception()            # waits; a failed run is its own test's failure
         return one_run(runs_dir, name, ORDER.index(name))
 
-    waiting = {name: lock_step.submit(after_the_real_time_runs, name) for name in LOCK_STEP}
+    waiting = {name: lock_step.submit(after_the_real_time_runs, name) for name in LOCK_STEP if name in selected}
     futures.update(waiting)
     futures["runs_dir"] = runs_dir
     yield futures
@@ -154,7 +164,9 @@ def lockstep_failures(run) -> list[str]:
     return []
 
 
-@pytest.mark.parametrize("scenario", FAULT_SCENARIOS)
+# A study (`make studies`): 66 s of UML's one CPU; the kernel's CAN faults are checked in every
+# test run by tests/uml_guest_can, and each fault's detection over the portable transport.
+@pytest.mark.parametrize("scenario", [pytest.param(name, marks=pytest.mark.study) for name in FAULT_SCENARIOS])
 def test_attitude_fault_scenario_over_kernel_socketcan(runs, scenario):
     run, metrics = finished_run(runs, scenario)
     # Safety first, whatever the host did: nothing the law did not command moved the coils.
