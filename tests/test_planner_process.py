@@ -182,9 +182,13 @@ def test_planned_slew_as_processes_tracks_every_plan_and_ignores_bad_plans(slew_
 def test_lock_step_planned_slew_as_processes_equals_the_in_process_loop_with_a_slow_planner(tmp_path):
     """100 steps (the first plan at step 30, a scheduled replan at step 70) with every plan held
     back 2 s before the planner publishes it: the controller waits for the plan the replan rule
-    says is due, so the processes fly exactly the in-process loop (which plans in line)."""
+    says is due, so the processes fly exactly the in-process loop (which plans in line). Plan steps
+    of 60 s instead of the scenario's 20 s: a third of the MILQR steps per plan (each plan is made
+    twice, by the planner process and in process: 10 s -> 4 s of CPU for both), and when a plan
+    arrives does not depend on its size."""
     data = scenario_to_toml_dict(load_scenario("attitude_slew_milqr"))
     data["attitude_control"]["planner"]["replan_period_s"] = 40.0
+    data["attitude_control"]["planner"]["plan_step_s"] = 60.0
     data["controller"]["deadline"]["stress"] = {"process": "planner", "extra_cycle_time_s": 2.0, "kind": "sleep",
                                                 "every_nth_cycle": 1}
     path = tmp_path / "slow_planner.json"
