@@ -5,7 +5,8 @@ model with the fault injector, the board, the recorder.
 Simulated durations are kept short (a 1U CubeSat with 0.2 A m^2 coils: the first 300 s of a
 detumble at its 1 Hz loop, the first steps of a slew and of a hold); the convergence over orbits
 is checked in process in tests/test_attitude_loop.py (the detumble below 0.1 deg/s in every test
-run, the slew and the hold as studies, `make studies`): the lock-step test here shows the processes reproduce the in-process loop exactly.
+run, the slew and the hold as studies, `make studies`): the lock-step test here shows the
+processes reproduce the in-process loop exactly.
 """
 import json
 import tomllib

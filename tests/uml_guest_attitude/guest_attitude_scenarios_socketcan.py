@@ -8,7 +8,8 @@ its own. Each test checks what the scenario's own run checks over the portable Z
   one after the other, in 30 s): the criteria verdict PASS (the detumble goes on, the driver
   detected each fault's kind, the board is healthy at the end), the driver's event kinds for
   each fault injected (as tests/test_attitude_processes.py), and no command applied that the law
-  did not give (plant and board side). It runs alone: real-time runs at once on the guest's one CPU starve each other.
+  did not give (plant and board side). It runs alone: real-time runs at once on the guest's one
+  CPU starve each other.
   The four single-fault scenarios (each injects one of attitude_fault_all's faults; 30 s of real
   time each) run over both transports with their verdicts in
   benchmarks/can_fault_latency_transports.py;
