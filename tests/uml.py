@@ -99,7 +99,7 @@ def run_pytest(selection: list[str], job_dir: Path, *, timeout_s: float = 60,
     """
     junit = job_dir / "junit.xml"
     # -n 0: the guest's tests run one at a time (pyproject's addopts spreads the host's suite over
-    # two xdist workers; two CAN benches at once would share the guest's vcan0/vcan1).
+    # xdist workers; two CAN benches at once would share the guest's vcan0/vcan1).
     command = [sys.executable, "-m", "pytest", "-q", "-n", "0", "-p", "no:cacheprovider", "-o", "python_files=guest_*.py",
                f"--junitxml={junit}", f"--basetemp={job_dir / 'tmp'}", f"--timeout={per_test_timeout_s:g}", *selection]
     result = run(command, job_dir, timeout_s=timeout_s, mem=mem)
