@@ -91,6 +91,19 @@ def test_detumble_over_the_bus_only_applies_commanded_dipoles_and_slows_the_body
     assert "## Attitude" in report and (detumble_run.run_dir / "plots" / "dipole.png").exists()
 
 
+def test_the_driver_hands_the_board_back_at_the_end_without_a_command_timeout(detumble_run):
+    """At the end the flight side puts the board in pre-operational (CiA 301 NMT) before its
+    commands stop: the board is left pre-operational, and its log has no command timeout that the
+    driver did not see during the run (before, every run ended with one, and its warning)."""
+    from bench.bus.can import protocol as p
+    board = json.loads((detumble_run.run_dir / "can" / "board.json").read_text())
+    assert board["nmt_state"] == p.NMT_PRE_OPERATIONAL
+    driver = json.loads((detumble_run.run_dir / "can" / "driver.json").read_text())
+    seen = sum(e["kind"] == "board_command_timeout" for e in driver["events"])
+    logged = (detumble_run.run_dir / "logs" / "mtq.log").read_text().count("no valid command")
+    assert logged <= seen, f"{logged} command timeouts in the board's log, {seen} seen by the driver"
+
+
 # --- the smoother in the loop: pointing hold ----------------------------------------------------
 POINTING_BOUND_DEG = 3.5     # from 3 deg, 60 s; in process the full 300 s stays below 3.02 deg (PD, 2.21 at the end)
 

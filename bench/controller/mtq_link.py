@@ -22,6 +22,7 @@ import time
 from dataclasses import asdict
 
 from bench.bus import keys
+from bench.bus.can import protocol as p
 from bench.bus.can.config import CanConfig
 from bench.bus.can.driver import BoardHealth, CommandLoop, FaultEvent, MagnetorquerDriver
 from bench.bus.can.nodes import can_dir, open_node_bus
@@ -44,7 +45,7 @@ class MagnetorquerLink:
                                 dipole_at=config.dipole_at if scripted else None, on_events=self._log_events,
                                 transmission="cyclic" if scripted else config.driver.transmission,
                                 first_command_by_law=not scripted)
-        self._thread = threading.Thread(target=self.loop.run, args=(ctx.stop,), name="mtq-driver", daemon=True)
+        self._thread = threading.Thread(target=self._command_until_stopped, name="mtq-driver", daemon=True)
 
     def _log_events(self, events: list[FaultEvent]) -> None:
         _log_events(self.ctx, events)
@@ -53,6 +54,14 @@ class MagnetorquerLink:
         if hasattr(self.bus, "wait_for_peers"):
             self.bus.wait_for_peers(1, 10.0)   # Zenoh delivers only to buses it already knows
         self._thread.start()
+
+    def _command_until_stopped(self) -> None:
+        """The command loop until the node stops; then the board is put in pre-operational
+        (CiA 301 NMT) at once, on this thread (the driver is not thread-safe). An NMT master that
+        stops its PDOs on purpose says so: the board switches its coils off instead of logging a
+        command timeout at the end of every run (the launcher stops the flight side first)."""
+        self.loop.run(self.ctx.stop)
+        self.driver.nmt(p.NMT_ENTER_PRE_OPERATIONAL)
 
     def stop(self) -> None:
         """Join the command thread (ctx.stop is set by now) and write what the driver saw."""
