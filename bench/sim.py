@@ -12,7 +12,7 @@ from bench.controller.attitude_cycle import AttitudeCycle
 from bench.controller.config import PLANNED_LAWS
 from bench.controller.cycle import ControlCycle
 from bench.estimator.attitude_frontend import AttitudeEstimator
-from bench.estimator.frontend import StateEstimator
+from bench.estimator.frontend import StateEstimate, StateEstimator
 from bench.plant.attitude_plant import AttitudePlant
 from bench.plant.model import TranslationPlant
 from bench.plant.mtq_acceptance import DipoleAcceptance, board_dipole_without_bus
@@ -37,7 +37,11 @@ def simulate_in_process(scenario: Scenario) -> tuple[dict[str, np.ndarray], dict
         truth_m_mps = plant.navigation_state_m_mps
         estimate = estimator.step(k, plant.sim_time_s, truth_m_mps=truth_m_mps,
                                   thrust_commanded_n=thrust_n, **measured)
-        outcome = control.run(estimate.state_m_mps, estimate.mean_motion_radps)
+        if estimate is None:    # no fix yet: the controller coasts, as the processes do
+            estimate = StateEstimate(np.full(6, np.nan), None, None)
+            outcome = control.run(None)
+        else:
+            outcome = control.run(estimate.state_m_mps, estimate.mean_motion_radps)
         thrust_n = outcome.thrust_n
         cycles["solve_time_s"].append(float(outcome.info.get("solve_time", np.nan)))
         cycles["solver_iterations"].append(int(outcome.info.get("iterations", 0)))

@@ -99,3 +99,42 @@ def test_range_bearing_run_without_fixes_near_the_target(tmp_path, runs_dir):
     np.testing.assert_allclose(run.trajectory["thrust_n"], reference["thrust_n"], rtol=1e-9, atol=1e-15)
     metrics = msgspec.json.decode((runs_dir / "rb-near" / "metrics.json").read_bytes())
     assert all(not stats.get("malformed") for stats in metrics["process_stats"].values()), metrics["process_stats"]
+
+
+# --- no fix at the first step ------------------------------------------------------------------
+NO_FIRST_FIX = '''name = "rb_no_first_fix"
+[run]
+steps = 12
+[plant]
+initial_state_m_mps = [1000.0, 0.0, 0.0, 2.0, 0.0, 0.0]
+range_bearing_sensor.min_range_m = 1100.0
+[estimator]
+mode = "smoother"
+translation.sensor = "range_bearing"
+'''
+
+
+def test_a_run_whose_first_steps_have_no_fix_coasts_until_the_first_fix(tmp_path, runs_dir):
+    """The chaser starts 1000 m out, inside the sensor's 1100 m minimum range, moving away at
+    2 m/s: step 0 has no fix, the later ones do (1.2 km further at 600 s a step). The estimator
+    says it has no estimate (valid false), the controller commands zero thrust until it has one,
+    and the processes equal the in-process loop (before, the estimator published nothing at step
+    0, and the lock-step loop stalled waiting for its first command)."""
+    path = tmp_path / "rb_no_first_fix.toml"
+    path.write_text(NO_FIRST_FIX)
+    result = run_bench_cli("run", str(path), "--run-id", "rb-no-first-fix", "--runs-dir", str(runs_dir),
+                           "--no-progress", "--no-report", timeout_s=120)
+    assert result.returncode == 0, result.stderr[-2000:]
+    run = load_run(runs_dir / "rb-no-first-fix")
+    without_fix = [m.seq for m in run.on(keys.SENSE_RANGE_BEARING) if m.body["range_m"] is None]
+    assert without_fix == [0]
+    estimates = run.on(keys.ESTIMATE_TRANSLATION)
+    assert [m.body["valid"] for m in estimates] == [False] + [True] * 11
+    commands = run.on(keys.COMMAND_THRUST)
+    assert commands[0].body["status"] == "waiting_for_estimate" and commands[0].body["thrust_n"] == [0.0, 0.0, 0.0]
+    assert any(np.any(c.body["thrust_n"]) for c in commands[1:])     # the law flies once it has an estimate
+    reference, _ = simulate_in_process(parse_scenario(msgspec.toml.decode(NO_FIRST_FIX), "test"))
+    np.testing.assert_allclose(run.trajectory["state_m_mps"], reference["state_m_mps"], rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(run.trajectory["thrust_n"], reference["thrust_n"], rtol=1e-9, atol=1e-15)
+    deadline = msgspec.json.decode((runs_dir / "rb-no-first-fix" / "deadline_controller.json").read_bytes())
+    assert deadline["waiting_for_estimate_cycles"] == 1

@@ -95,6 +95,10 @@ class TranslationEstimate(Message, tag="estimate_translation"):
     nis: float | None = None
     nis_dof: NonNegInt = 0
     measurement_rejected: bool = False
+    # False before the estimator's first fix (no position known yet: a range/bearing sensor
+    # closer than its minimum range, say): state_m_mps is zeros and means nothing, and the
+    # controller commands zero thrust until an estimate is valid.
+    valid: bool = True
 
 
 class ThrustCommand(Message, tag="thrust"):

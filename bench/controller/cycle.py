@@ -16,6 +16,9 @@ from bench.runtime.deadline import CycleOutcome
 from bench.runtime.solver_worker import WorkerLaw, set_realtime_priority
 from bench.scenario import Scenario
 
+# The command's status in a cycle without a valid estimate (the law did not run; zero thrust).
+WAITING_FOR_ESTIMATE = "waiting_for_estimate"
+
 
 class ControlCycle:
     """Real-time mode runs the law in a solver worker process (the command leaves by the deadline
@@ -44,10 +47,18 @@ class ControlCycle:
                                        apply_fallback=real_time)
         self.max_abs_thrust_n = self.law.params.max_abs_thrust_n
         self.saturated_cycles = 0
+        self.waiting_for_estimate_cycles = 0
 
-    def run(self, state_m_mps: np.ndarray, mean_motion_radps: float | None = None,
+    def run(self, state_m_mps: np.ndarray | None, mean_motion_radps: float | None = None,
             start_ns: int | None = None) -> CycleOutcome:
-        """start_ns: when the estimate arrived, so time spent queued counts against the budget."""
+        """start_ns: when the estimate arrived, so time spent queued counts against the budget.
+        state_m_mps None: no valid estimate yet (before the estimator's first fix); the law does
+        not run and the thrust is zero, as the attitude loop switches its coils off."""
+        if state_m_mps is None:
+            self.waiting_for_estimate_cycles += 1
+            return CycleOutcome(np.zeros(3), {"status": WAITING_FOR_ESTIMATE, "ctrl_feas": True},
+                                cycle_index=-1, cycle_time_s=0.0, budget_s=self.monitor.budget_s,
+                                missed=False, consecutive_misses=0, fallback=None)
         if self.law.update_model(mean_motion_radps) and self.worker is not None:
             self.worker.replace(self.law.factory)
         compute = self.worker if self.worker is not None else self.law.controller.eval
@@ -60,6 +71,7 @@ class ControlCycle:
 
     def summary(self) -> dict:
         out = self.monitor.summary() | {"saturated_cycles": self.saturated_cycles,
+                                        "waiting_for_estimate_cycles": self.waiting_for_estimate_cycles,
                                         "model_updates": self.law.model_updates}
         if self.worker is not None:
             out["solver_worker"] = self.worker.stats.summary()

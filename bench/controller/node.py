@@ -33,7 +33,8 @@ def run(ctx: NodeContext) -> int:
     for estimate in ctx.until_stopped(estimates):
         received_ns = time.monotonic_ns()
         hdr = estimate.header.stamped("controller_received", received_ns)
-        outcome = control.run(np.array(estimate.state_m_mps), estimate.mean_motion_radps, start_ns=received_ns)
+        state_m_mps = np.array(estimate.state_m_mps) if estimate.valid else None
+        outcome = control.run(state_m_mps, estimate.mean_motion_radps, start_ns=received_ns)
         hdr = hdr.stamped("commanded", time.monotonic_ns())
         info = outcome.info
         ctx.publish(keys.COMMAND_THRUST, ThrustCommand(

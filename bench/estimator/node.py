@@ -81,9 +81,12 @@ def run(ctx: NodeContext) -> int:
                 continue
             thrust_n = history.thrust_for(k - 1, command_wait_s) if k > 0 else np.zeros(3)
             estimate = estimator.step(k, hdr.sim_time_s, thrust_commanded_n=thrust_n, **measured)
-        if estimate is None:
-            continue
         hdr = hdr.stamped("estimated", time.monotonic_ns())
+        if estimate is None:
+            # No fix yet: say so every step, so the loop goes on (the controller coasts) instead
+            # of waiting for an estimate that cannot come.
+            ctx.publish(keys.ESTIMATE_TRANSLATION, TranslationEstimate(hdr, [0.0] * 6, valid=False))
+            continue
         covariance = None if estimate.covariance is None else estimate.covariance.ravel().tolist()
         ctx.publish(keys.ESTIMATE_TRANSLATION, TranslationEstimate(
             hdr, estimate.state_m_mps.tolist(), covariance, estimate.mean_motion_radps,

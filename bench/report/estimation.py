@@ -79,7 +79,7 @@ def estimation_error(run: RunData) -> EstimationResult | None:
     truth = {m.seq: m.body for m in run.on(keys.TRUTH)}
     rows = []
     for m in run.on(keys.ESTIMATE_TRANSLATION):
-        if m.seq not in truth:
+        if m.seq not in truth or not m.body.get("valid", True):   # no estimate before the first fix
             continue
         error = np.asarray(m.body["state_m_mps"]) - np.asarray(truth[m.seq]["state_m_mps"])
         cov = m.body.get("covariance")
