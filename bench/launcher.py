@@ -278,6 +278,11 @@ def _check_liveliness(children: list[Child], lost: dict[str, TokenLoss], livelin
     A node starved of CPU on a busy machine may miss its lease too; it is still runnable and its
     token comes back, so it is not called hung before hang_timeout_s. `final`: the run is ending
     anyway (a peer gave up on it): any node still without its token is the cause to name.
+
+    A zombie (state Z) has exited: its exit status, once its parent collects it, says how it
+    ended. It is not called hung; only one whose status stays uncollected for another
+    hang_timeout_s is named, as such. (Seen on a loaded machine: a plant that had finished its run
+    stayed a zombie for over 15 s, its process not yet fully exited, and the run was called failed.)
     """
     now = time.monotonic()
     for name, loss in list(lost.items()):
@@ -288,6 +293,11 @@ def _check_liveliness(children: list[Child], lost: dict[str, TokenLoss], livelin
         if state is None:
             continue
         away_s = now - loss.since_s
+        if state.state == "Z":
+            if away_s >= 2 * liveliness.hang_timeout_s:
+                raise NodeFailed(f"process '{name}' (pid {child.process.pid}) exited, but its exit status was not "
+                                 f"collected {away_s:.1f} s after its liveliness token went (state Z)")
+            continue
         progress = "no CPU progress" if loss.cpu_ticks == state.cpu_ticks else "CPU time still advancing"
         if state.stopped and (final or away_s >= liveliness.stopped_grace_s):
             raise NodeFailed(

@@ -2,6 +2,7 @@
 is merely starved (runnable, CPU time advancing) is given until hang_timeout_s."""
 from __future__ import annotations
 
+import os
 import signal
 import subprocess
 import sys
@@ -65,6 +66,34 @@ def test_a_token_gone_past_the_hang_timeout_is_hung_even_if_running(busy_child):
     lost = {"controller": TokenLoss(time.monotonic() - 16.0, -1)}     # it used CPU since
     with pytest.raises(NodeFailed, match="stopped answering on Zenoh.*CPU time still advancing"):
         _check_liveliness([busy_child], lost, LIVELINESS)
+
+
+class _Uncollected:
+    """A process whose exit its parent has not collected yet, as a zygote-forked node's can look
+    to the launcher for a while (poll() None, /proc state Z)."""
+
+    def __init__(self, pid: int):
+        self.pid = pid
+
+    def poll(self):
+        return None
+
+
+def test_an_exited_process_not_yet_collected_is_not_called_hung(tmp_path):
+    pid = os.fork()
+    if pid == 0:
+        os._exit(0)
+    try:
+        wait_state(pid, "Z")
+        child = Child("plant", _Uncollected(pid), tmp_path / "plant.log")
+        lost = {"plant": TokenLoss(time.monotonic() - 16.0, 0)}       # past hang_timeout_s: exited, not hung
+        _check_liveliness([child], lost, LIVELINESS)
+        _check_liveliness([child], lost, LIVELINESS, final=True)
+        lost["plant"] = TokenLoss(time.monotonic() - 31.0, 0)         # uncollected for another hang_timeout_s
+        with pytest.raises(NodeFailed, match=r"process 'plant' .* exited, but its exit status was not collected"):
+            _check_liveliness([child], lost, LIVELINESS)
+    finally:
+        os.waitpid(pid, 0)
 
 
 def test_a_peer_whose_token_comes_back_is_not_lost():
