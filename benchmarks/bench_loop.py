@@ -13,12 +13,16 @@ Each repeat measures, one after the other so all three see the same load:
    hops from the messages' stage stamps (plant sensed -> estimator received, estimated ->
    controller received, commanded -> plant received: encoding, publishing, Zenoh, decoding and
    the hand-off to the node's thread), and the start-up (command start to the plant's first step,
-   its "peers ready" log line).
+   its "peers ready" log line);
+4. the attitude loop through the CAN nodes: `bench run attitude_quick --steps M` (plant,
+   estimator, controller with the flight-side driver, bus model, board: lock-step) against the
+   in-process attitude loop of the same scenario (bench.sim.simulate_attitude_in_process), each
+   from the first step's sample to the last step's.
 
-    PYTHONPATH=$PWD .venv/bin/python benchmarks/bench_loop.py [--repeats 3] [--steps 2000]
+    PYTHONPATH=$PWD .venv/bin/python benchmarks/bench_loop.py [--repeats 3] [--steps 2000] [--attitude-steps 600]
 
-Prints one line per repeat and measure, then the medians, the issue 23 targets (loop at least 1/3
-of the in-process rate, hop inside the loop at most 1.3x raw at p50) and a JSON summary.
+Prints one line per repeat and measure, then the medians, the issue 23 targets (each loop at least
+1/3 of its in-process rate, hop inside the loop at most 1.3x raw at p50) and a JSON summary.
 """
 from __future__ import annotations
 
@@ -39,7 +43,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))   # bench_startup, besi
 from bench_startup import first_step_wall_s  # noqa: E402
 
 from bench.scenario import load_scenario  # noqa: E402
-from bench.sim import simulate_in_process  # noqa: E402
+from bench.sim import simulate_attitude_in_process, simulate_in_process  # noqa: E402
 
 import bench  # noqa: E402
 
@@ -47,6 +51,7 @@ import bench  # noqa: E402
 # same script measures another checkout's code (before/after comparisons).
 CHECKOUT = Path(bench.__file__).resolve().parent.parent
 SCENARIO = "rendezvous_lqr"           # `bench run`'s default
+ATTITUDE_SCENARIO = "attitude_quick"  # the attitude card: lock-step through the CAN nodes
 HOPS = (("sensed", "estimator_received"), ("estimated", "controller_received"), ("commanded", "plant_received"))
 PING_KEY, PONG_KEY = "bench-loop/raw/ping", "bench-loop/raw/pong"
 TARGET_RATE_FRACTION = 1 / 3
@@ -59,6 +64,27 @@ def in_process_rate_hz(steps: int) -> float:
     started = time.perf_counter()
     simulate_in_process(scenario)
     return steps / (time.perf_counter() - started)
+
+
+def attitude_in_process_rate_hz(steps: int) -> float:
+    scenario = load_scenario(ATTITUDE_SCENARIO)
+    scenario = msgspec.structs.replace(scenario, run=msgspec.structs.replace(scenario.run, steps=steps))
+    started = time.perf_counter()
+    simulate_attitude_in_process(scenario)
+    return steps / (time.perf_counter() - started)
+
+
+def attitude_multiprocess_rate_hz(steps: int, runs_dir: Path, run_id: str) -> float:
+    """Steps per second of `bench run attitude_quick` from step 0's sample to the last step's
+    (start-up and stop excluded)."""
+    cmd = [sys.executable, "-m", "bench.cli", "run", ATTITUDE_SCENARIO, "--steps", str(steps), "--run-id", run_id,
+           "--runs-dir", str(runs_dir), "--no-progress", "--no-report"]
+    result = subprocess.run(cmd, cwd=CHECKOUT, capture_output=True, text=True)
+    if result.returncode != 0:
+        raise SystemExit(f"bench run {ATTITUDE_SCENARIO} exited with {result.returncode}:\n{result.stderr[-2000:]}")
+    with np.load(runs_dir / run_id / "trajectory.npz") as data:
+        sensed = data["stamp_sensed_ns"]
+    return (len(sensed) - 1) / ((sensed[-1] - sensed[0]) / 1e9)
 
 
 # ---- the raw hop ------------------------------------------------------------------------------
@@ -162,12 +188,13 @@ def main() -> int:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--steps", type=int, default=2000, help="lock-step steps per run (default 2000)")
     parser.add_argument("--raw-samples", type=int, default=2000, help="raw ping-pongs per repeat (default 2000)")
+    parser.add_argument("--attitude-steps", type=int, default=600, help="attitude_quick steps per run (default 600)")
     args = parser.parse_args()
-    for name in ("repeats", "steps", "raw_samples"):
+    for name in ("repeats", "steps", "raw_samples", "attitude_steps"):
         if getattr(args, name) < 1:
             parser.error(f"--{name.replace('_', '-')} must be at least 1, got {getattr(args, name)}")
     load_before = os.getloadavg()[0]
-    baseline, raw, runs = [], [], []
+    baseline, raw, runs, attitude_baseline, attitude_runs = [], [], [], [], []
     with tempfile.TemporaryDirectory(prefix="bench-loop-") as scratch:
         for i in range(args.repeats):
             baseline.append(in_process_rate_hz(args.steps))
@@ -179,6 +206,10 @@ def main() -> int:
             print(f"repeat {i + 1}: lock-step {run['rate_hz']:8.0f} cycles/s, hop in the loop "
                   f"{_pct_text(percentiles(run['hops_us'].ravel()), 'us', 1)}, start-up {run['startup_s']:.2f} s",
                   file=sys.stderr)
+            attitude_baseline.append(attitude_in_process_rate_hz(args.attitude_steps))
+            attitude_runs.append(attitude_multiprocess_rate_hz(args.attitude_steps, Path(scratch), f"bench-loop-att-{i}"))
+            print(f"repeat {i + 1}: attitude in-process {attitude_baseline[-1]:8.0f} steps/s, "
+                  f"through the CAN nodes {attitude_runs[-1]:8.0f} steps/s", file=sys.stderr)
     load_after = os.getloadavg()[0]
     in_process = float(np.median(baseline))
     lockstep = float(np.median([r["rate_hz"] for r in runs]))
@@ -199,7 +230,12 @@ def main() -> int:
         "hop_ratio_p90": hop_p["p90"] / raw_p["p90"],
         "sense_to_actuation_ms": percentiles(latency_ms),
         "startup_to_first_step_s": percentiles(np.array([r["startup_s"] for r in runs])),
+        "attitude_scenario": ATTITUDE_SCENARIO, "attitude_steps": args.attitude_steps,
+        "attitude_in_process_steps_per_s_median": float(np.median(attitude_baseline)),
+        "attitude_lockstep_steps_per_s_median": float(np.median(attitude_runs)),
     }
+    result["attitude_lockstep_fraction_of_in_process"] = (result["attitude_lockstep_steps_per_s_median"]
+                                                          / result["attitude_in_process_steps_per_s_median"])
     print(f"{SCENARIO}, {args.steps} steps, {args.repeats} repeats, {os.cpu_count()} CPUs, "
           f"load average (1 min) {load_before:.2f} before, {load_after:.2f} after")
     print(f"in-process simulation       : {in_process:9.0f} steps/s (baseline)")
@@ -215,6 +251,11 @@ def main() -> int:
     print(f"sense-to-actuation latency  : {_pct_text(lat, 'ms', 2)}, max {lat['max']:.2f} ms ({latency_ms.size} cycles)")
     start = result["startup_to_first_step_s"]
     print(f"bench run to first step     : p50 {start['p50']:.2f} s, max {start['max']:.2f} s")
+    fraction = result["attitude_lockstep_fraction_of_in_process"]
+    print(f"{ATTITUDE_SCENARIO}, {args.attitude_steps} steps: in process "
+          f"{result['attitude_in_process_steps_per_s_median']:.0f} steps/s, through the CAN nodes "
+          f"{result['attitude_lockstep_steps_per_s_median']:.0f} steps/s ({fraction:.2f}x; target >= "
+          f"{TARGET_RATE_FRACTION:.2f}x: {'met' if fraction >= TARGET_RATE_FRACTION else 'NOT met'})")
     print(json.dumps(result))
     return 0
 
