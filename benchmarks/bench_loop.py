@@ -58,31 +58,29 @@ TARGET_RATE_FRACTION = 1 / 3
 TARGET_HOP_RATIO = 1.3
 
 
-def in_process_rate_hz(steps: int) -> float:
-    scenario = load_scenario(SCENARIO)
+def in_process_rate_hz(scenario_name: str, simulate, steps: int) -> float:
+    """Steps per second of `simulate` (bench.sim's in-process loop) over the scenario cut to `steps`."""
+    scenario = load_scenario(scenario_name)
     scenario = msgspec.structs.replace(scenario, run=msgspec.structs.replace(scenario.run, steps=steps))
     started = time.perf_counter()
-    simulate_in_process(scenario)
+    simulate(scenario)
     return steps / (time.perf_counter() - started)
 
 
-def attitude_in_process_rate_hz(steps: int) -> float:
-    scenario = load_scenario(ATTITUDE_SCENARIO)
-    scenario = msgspec.structs.replace(scenario, run=msgspec.structs.replace(scenario.run, steps=steps))
-    started = time.perf_counter()
-    simulate_attitude_in_process(scenario)
-    return steps / (time.perf_counter() - started)
+def bench_run(scenario_name: str, steps: int, runs_dir: Path, run_id: str) -> Path:
+    """`bench run` of the scenario cut to `steps`, from CHECKOUT, without its report; the run's directory."""
+    cmd = [sys.executable, "-m", "bench.cli", "run", scenario_name, "--steps", str(steps), "--run-id", run_id,
+           "--runs-dir", str(runs_dir), "--no-progress", "--no-report"]
+    result = subprocess.run(cmd, cwd=CHECKOUT, capture_output=True, text=True)
+    if result.returncode != 0:
+        raise SystemExit(f"bench run {scenario_name} exited with {result.returncode}:\n{result.stderr[-2000:]}")
+    return runs_dir / run_id
 
 
 def attitude_multiprocess_rate_hz(steps: int, runs_dir: Path, run_id: str) -> float:
     """Steps per second of `bench run attitude_quick` from step 0's sample to the last step's
     (start-up and stop excluded)."""
-    cmd = [sys.executable, "-m", "bench.cli", "run", ATTITUDE_SCENARIO, "--steps", str(steps), "--run-id", run_id,
-           "--runs-dir", str(runs_dir), "--no-progress", "--no-report"]
-    result = subprocess.run(cmd, cwd=CHECKOUT, capture_output=True, text=True)
-    if result.returncode != 0:
-        raise SystemExit(f"bench run {ATTITUDE_SCENARIO} exited with {result.returncode}:\n{result.stderr[-2000:]}")
-    with np.load(runs_dir / run_id / "trajectory.npz") as data:
+    with np.load(bench_run(ATTITUDE_SCENARIO, steps, runs_dir, run_id) / "trajectory.npz") as data:
         sensed = data["stamp_sensed_ns"]
     return (len(sensed) - 1) / ((sensed[-1] - sensed[0]) / 1e9)
 
@@ -160,13 +158,8 @@ def raw_hop_us(samples: int) -> np.ndarray:
 # ---- the multi-process loop -------------------------------------------------------------------
 def multiprocess_run(steps: int, runs_dir: Path, run_id: str) -> dict:
     """Loop rate, hop latencies (us), sense-to-actuation latency (ms) and start-up (s) of one run."""
-    cmd = [sys.executable, "-m", "bench.cli", "run", SCENARIO, "--steps", str(steps), "--run-id", run_id,
-           "--runs-dir", str(runs_dir), "--no-progress", "--no-report"]
     started_wall = time.time()
-    result = subprocess.run(cmd, cwd=CHECKOUT, capture_output=True, text=True)
-    if result.returncode != 0:
-        raise SystemExit(f"bench run exited with {result.returncode}:\n{result.stderr[-2000:]}")
-    with np.load(runs_dir / run_id / "trajectory.npz") as data:
+    with np.load(bench_run(SCENARIO, steps, runs_dir, run_id) / "trajectory.npz") as data:
         stamps = {key[len("stamp_"):-len("_ns")]: data[key] for key in data.files if key.startswith("stamp_")}
     sensed, received = stamps["sensed"], stamps["plant_received"]
     loop_s = (received[-1] - sensed[0]) / 1e9   # first sample to last command: the loop itself
@@ -197,7 +190,7 @@ def main() -> int:
     baseline, raw, runs, attitude_baseline, attitude_runs = [], [], [], [], []
     with tempfile.TemporaryDirectory(prefix="bench-loop-") as scratch:
         for i in range(args.repeats):
-            baseline.append(in_process_rate_hz(args.steps))
+            baseline.append(in_process_rate_hz(SCENARIO, simulate_in_process, args.steps))
             print(f"repeat {i + 1}: in-process {baseline[-1]:8.0f} steps/s", file=sys.stderr)
             raw.append(raw_hop_us(args.raw_samples))
             print(f"repeat {i + 1}: raw hop {_pct_text(percentiles(raw[-1]), 'us', 1)}", file=sys.stderr)
@@ -206,7 +199,7 @@ def main() -> int:
             print(f"repeat {i + 1}: lock-step {run['rate_hz']:8.0f} cycles/s, hop in the loop "
                   f"{_pct_text(percentiles(run['hops_us'].ravel()), 'us', 1)}, start-up {run['startup_s']:.2f} s",
                   file=sys.stderr)
-            attitude_baseline.append(attitude_in_process_rate_hz(args.attitude_steps))
+            attitude_baseline.append(in_process_rate_hz(ATTITUDE_SCENARIO, simulate_attitude_in_process, args.attitude_steps))
             attitude_runs.append(attitude_multiprocess_rate_hz(args.attitude_steps, Path(scratch), f"bench-loop-att-{i}"))
             print(f"repeat {i + 1}: attitude in-process {attitude_baseline[-1]:8.0f} steps/s, "
                   f"through the CAN nodes {attitude_runs[-1]:8.0f} steps/s", file=sys.stderr)
