@@ -10,10 +10,10 @@ import pytest
 from bench.bus.can.faults import FaultSpec
 from bench.scenario import load_scenario
 from bench.studies.attitude_comparison import coils_off_window
-from bench.studies.campaign import CampaignError, load_spec, read_rows, run_campaign
+from bench.studies.campaign import CampaignError, load_spec
 from bench.studies.fault_bus import BusCoSimulation
-from bench.studies.fault_campaign import effect_metrics, expand, parse_spec
-from test_campaign import _assert_same_rows, tests_on_path  # noqa: F401 - the fixture
+from bench.studies.fault_campaign import effect_metrics, parse_spec
+from test_campaign import local_and_ray_rows, tests_on_path  # noqa: F401 - the fixture
 
 
 def tiny(spec, laws=None, faults=None, steps=20, start_s=5.0, duration_s=2.0):
@@ -84,19 +84,8 @@ def test_spec_errors_name_the_field():
 
 
 def test_local_and_ray_engines_give_identical_fault_rows(tmp_path, tests_on_path):  # noqa: F811
-    ray = pytest.importorskip("ray")
     spec = tiny(load_spec("attitude_faults"), laws=["bdot_rate_damping", "pd"], faults=["drop", "stuck_actuator"],
                 steps=12, start_s=3.0, duration_s=2.0)
-    local = run_campaign(spec, tmp_path / "local.parquet", engine="local", workers=2, show_progress=False)
-    assert local.ran == 4 and local.failed == 0
-    ray.init(address="local", num_cpus=2, object_store_memory=100 * 1024**2, include_dashboard=False,
-             log_to_driver=False)
-    try:
-        remote = run_campaign(spec, tmp_path / "ray.parquet", engine="ray", workers=2, show_progress=False)
-    finally:
-        ray.shutdown()
-    assert remote.ran == 4 and remote.failed == 0
-    rows = read_rows(tmp_path / "local.parquet")
-    _assert_same_rows(rows, read_rows(tmp_path / "ray.parquet"))
+    rows = local_and_ray_rows(spec, tmp_path, cases=4)
     drop = next(r for r in rows if r["fault"] == "drop" and r["mission"] == "detumble")
     assert drop["detected"] and drop["first_detection"] == "board_command_timeout" and drop["coils_off_s"] > 1.5
