@@ -11,8 +11,8 @@ STAMP := $(VENV)/.installed
 # clone runs what was tested; pyproject.toml keeps the open ranges for those who install the package
 # as a library. `make lock` recompiles the lock after a change to pyproject.toml, keeping every pin it
 # can; `make lock UPGRADE=--upgrade` moves every package to its newest allowed version.
-# pip compiles every installed file to bytecode (about 30 s of the install): where
-# PYTHONDONTWRITEBYTECODE is set (as on this project's machines) Python never writes the bytecode
+# pip compiles every installed file to bytecode (about 25 s of the install): where
+# PYTHONDONTWRITEBYTECODE is set (as on the project's CI machine) Python never writes the bytecode
 # it compiles on import, and every node process, report and test would compile matplotlib, scipy
 # and ray from source again (the imports of a node: 3.9-5.4 s without bytecode, 1.6-2.0 s with).
 $(STAMP): pyproject.toml requirements.lock
