@@ -13,39 +13,27 @@
 from __future__ import annotations
 
 import argparse
-import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
-import msgspec
 import numpy as np
 
-from bench.sim import simulate_attitude_in_process
-from bench.report.rundata import load_run
-from bench.scenario import load_scenario
+sys.path.insert(0, str(Path(__file__).resolve().parent))   # bench_loop, beside this file
+from bench_loop import attitude_multiprocess_rate_hz, bench_run, in_process_rate_hz  # noqa: E402
 
-
-def bench_run(runs: Path, scenario: str, run_id: str, *extra: str) -> Path:
-    cmd = [sys.executable, "-m", "bench.cli", "run", scenario, "--run-id", run_id, "--runs-dir", str(runs),
-           "--no-progress", "--no-report", *extra]
-    subprocess.run(cmd, check=True, capture_output=True, text=True, timeout=1800)
-    return runs / run_id
+from bench.sim import simulate_attitude_in_process  # noqa: E402
+from bench.report.rundata import load_run  # noqa: E402
+from bench.scenario import load_scenario  # noqa: E402
 
 
 def lockstep_rate(runs: Path, steps: int) -> dict:
-    run = load_run(bench_run(runs, "attitude_detumble", "lockstep", "--steps", str(steps)))
-    sensed = run.trajectory["stamp_sensed_ns"]
-    # Steps per second between the first and the last step (process start-up excluded).
-    multi = (len(sensed) - 1) / ((sensed[-1] - sensed[0]) / 1e9)
-    scenario = msgspec.structs.replace(load_scenario("attitude_detumble"),
-                                       run=msgspec.structs.replace(load_scenario("attitude_detumble").run, steps=steps))
-    started = time.perf_counter()
-    simulate_attitude_in_process(scenario)
-    single = steps / (time.perf_counter() - started)
+    # The two rates as benchmarks/bench_loop.py defines them (one definition of each figure).
+    multi = attitude_multiprocess_rate_hz("attitude_detumble", steps, runs, "lockstep")
+    single = in_process_rate_hz("attitude_detumble", simulate_attitude_in_process, steps)
+    step_s = load_scenario("attitude_detumble").step_s
     return {"steps": steps, "multi_process_steps_per_s": multi, "in_process_steps_per_s": single,
-            "ratio": multi / single, "real_time_margin_x": multi * scenario.step_s}
+            "ratio": multi / single, "real_time_margin_x": multi * step_s}
 
 
 def sense_to_torque(run_dir: Path) -> dict:
@@ -91,7 +79,7 @@ def main() -> int:
         print(f"lock-step, {rate['steps']} steps: {rate['multi_process_steps_per_s']:.1f} steps/s as processes over CAN, "
               f"{rate['in_process_steps_per_s']:.1f} steps/s in process (ratio {rate['ratio']:.2f}); "
               f"{rate['real_time_margin_x']:.1f}x faster than real time")
-        latency = sense_to_torque(bench_run(runs, "attitude_detumble_rt", "realtime", "--steps", str(args.rt_steps)))
+        latency = sense_to_torque(bench_run("attitude_detumble_rt", args.rt_steps, runs, "realtime"))
         print("real time (10 Hz, 100 ms cycle), sense-to-torque through CAN:")
         print(f"  {'hop':34s} {'n':>5s} {'p50 ms':>8s} {'p90 ms':>8s} {'p99 ms':>8s} {'max ms':>8s} {'p50 share':>10s} {'p99 share':>10s}")
         for hop, s in latency.items():

@@ -77,10 +77,10 @@ def bench_run(scenario_name: str, steps: int, runs_dir: Path, run_id: str) -> Pa
     return runs_dir / run_id
 
 
-def attitude_multiprocess_rate_hz(steps: int, runs_dir: Path, run_id: str) -> float:
-    """Steps per second of `bench run attitude_quick` from step 0's sample to the last step's
-    (start-up and stop excluded)."""
-    with np.load(bench_run(ATTITUDE_SCENARIO, steps, runs_dir, run_id) / "trajectory.npz") as data:
+def attitude_multiprocess_rate_hz(scenario_name: str, steps: int, runs_dir: Path, run_id: str) -> float:
+    """Steps per second of `bench run` of an attitude scenario from step 0's sample to the last
+    step's (start-up and stop excluded)."""
+    with np.load(bench_run(scenario_name, steps, runs_dir, run_id) / "trajectory.npz") as data:
         sensed = data["stamp_sensed_ns"]
     return (len(sensed) - 1) / ((sensed[-1] - sensed[0]) / 1e9)
 
@@ -200,7 +200,8 @@ def main() -> int:
                   f"{_pct_text(percentiles(run['hops_us'].ravel()), 'us', 1)}, start-up {run['startup_s']:.2f} s",
                   file=sys.stderr)
             attitude_baseline.append(in_process_rate_hz(ATTITUDE_SCENARIO, simulate_attitude_in_process, args.attitude_steps))
-            attitude_runs.append(attitude_multiprocess_rate_hz(args.attitude_steps, Path(scratch), f"bench-loop-att-{i}"))
+            attitude_runs.append(attitude_multiprocess_rate_hz(ATTITUDE_SCENARIO, args.attitude_steps, Path(scratch),
+                                                               f"bench-loop-att-{i}"))
             print(f"repeat {i + 1}: attitude in-process {attitude_baseline[-1]:8.0f} steps/s, "
                   f"through the CAN nodes {attitude_runs[-1]:8.0f} steps/s", file=sys.stderr)
     load_after = os.getloadavg()[0]
