@@ -3,12 +3,14 @@
 1. Lock-step loop rate: `bench run attitude_detumble --steps N` (six processes, the CAN bus on the
    portable Zenoh transport) against the in-process loop of the same scenario in the same run; the
    figure that travels between machines is the ratio.
-2. Sense-to-torque latency through CAN in real-time mode (`attitude_detumble_rt`): from the plant's
+2. Sense-to-torque latency through CAN in real-time mode (`--rt-scenario`, default
+   `attitude_detumble_rt`; `attitude_pointing_rt` is the pointing hold): from the plant's
    `sensed` stamp of step k to the board's `applied` stamp (coil drivers set) of the first command
    frame that carried step k's dipole (DipoleCommand.alive_counter joined with MtqApplied in the
-   recording), percentiles, and the share of the 100 ms cycle it uses; the per-hop split.
+   recording), percentiles, and the share of the cycle it uses; the per-hop split.
 
     PYTHONPATH=$PWD python benchmarks/bench_attitude_loop.py [--steps 600] [--rt-steps 300]
+        [--rt-scenario attitude_detumble_rt] [--no-lock-step]
 """
 from __future__ import annotations
 
@@ -71,16 +73,23 @@ def sense_to_torque(run_dir: Path) -> dict:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=600, help="lock-step steps (default 600)")
-    parser.add_argument("--rt-steps", type=int, default=300, help="real-time steps (default 300, 30 s)")
+    parser.add_argument("--rt-steps", type=int, default=300, help="real-time steps (default 300)")
+    parser.add_argument("--rt-scenario", default="attitude_detumble_rt",
+                        help="the real-time scenario (default attitude_detumble_rt)")
+    parser.add_argument("--no-lock-step", action="store_true", help="only the real-time latency")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         runs = Path(tmp)
-        rate = lockstep_rate(runs, args.steps)
-        print(f"lock-step, {rate['steps']} steps: {rate['multi_process_steps_per_s']:.1f} steps/s as processes over CAN, "
-              f"{rate['in_process_steps_per_s']:.1f} steps/s in process (ratio {rate['ratio']:.2f}); "
-              f"{rate['real_time_margin_x']:.1f}x faster than real time")
-        latency = sense_to_torque(bench_run("attitude_detumble_rt", args.rt_steps, runs, "realtime"))
-        print("real time (10 Hz, 100 ms cycle), sense-to-torque through CAN:")
+        if not args.no_lock_step:
+            rate = lockstep_rate(runs, args.steps)
+            print(f"lock-step, {rate['steps']} steps: {rate['multi_process_steps_per_s']:.1f} steps/s as processes "
+                  f"over CAN, {rate['in_process_steps_per_s']:.1f} steps/s in process (ratio {rate['ratio']:.2f}); "
+                  f"{rate['real_time_margin_x']:.1f}x faster than real time")
+        scenario = load_scenario(args.rt_scenario)
+        cycle_ms = scenario.step_s * 1e3 / scenario.run.time_factor
+        latency = sense_to_torque(bench_run(args.rt_scenario, args.rt_steps, runs, "realtime"))
+        print(f"real time, {args.rt_scenario} ({cycle_ms:.0f} ms cycle, {scenario.can.driver.transmission} "
+              f"transmission), sense-to-torque through CAN:")
         print(f"  {'hop':34s} {'n':>5s} {'p50 ms':>8s} {'p90 ms':>8s} {'p99 ms':>8s} {'max ms':>8s} {'p50 share':>10s} {'p99 share':>10s}")
         for hop, s in latency.items():
             print(f"  {hop:34s} {s['n']:5d} {s['p50_ms']:8.2f} {s['p90_ms']:8.2f} {s['p99_ms']:8.2f} {s['max_ms']:8.2f} "
