@@ -363,3 +363,19 @@ def test_real_time_smoother_with_the_magnetometer_in_coil_blanking_windows(runs)
     (estimator_stats,) = [m.body for m in run.on("status/stats/estimator")]
     assert estimator_stats["malformed"] == {}
     assert pointing_error_deg(run.trajectory, s).max() < POINTING_BOUND_DEG
+    # Each step's chain reaches the board when the board decoded the step's own frame, in a
+    # magnetometer window too (coils off): the recording's reports of that frame say when.
+    t = run.trajectory
+    decoded, decoded_paused = {}, set()
+    for m in run.on("actuator/mtq"):
+        stamps = m.body["header"]["stamps_ns"]
+        if "board_received" in stamps:
+            decoded.setdefault(m.body["alive_counter"], []).append(stamps["board_received"])
+            if m.body["actuation_paused"]:
+                decoded_paused.add(stamps["board_received"])
+    joined = [(k, min((r for r in decoded.get(int(t["att_alive_counter"][k]), []) if r >= t["stamp_can_sent_ns"][k]),
+                      default=-1)) for k in np.nonzero(t["stamp_board_received_ns"] > 0)[0]]
+    assert any(own in decoded_paused for _, own in joined), "no step's frame arrived in a magnetometer window"
+    wrong = [(k, (int(t["stamp_board_received_ns"][k]) - own) / 1e6) for k, own in joined
+             if t["stamp_board_received_ns"][k] != own]
+    assert wrong == [], f"steps joined to a later frame (ms later): {wrong[:10]}"

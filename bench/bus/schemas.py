@@ -186,6 +186,10 @@ class MtqApplied(Message, tag="mtq_applied"):
     safe_state: bool                 # coils off: no valid command within the command timeout
     actuation_paused: bool = False   # coils off for a magnetometer sampling window
     alive_counter: NonNegInt = 0
+    # The decoded command's dipole (quantised, saturated) that the coils take when not paused: in a
+    # magnetometer window dipole_am2 is zero while this is the command the frame carried. None where
+    # the board does not say (an external board's telemetry, lock-step reports).
+    target_dipole_am2: Vec3 | None = None
     # Lock-step on simulated time (bench/bus/can/lockstep_bus.py): one report per plant step, of the
     # coil drivers' output averaged over step `step`; command_applied: a command frame of the
     # step was applied (its counter is alive_counter). None on the wall clock.

@@ -7,6 +7,10 @@ decoded. A chain is only a chain when both halves belong to the same command: th
 of frame c (or, when frame c was lost, of a later frame c+1 .. c+7 carrying the same dipole) and
 decoded after step k's frame was sent. Pairing step k with "the board's latest report" instead
 joins the previous frame's report (8.5 ms before can_sent in a real-time run: negative latencies).
+The dipole compared is the command the frame carried (the report's target_dipole_am2 where the
+board gives it), not the coils' output: in a magnetometer window the coils are off, and joining on
+the output waited for a later frame after the window (every tenth step of attitude_pointing_rt
+reported 50-65 ms from sensing to the board for a frame the board had in 2 ms).
 
 The rest of the chain is the plant's: `plant_received` is when the plant received that report
 (actuator/mtq), `applied` when it first integrated a step with it. In lock-step the plant waits for
@@ -38,8 +42,9 @@ def report_answers(report: MtqApplied, counter: int, expected_am2: np.ndarray, c
         return False     # a coils-changed report (no frame decoded), or a command no frame carried
     if can_sent_ns is not None and board_received < can_sent_ns:
         return False     # an earlier frame with the same counter and dipole
+    carried = report.dipole_am2 if report.target_dipole_am2 is None else report.target_dipole_am2
     return ((report.alive_counter - counter) % COUNTER_MODULO < COUNTER_WINDOW
-            and np.array_equal(report.dipole_am2, expected_am2))
+            and np.array_equal(carried, expected_am2))
 
 
 @dataclass

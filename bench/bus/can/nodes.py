@@ -71,19 +71,20 @@ def run_board(ctx) -> int:
     bus = open_node_bus(ctx, config, "board")
     applied: list[dict] = []
 
-    def publish(received_ns: int | None, counter: int) -> None:
+    def publish(received_ns: int | None, counter: int, target_dipole_am2: list[float] | None = None) -> None:
         stamps = {"applied": time.monotonic_ns()}
         if received_ns is not None:
             stamps["board_received"] = received_ns
         message = MtqApplied(
             header=header(ctx.run_id, ctx.published[keys.ACTUATOR_MTQ], 0.0, **stamps),
             dipole_am2=board.output_dipole_am2.tolist(), coil_current_a=board.state.coil_current_a.tolist(),
-            safe_state=board.state.safe_state, actuation_paused=board.state.actuation_paused, alive_counter=counter)
+            safe_state=board.state.safe_state, actuation_paused=board.state.actuation_paused, alive_counter=counter,
+            target_dipole_am2=target_dipole_am2)
         ctx.publish(keys.ACTUATOR_MTQ, message)
 
     def on_applied(command: AppliedCommand) -> None:
         applied.append(applied_record(command))
-        publish(command.received_ns, command.alive_counter)
+        publish(command.received_ns, command.alive_counter, command.dipole_am2.tolist())
 
     def on_coils_changed(state) -> None:
         publish(None, state.last_command_counter)
