@@ -364,8 +364,12 @@ def test_real_time_smoother_with_the_magnetometer_in_coil_blanking_windows(runs)
     assert estimator_stats["malformed"] == {}
     assert pointing_error_deg(run.trajectory, s).max() < POINTING_BOUND_DEG
     # Each step's chain reaches the board when the board decoded the step's own frame, in a
-    # magnetometer window too (coils off): the recording's reports of that frame say when.
+    # magnetometer window too (coils off): the recording's report of that frame says when. Where the
+    # recording has no report of it within 8 command periods (half the alive counter's wrap: a frame
+    # the board refused or never got, or decoded late on a loaded host), a later frame with the same
+    # dipole may answer, as bench/plant/mtq_chain.py says: those steps are not compared.
     t = run.trajectory
+    window_ns = 8 * s.can.driver.command_period_s * 1e9
     decoded, decoded_paused = {}, set()
     for m in run.on("actuator/mtq"):
         stamps = m.body["header"]["stamps_ns"]
@@ -373,8 +377,10 @@ def test_real_time_smoother_with_the_magnetometer_in_coil_blanking_windows(runs)
             decoded.setdefault(m.body["alive_counter"], []).append(stamps["board_received"])
             if m.body["actuation_paused"]:
                 decoded_paused.add(stamps["board_received"])
-    joined = [(k, min((r for r in decoded.get(int(t["att_alive_counter"][k]), []) if r >= t["stamp_can_sent_ns"][k]),
-                      default=-1)) for k in np.nonzero(t["stamp_board_received_ns"] > 0)[0]]
+    own_frame = {k: min((r for r in decoded.get(int(t["att_alive_counter"][k]), [])
+                         if 0 <= r - t["stamp_can_sent_ns"][k] < window_ns), default=None)
+                 for k in np.nonzero(t["stamp_board_received_ns"] > 0)[0]}
+    joined = [(k, own) for k, own in own_frame.items() if own is not None]
     assert any(own in decoded_paused for _, own in joined), "no step's frame arrived in a magnetometer window"
     wrong = [(k, (int(t["stamp_board_received_ns"][k]) - own) / 1e6) for k, own in joined
              if t["stamp_board_received_ns"][k] != own]
