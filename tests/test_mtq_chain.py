@@ -27,7 +27,8 @@ def close_with(reports: list[MtqApplied], counter: int = 6) -> CommandChains:
     chains = CommandChains(1, expire_after_s=1.0)
     chains.open(0, command(counter), np.array(DIPOLE_AM2))
     # the plant receives each report 0.5 ms after the board decoded its frame and integrates later
-    chains.close([(r.header.stamps_ns["board_received"] + MS // 2, r) for r in reports], applied_ns=CAN_SENT_NS + 90 * MS)
+    chains.close([(r.header.stamps_ns["board_received"] + MS // 2, r) for r in reports],
+                 applied_ns=CAN_SENT_NS + 90 * MS)
     return chains
 
 
@@ -54,4 +55,4 @@ def test_a_report_of_another_dipole_or_from_before_the_send_does_not_answer():
     chains = close_with([report(6, CAN_SENT_NS - MS, paused=True),              # the counter's previous use
                          report(7, CAN_SENT_NS + 12 * MS, paused=True, target=other),
                          report(8, CAN_SENT_NS + 22 * MS, paused=False, target=other)])
-    assert chains.board_counter[0] == -1 and chains._open, "no report answered: the chain stays open"
+    assert chains.board_counter[0] == -1 and len(chains.expire()) == 1, "no report answered: the chain stays open"

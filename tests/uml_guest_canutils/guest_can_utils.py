@@ -200,15 +200,15 @@ def test_cansend_and_canplayer_on_the_secoc_profile(tmp_path):
                              "started", lambda b: b.nmt_state == p.NMT_OPERATIONAL, stale_key="NMT_STALE")
         # Fresh authenticated commands: freshness values on this clock, one command period apart.
         fresh: list[can.Message] = []
-        batch_from = [0]      # board.accepted before the last batch: a late one may be partly accepted
+        batch_from = 0        # board.accepted before the last batch: a late one may be partly accepted
 
         def five_fresh(now_s: float) -> list[can.Message]:
-            batch_from[0] = board.accepted      # counters go on after a batch that came too late
-            fresh[:] = [proto.command([0.02, 0.0, 0.0], counter=board.accepted + k, sent_s=now_s + 0.02 * k)
-                        for k in range(5)]
+            nonlocal fresh, batch_from
+            batch_from = board.accepted      # counters go on after a batch that came too late
+            fresh = [proto.command([0.02, 0.0, 0.0], counter=batch_from + k, sent_s=now_s + 0.02 * k) for k in range(5)]
             return fresh
         stale += send_stamped(rig, five_fresh, lambda frames: canplayer(tmp_path / "fresh.log", frames),
-                              "five applied", lambda b: b.accepted == batch_from[0] + 5, stale_key="STALE")
+                              "five applied", lambda b: b.accepted == batch_from + 5, stale_key="STALE")
         expected = Counter({"NMT_NOT_AUTHENTICATED": 1, **stale})
         assert board.rejected == expected
         # The same log a second later: every frame older than a period plus the margin.
@@ -223,7 +223,7 @@ def test_cansend_and_canplayer_on_the_secoc_profile(tmp_path):
         rig.wait("unauthenticated and forged", lambda b: b.rejected["NOT_AUTHENTICATED"] == 1
                  and b.rejected["WRONG_MAC"] == 1)
         expected.update({"STALE": 5, "NOT_AUTHENTICATED": 1, "WRONG_MAC": 1})
-        assert board.accepted == batch_from[0] + 5 and board.rejected == expected
+        assert board.accepted == batch_from + 5 and board.rejected == expected
         assert board.last_command_age_s is not None and board.last_command_age_s <= 0.02 + FRESHNESS_MARGIN_S
 
 
