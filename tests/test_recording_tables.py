@@ -8,6 +8,9 @@ from __future__ import annotations
 
 import json
 import re
+import shutil
+import subprocess
+import sys
 
 import cantools
 import jsonschema
@@ -199,3 +202,42 @@ def test_the_foxglove_layout_plots_fields_the_recording_has(attitude_run):
         assert selected, path
         values = [resolve(b, match["rest"]) for b in selected]
         assert all(isinstance(v, (int, float, bool, str)) for v in values), path
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_columns_built_from_buffers_equal_pyarrows_own(seed):
+    """The tables' columns (bench.report.tables.arrow_column, built from buffers so that writing a
+    table does not import pandas) equal pa.array's for the same values, nulls and empties included."""
+    import pyarrow as pa
+
+    from bench.report.tables import arrow_column
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(0, 40))
+    maybe_none = lambda v: None if rng.random() < 0.2 else v    # noqa: E731
+    cases = [
+        (rng.normal(size=n) * 10.0 ** rng.integers(-9, 9, size=n), pa.float64()),
+        (np.array([np.nan, np.inf, -0.0] * (n // 3)), pa.float64()),
+        (rng.integers(-2**62, 2**62, size=n), pa.int64()),
+        ([maybe_none(bool(b)) for b in rng.integers(0, 2, size=n)], pa.bool_()),
+        ([bool(b) for b in rng.integers(0, 2, size=n)], pa.bool_()),
+        ([maybe_none("".join(rng.choice(list("ab0x_ωπ"), size=int(rng.integers(0, 6))))) for _ in range(n)], pa.string()),
+    ]
+    for values, type_ in cases:
+        ours, theirs = arrow_column(values, type_), pa.array(values, type=type_)
+        ours.validate(full=True)
+        assert ours.type == theirs.type and ours.null_count == theirs.null_count
+        if pa.types.is_floating(type_):     # bit for bit (NaN never equals NaN)
+            assert ours.to_numpy().tobytes() == theirs.to_numpy().tobytes()
+        else:
+            assert ours.equals(theirs), (type_, values, ours, theirs)
+
+
+def test_writing_the_tables_does_not_import_pandas(attitude_run, tmp_path):
+    run_dir = shutil.copytree(attitude_run, tmp_path / "att")
+    for table in ("steps.parquet", "can_frames.parquet"):
+        (run_dir / table).unlink()
+    code = ("import sys; from bench.report.tables import write_tables; "
+            f"print(len(write_tables({str(run_dir)!r})), 'pandas' in sys.modules)")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO, timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip() == "2 False"

@@ -6,13 +6,15 @@ and rebuilds the plan with `from_message`, which rejects arrays that do not fit 
 """
 from __future__ import annotations
 
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import msgspec
 import numpy as np
 
 from bench.bus.schemas import Header, Message
-from bench.gnc.attitude_tracking import AttitudePlan
+
+if TYPE_CHECKING:
+    from bench.gnc.attitude_tracking import AttitudePlan
 
 Vec3 = Annotated[list[float], msgspec.Meta(min_length=3, max_length=3)]
 State7 = Annotated[list[float], msgspec.Meta(min_length=7, max_length=7)]
@@ -47,6 +49,10 @@ def to_message(plan: AttitudePlan, header: Header, target_wxyz, info: dict) -> A
 
 def from_message(message: AttitudePlanMessage) -> AttitudePlan:
     """The plan carried by a decoded message; ValueError if its arrays do not fit together."""
+    # Imported here, not with the schema: the schema is read where no plan is built (the launcher's
+    # summary, `bench report`), and bench.gnc brings scipy.linalg (0.3 s of CPU at every start).
+    from bench.gnc.attitude_tracking import AttitudePlan
+
     n = len(message.dipoles_am2)
     if len(message.states) != n + 1 or len(message.gains) != n:
         raise ValueError(f"AttitudePlanMessage: {len(message.states)} states, {n} dipoles and "
