@@ -114,7 +114,7 @@ def loop_sized_payload() -> bytes:
 
     stamps = {stage: time.monotonic_ns() for stage in ("sensed", "estimator_received", "estimated")}
     hdr = header("rendezvous_lqr-20260101T000000-abcd", 123, 73800.0, **stamps)
-    return encode(TranslationEstimate(hdr, [1234.5678901234] * 6, None, 0.0011596575, None, None, False))
+    return encode(TranslationEstimate(hdr, [1234.5678901234] * 6, None, 0.0011596575, None, 0, False))
 
 
 def raw_hop_us(samples: int) -> np.ndarray:
