@@ -117,7 +117,8 @@ def _padded(values: np.ndarray, n_rows: int) -> pa.Array:
 
 
 # pa.array() asks pandas whether its input is a pandas object, and so imports pandas wherever it is
-# installed: 0.6 s of CPU in every report. `arrow_column` builds the same arrays from their buffers.
+# installed (about 0.2 s of a report's 3-4 s: benchmarks/bench_report.py). `arrow_column` builds the
+# same arrays from their buffers.
 def _bitmap(flags) -> pa.Buffer:
     return pa.py_buffer(np.packbits(np.asarray(flags, dtype=bool), bitorder="little"))
 
