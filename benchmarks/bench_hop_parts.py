@@ -44,9 +44,11 @@ def _answer(endpoint: str, ready, variant: str) -> None:
     session = open_session(SessionOptions(connect=(endpoint,)))
     publisher = session.declare_publisher(PONG_KEY, **_publisher_options())
     if variant == "raw":
-        session.declare_subscriber(PING_KEY, lambda sample: publisher.put(sample.payload.to_bytes()))
+        subscriber = session.declare_subscriber(PING_KEY, lambda sample: publisher.put(sample.payload.to_bytes()))
         ready.set()
         time.sleep(3600)
+        subscriber.undeclare()
+        return
     work = variant != "+ hand-off"
     signer, verifier = data_auth.Signer(DATA_KEY, "answer"), data_auth.Verifier(DATA_KEY)
     inbox: queue.Queue = queue.Queue()
@@ -58,15 +60,18 @@ def _answer(endpoint: str, ready, variant: str) -> None:
             data = decode(data, TranslationEstimate)
         inbox.put(data)
 
-    session.declare_subscriber(PING_KEY, on_sample)
+    subscriber = session.declare_subscriber(PING_KEY, on_sample)
     ready.set()
-    while True:
-        item = inbox.get()
-        if work:
-            payload = encode(item)
-            publisher.put(payload, attachment=signer(PONG_KEY, payload))
-        else:
-            publisher.put(item)
+    try:
+        while True:
+            item = inbox.get()
+            if work:
+                payload = encode(item)
+                publisher.put(payload, attachment=signer(PONG_KEY, payload))
+            else:
+                publisher.put(item)
+    finally:
+        subscriber.undeclare()
 
 
 def _record(endpoint: str, ready, nice: int) -> None:
@@ -77,11 +82,15 @@ def _record(endpoint: str, ready, nice: int) -> None:
         os.nice(nice)      # before the session: Zenoh's threads inherit it
     session = open_session(SessionOptions(connect=(endpoint,)))
     samples: queue.SimpleQueue = queue.SimpleQueue()
-    for key in (PING_KEY, PONG_KEY):
-        session.declare_subscriber(key, lambda sample: samples.put(sample.payload.to_bytes()))
+    subscribers = [session.declare_subscriber(key, lambda sample: samples.put(sample.payload.to_bytes()))
+                   for key in (PING_KEY, PONG_KEY)]
     ready.set()
-    while True:
-        samples.get()
+    try:
+        while True:
+            samples.get()
+    finally:
+        for subscriber in subscribers:
+            subscriber.undeclare()
 
 
 def hop_us(variant: str, samples: int, recorder_nice: int) -> np.ndarray:
