@@ -43,7 +43,8 @@ from bench.controller.deadline import DeadlineMonitor
 from bench.gnc.cwh import RendezvousParams
 from bench.gnc.mpc import MPC
 from bench.gnc.qp import DenseBoxQP
-from bench.runtime.solver_worker import WorkerLaw, realtime_priority
+from bench.runtime.priority import realtime_priority
+from bench.runtime.solver_worker import WorkerLaw
 from bench.studies.simulate import simulate
 
 Q_STAR = np.diag([94.0, 0.1579, 300.0, 0.01, 0.10, 0.10])

@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 from bench.controller.deadline import DeadlineConfig, DeadlineMonitor
-from bench.runtime.solver_worker import PLAN_INFO_KEY as PLAN_KEY, WorkerLaw, realtime_priority
+from bench.runtime.priority import realtime_priority
+from bench.runtime.solver_worker import PLAN_INFO_KEY as PLAN_KEY, WorkerLaw
 
 
 class SlowLaw:

@@ -13,7 +13,8 @@ from bench.controller.config import StressConfig
 from bench.controller.deadline import DeadlineMonitor, StressInjector, lqr_fallback_law
 from bench.controller.thrust import ThrustLaw
 from bench.runtime.deadline import CycleOutcome
-from bench.runtime.solver_worker import WorkerLaw, set_realtime_priority
+from bench.runtime.priority import set_realtime_priority
+from bench.runtime.solver_worker import WorkerLaw
 from bench.scenario import Scenario
 
 # The command's status in a cycle without a valid estimate (the law did not run; zero thrust).

@@ -31,6 +31,7 @@ from bench.bus.can.sim_window import CanWindow, mission_s, sim_ns
 from bench.bus.can.windowed_driver import BOOT_WINDOWS, WindowedDriver
 from bench.bus.schemas import header
 from bench.runtime.node import NodeContext
+from bench.runtime.priority import set_realtime_priority
 
 DRIVER_REPORT_NAME = "driver.json"
 
@@ -61,6 +62,9 @@ class MagnetorquerLink:
         (CiA 301 NMT) at once, on this thread (the driver is not thread-safe). An NMT master that
         stops its PDOs on purpose says so: the board switches its coils off instead of logging a
         command timeout at the end of every run (the launcher stops the flight side first)."""
+        # The process's priority, set here too: a thread started by one that took a priority of its
+        # own (the controller's cycle thread, SCHED_RESET_ON_FORK) starts at normal priority.
+        set_realtime_priority(self.ctx.realtime_priority)
         self.loop.run(self.ctx.stop)
         self.driver.nmt(p.NMT_ENTER_PRE_OPERATIONAL)
 
@@ -163,5 +167,6 @@ def _write_report(ctx: NodeContext, health: BoardHealth, driver: MagnetorquerDri
     report = {
         "health": asdict(health) | {"ok": health.ok},
         "events": [asdict(e) for e in driver.events],
+        "realtime_priority": ctx.realtime_priority,
     }
     (can_dir(ctx.run_dir) / DRIVER_REPORT_NAME).write_text(json.dumps(report, indent=1))

@@ -50,6 +50,18 @@ class RunClock:
             out = np.where(t > x[-1], y[-1] + (t - x[-1]) * rate, out)
         return float(out) if out.ndim == 0 else out
 
+    def monotonic_ns(self, sim_s) -> np.ndarray | float:
+        """Monotonic ns of simulated seconds (scalar or array), the inverse of `sim_s`; outside the
+        loop in lock-step, where no simulated time passes, the first or last step's stamp."""
+        t = np.asarray(sim_s, dtype=float)
+        x, y = self.step_sim_s, self.step_mono_ns.astype(float)
+        out = np.interp(t, x, y)
+        if self.sim_s_per_wall_s is not None:
+            ns_per_s = 1e9 / self.sim_s_per_wall_s
+            out = np.where(t < x[0], y[0] + (t - x[0]) * ns_per_s, out)
+            out = np.where(t > x[-1], y[-1] + (t - x[-1]) * ns_per_s, out)
+        return float(out) if out.ndim == 0 else out
+
     @property
     def end_sim_s(self) -> float:
         return float(self.step_sim_s[-1])

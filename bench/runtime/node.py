@@ -30,6 +30,7 @@ from bench.bus.certs import check_identity, identity_files
 from bench.bus.deployment import DeploymentError, load_deployment
 from bench.bus.schemas import MalformedMessage, Message, ProcessStats, decode, encode, header
 from bench.bus.session import SessionOptions, open_session
+from bench.runtime.priority import node_realtime_priority, set_realtime_priority
 from bench.runtime.ownership import die_with_launcher
 from bench.runtime.reports import SIGNED_TYPES, key_from_environment, sign
 from bench.scenario import Scenario
@@ -72,6 +73,8 @@ class NodeContext:
     data_key: bytes | None = None
     # Messages dropped for their MAC: reason (forged, replayed) -> topic -> count (ProcessStats).
     unauthentic: dict = field(default_factory=dict)
+    # The SCHED_FIFO priority this process runs at (bench/runtime/priority.py); 0: the default scheduler.
+    realtime_priority: int = 0
     _signer: data_auth.Signer | None = None
 
     # --- publishing -----------------------------------------------------------------------
@@ -319,9 +322,14 @@ def run_node(name: str, run_id: str, scenario: Scenario, options: SessionOptions
     module = importlib.import_module(NODES[name])
     log = logging.getLogger(f"bench.{name}")
     lease_ms = int(round(scenario.run.liveliness.lease_s * 1000))
+    # Before the session: Zenoh's threads, started with it, inherit the priority.
+    priority = node_realtime_priority(name, scenario)
+    if priority and not set_realtime_priority(priority, inherited=True):
+        log.warning("SCHED_FIFO %d refused (no CAP_SYS_NICE): the host may hold this node up", priority)
+        priority = 0
     session = open_session(dataclasses.replace(options, lease_ms=lease_ms))
     ctx = NodeContext(name=name, run_id=run_id, scenario=scenario, session=session, run_dir=run_dir, log=log,
-                      peers=list(peers or []), report_key=report_key, data_key=data_key)
+                      peers=list(peers or []), report_key=report_key, data_key=data_key, realtime_priority=priority)
     if data_key is None:
         log.warning("no data key (%s): this node signs and checks nothing, and the run's nodes drop what it "
                     "publishes", run_dir / data_auth.KEY_FILE)

@@ -35,7 +35,6 @@ of both on this machine.
 """
 from __future__ import annotations
 
-import contextlib
 import multiprocessing as mp
 import os
 import time
@@ -45,12 +44,9 @@ from typing import Callable
 
 import numpy as np
 
+from bench.runtime.priority import set_realtime_priority
+
 PLAN_INFO_KEY = "u_plan"
-# The flight thread's SCHED_FIFO priority in real-time mode. Measured on the 2-core bench machine
-# at load average 17, 200 cycles, 50 ms solve, 10 ms budget: command out at p99 budget + 5.5 ms
-# and max + 8.3 ms under the default scheduler, budget + 0.2 ms under SCHED_FIFO (the wake-up
-# after sem_timedwait waits for a CPU otherwise). The kernel's RT throttling
-# (sched_rt_runtime_us) still leaves 5% of each CPU to other tasks.
 STATUS_BYTES = 64
 _STOP = -1
 
@@ -121,8 +117,7 @@ def _worker_main(factory, shm_name, shape, request, response, stress=None, prior
                 pass
             finally:
                 path_conn.close()
-        if priority > 0:
-            set_realtime_priority(priority)
+        set_realtime_priority(priority)   # 0 too: not its parent's, whatever that runs at
         blk.ints[READY] = 1
         plan_cap = blk.plan.shape[0]
         parent = os.getppid() if parent_pid is None else parent_pid   # passed in: no race with its death
@@ -163,31 +158,6 @@ def _worker_main(factory, shm_name, shape, request, response, stress=None, prior
     finally:
         blk.release()
         shm.close()
-
-
-def set_realtime_priority(priority: int) -> bool:
-    """SCHED_FIFO at `priority` for the calling thread (0: the default scheduler); False if the
-    system refuses (no CAP_SYS_NICE), and the thread keeps its policy."""
-    try:
-        if priority > 0:
-            # RESET_ON_FORK: a worker (re)started from this thread runs at normal priority.
-            os.sched_setscheduler(0, os.SCHED_FIFO | os.SCHED_RESET_ON_FORK, os.sched_param(priority))
-        else:
-            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-        return True
-    except (PermissionError, OSError, AttributeError):
-        return False
-
-
-@contextlib.contextmanager
-def realtime_priority(priority: int):
-    """The calling thread at SCHED_FIFO `priority` inside the block; yields whether it took."""
-    granted = set_realtime_priority(priority)
-    try:
-        yield granted
-    finally:
-        if granted:
-            set_realtime_priority(0)
 
 
 @dataclass

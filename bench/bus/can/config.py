@@ -190,6 +190,12 @@ class CanConfig(msgspec.Struct, forbid_unknown_fields=True):
     # when the scenario injects bus faults, whose timing then must not depend on the host.
     # Real-time runs are on the wall clock.
     lock_step_clock: Literal["auto", "simulated", "wall"] = "auto"
+    # On the wall clock (real time, a kernel bus, a part from outside): SCHED_FIFO priority of the
+    # board's, the bus model's and the driver's (controller's) processes, all their threads (0: the
+    # default scheduler). They stand for hardware and flight software, which no other program on
+    # the host holds up; under the default scheduler a loaded host delays frames past the board's
+    # command timeout and its freshness window, faults the bus never had (bench/runtime/priority.py).
+    realtime_priority: Annotated[int, msgspec.Meta(ge=0, le=99)] = 20
     # The flight-side driver's and the board's own bus, when not the bus model's end of `transport`
     # on flight_channel / board_channel: any python-can interface (BusSpec; docs/can-bus.md).
     driver_bus: BusSpec | None = None

@@ -80,3 +80,17 @@ def longest_host_late_s(records: list[HostLate], from_ns: int, to_ns: int) -> fl
     """The longest single hold-up of any node between from_ns and to_ns (a stall, where
     host_late_s also adds up many short delays)."""
     return max((r.late_s for r in records if from_ns <= r.t_ns <= to_ns), default=0.0)
+
+
+def held_s(records: list[HostLate], from_ns: int, to_ns: int) -> float:
+    """How long, between from_ns and to_ns, at least one of the records' nodes was held up: the
+    union of the intervals [t - late, t] the records say their node was held, so that one hold
+    that several records (or nodes) noticed counts once, and a hold that began before from_ns
+    counts from from_ns."""
+    intervals = sorted((max(r.t_ns - r.late_s * 1e9, from_ns), min(r.t_ns, to_ns)) for r in records)
+    total_ns, reach_ns = 0.0, float(from_ns)
+    for start_ns, end_ns in intervals:
+        if end_ns > max(start_ns, reach_ns):
+            total_ns += end_ns - max(start_ns, reach_ns)
+            reach_ns = end_ns
+    return total_ns / 1e9

@@ -29,6 +29,7 @@ from bench.bus.can.lockstep_bus import LockStepBus, StepCoils
 from bench.bus.can.sim_window import SIM_ZERO_NS, CanWindow, bus_on_simulated_time
 from bench.bus.can.transport import open_bus
 from bench.bus.schemas import MtqApplied, header
+from bench.runtime.priority import set_realtime_priority
 
 PEER_WAIT_S = 10.0
 CAPTURE_NAME = "can.log"             # in the run directory: what a sniffer on the bus would see
@@ -96,7 +97,8 @@ def run_board(ctx) -> int:
         ctx.declare_ready([])   # the plant starts the loop once every node is ready
         board.run(ctx.stop)
     finally:
-        summary = write_board_summary(ctx.run_dir, board, applied)
+        set_realtime_priority(0)   # the files at normal priority: they must not hold up another run's bus
+        summary = write_board_summary(ctx.run_dir, board, applied, ctx.realtime_priority)
         ctx.log.info("board: sent %s, accepted %d, rejected %s", summary["sent"], board.accepted, summary["rejected"])
         bus.shutdown()
     return 0
@@ -108,12 +110,13 @@ def applied_record(command: AppliedCommand) -> dict:
             "applied_ns": command.applied_ns, "age_s": command.age_s}
 
 
-def write_board_summary(run_dir: Path, board: MagnetorquerBoard, applied: list[dict]) -> dict:
+def write_board_summary(run_dir: Path, board: MagnetorquerBoard, applied: list[dict], realtime_priority: int = 0) -> dict:
     """<run_dir>/can/board.json: the board's counts and every command it applied (`applied_record`)."""
     summary = {"sent": dict(board.sent), "received": dict(board.received), "accepted": board.accepted,
                "rejected": dict(board.rejected), "bad_frames": dict(board.protocol.bad.counts),
                "ignored": dict(board.ignored), "lost_commands": board.lost_commands, "nmt_state": board.nmt_state,
-               "sdo_writes_refused": board.sdo.refused_writes, **board.host_lateness.report(), "applied": applied}
+               "sdo_writes_refused": board.sdo.refused_writes, **board.host_lateness.report(),
+               "realtime_priority": realtime_priority, "applied": applied}
     (can_dir(run_dir) / BOARD_NAME).write_text(json.dumps(summary))
     return summary
 
@@ -156,10 +159,13 @@ def run_bus_model(ctx) -> int:
         bridge.run(ctx.stop)
     finally:
         # Results first: whatever happens while the buses close, the run's record is on disk.
+        # At normal priority: writing the capture must not hold up another run's bus.
+        set_realtime_priority(0)
         report = model.report()
         report.update(bridge.report())
         report["t0_ns"] = t0_ns
         report["wall_offset_s"] = wall_offset_s   # can.log's wall timestamps = monotonic + this
+        report["realtime_priority"] = ctx.realtime_priority
         write_bus_results(ctx.run_dir, capture, report, injector)
         _log_bus_load(ctx, report)
         for bus in buses.values():

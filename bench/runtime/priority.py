@@ -1,0 +1,61 @@
+"""SCHED_FIFO for the parts of a real-time run that stand for hardware or flight software.
+
+On a loaded host the default scheduler can hold a process up for a hundred milliseconds or more.
+For the controller's cycle thread that is a missed deadline (on the 2-core bench machine at load
+average 17, 200 cycles, 50 ms solve, 10 ms budget: command out at p99 budget + 5.5 ms and max
++ 8.3 ms under the default scheduler, budget + 0.2 ms under SCHED_FIFO: the wake-up after
+sem_timedwait waits for a CPU otherwise); for
+the CAN nodes it is a fault the bus never had: a board whose command timeout fires because the bus
+model delivered late, commands refused as stale, a dropped-frame fault hidden behind a timeout the
+host caused. The kernel's RT throttling (sched_rt_runtime_us) still leaves 5 % of each CPU to
+other tasks.
+"""
+from __future__ import annotations
+
+import contextlib
+import os
+
+
+def set_realtime_priority(priority: int, inherited: bool = False) -> bool:
+    """SCHED_FIFO at `priority` for the calling thread (0: the default scheduler); False if the
+    system refuses (no CAP_SYS_NICE), and the thread keeps its policy. inherited=False: threads
+    and processes it starts afterwards run at normal priority (SCHED_RESET_ON_FORK, which the
+    kernel applies to threads as to processes); True: they inherit it (a whole process: Zenoh's
+    threads, started when the session opens after this)."""
+    try:
+        if priority > 0:
+            reset = 0 if inherited else os.SCHED_RESET_ON_FORK
+            os.sched_setscheduler(0, os.SCHED_FIFO | reset, os.sched_param(priority))
+        else:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+        return True
+    except (PermissionError, OSError, AttributeError):
+        return False
+
+
+@contextlib.contextmanager
+def realtime_priority(priority: int):
+    """The calling thread at SCHED_FIFO `priority` inside the block; yields whether it took."""
+    granted = set_realtime_priority(priority)
+    try:
+        yield granted
+    finally:
+        if granted:
+            set_realtime_priority(0)
+
+
+# The processes that carry the actuator bus: the board ("mtq"), the bus model ("canbus") and the
+# controller, one of whose threads is the flight-side driver.
+CAN_BUS_NODES = ("mtq", "canbus", "controller")
+
+
+def node_realtime_priority(name: str, scenario) -> int:
+    """The SCHED_FIFO priority node `name` takes for its whole process before its session opens
+    (`[can] realtime_priority`), or 0: only the nodes of a CAN bus on the wall clock take one; on
+    simulated time (lock-step, bench/bus/can/sim_window.py) the host's delays change no frame's time."""
+    from bench.bus.can.sim_window import bus_on_simulated_time
+
+    config = getattr(scenario, "can", None)
+    if config is None or name not in CAN_BUS_NODES or bus_on_simulated_time(scenario):
+        return 0
+    return config.realtime_priority

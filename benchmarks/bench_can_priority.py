@@ -1,0 +1,96 @@
+"""What the host does to a real-time fault run with and without SCHED_FIFO for the CAN nodes.
+
+`attitude_fault_all` (30 s of real time, five bus faults) run RUNS times with `[can]
+realtime_priority` at its default and at 0, alternated, while LOAD busy loops (and whatever else
+the machine runs) compete for the CPUs. Per variant it prints, for each fault window (0.5 s
+either side), how long the host held up the driver, the board or the bus model
+(`host_lateness.held_s` over their own records), the median and the largest over the runs; and
+the commands the board refused as stale (delivered past the freshness window) and the runs
+whose criteria failed. The bus model's records are left out of the windows of the faults that
+delay frames themselves (board death, flood), as tests/test_attitude_processes.py does.
+
+    PYTHONPATH=$PWD .venv/bin/python benchmarks/bench_can_priority.py [--runs 4] [--load 2]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import msgspec
+import numpy as np
+
+from bench.bus.can.host_lateness import held_s, load_host_late_records
+from bench.report.attitude import fault_windows_sim_s
+from bench.report.rundata import load_run
+from bench.report.timebase import RunClock
+from bench.scenario import load_scenario
+
+REPO = Path(__file__).resolve().parent.parent
+SCENARIO = "attitude_fault_all"
+MARGIN_S = 0.5
+FAULTS_THAT_DELAY_FRAMES = {"board_death", "flood"}
+
+
+def held_per_window(run_dir: Path) -> dict[str, float]:
+    run = load_run(run_dir)
+    clock = RunClock.from_run(run.trajectory, run.scenario)
+    records = load_host_late_records(run_dir / "can")
+    out = {}
+    for name, start, end in fault_windows_sim_s(run_dir, run.scenario, run.trajectory):
+        lo, hi = (clock.monotonic_ns(t) for t in (start - MARGIN_S, end + MARGIN_S))
+        out[name] = held_s([r for r in records if not (r.node == "bus_model" and name in FAULTS_THAT_DELAY_FRAMES)], lo, hi)
+    return out
+
+
+def one_run(scenario_file: Path, runs_dir: Path, run_id: str) -> dict:
+    result = subprocess.run([sys.executable, "-m", "bench.cli", "run", str(scenario_file), "--run-id", run_id,
+                             "--runs-dir", str(runs_dir), "--no-progress", "--no-report"],
+                            cwd=REPO, capture_output=True, text=True, timeout=600)
+    run_dir = runs_dir / run_id
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    board = json.loads((run_dir / "can" / "board.json").read_text())
+    return {"held": held_per_window(run_dir), "stale": board["rejected"].get("STALE", 0),
+            "priority": board.get("realtime_priority", 0), "passed": result.returncode == 0 and metrics.get("verdict", {}).get("passed") is True}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--runs", type=int, default=4)
+    parser.add_argument("--load", type=int, default=2, help="busy loops beside the runs")
+    args = parser.parse_args()
+    hogs = [subprocess.Popen([sys.executable, "-c", "while 1: pass"]) for _ in range(args.load)]
+    results: dict[str, list[dict]] = {"priority": [], "none": []}
+    try:
+        with tempfile.TemporaryDirectory() as tmp:
+            tmp = Path(tmp)
+            base = msgspec.to_builtins(load_scenario(SCENARIO))
+            files = {}
+            for variant, priority in (("priority", base["can"]["realtime_priority"]), ("none", 0)):
+                data = json.loads(json.dumps(base))
+                data["can"]["realtime_priority"] = priority
+                files[variant] = tmp / f"{variant}.json"
+                files[variant].write_text(json.dumps(data))
+            for i in range(args.runs):
+                for variant in results:
+                    results[variant].append(one_run(files[variant], tmp, f"{variant}{i}"))
+                    r = results[variant][-1]
+                    print(f"run {i} {variant:8s} priority {r['priority']:2d} held " +
+                          " ".join(f"{k}={v:.3f}" for k, v in r["held"].items()) + f" stale {r['stale']} pass {r['passed']}", flush=True)
+    finally:
+        for hog in hogs:
+            hog.kill()
+    print(f"\n{args.runs} runs each of {SCENARIO}, alternated, {args.load} busy loops beside them")
+    print("| variant | " + " | ".join(f"{w} held s (median / max)" for w in results["priority"][0]["held"]) + " | STALE refusals (median) | criteria failed |")
+    print("| --- " * (len(results["priority"][0]["held"]) + 3) + "|")
+    for variant, rows in results.items():
+        windows = rows[0]["held"]
+        cells = [f"{np.median([r['held'][w] for r in rows]):.3f} / {max(r['held'][w] for r in rows):.3f}" for w in windows]
+        print(f"| {variant} | " + " | ".join(cells) + f" | {np.median([r['stale'] for r in rows]):.0f} | {sum(not r['passed'] for r in rows)} of {len(rows)} |")
+
+
+if __name__ == "__main__":
+    main()
