@@ -241,3 +241,30 @@ def test_command_loop_commands_at_its_own_rate_from_another_thread():
         driver_bus.shutdown()
     assert sent and sent[-1] == [0.0, 0.05, 0.0]
     assert board.rejected == {}
+
+
+def test_a_board_waiting_for_its_nmt_start_sleeps_between_its_frames():
+    """A pre-operational board has only its heartbeat to send: its loop waits for that (or a
+    frame, at most 10 ms), never spins. It once waited for its telemetry's time, which stands
+    still until the NMT start, and so polled the bus without waiting: a CPU burnt, and at
+    SCHED_FIFO on one CPU the driver that would start it never ran."""
+    import threading
+
+    channel = f"test-can-{next(_channels)}"
+    bus = can.Bus(interface="virtual", channel=channel)
+    polls = []
+    receive = bus.recv
+    bus.recv = lambda timeout=None: polls.append(timeout) or receive(timeout=timeout)
+    board = MagnetorquerBoard(bus, BoardConfig(), p.Protocol())
+    stop = threading.Event()
+    thread = threading.Thread(target=board.run, args=(stop,))
+    try:
+        thread.start()
+        time.sleep(0.5)
+    finally:
+        stop.set()
+        thread.join(2)
+        bus.shutdown()
+    assert board.nmt_state == p.NMT_PRE_OPERATIONAL
+    # 0.5 s at one wake-up per 10 ms at most, and a heartbeat each 0.1 s: some 55 polls
+    assert 20 <= len(polls) <= 120, f"{len(polls)} polls in 0.5 s"

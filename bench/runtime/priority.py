@@ -49,13 +49,18 @@ def realtime_priority(priority: int):
 CAN_BUS_NODES = ("mtq", "canbus", "controller")
 
 
-def node_realtime_priority(name: str, scenario) -> int:
+def node_realtime_priority(name: str, scenario, cpus: int | None = None) -> int:
     """The SCHED_FIFO priority node `name` takes for its whole process before its session opens
     (`[can] realtime_priority`), or 0: only the nodes of a CAN bus on the wall clock take one; on
-    simulated time (lock-step, bench/bus/can/sim_window.py) the host's delays change no frame's time."""
+    simulated time (lock-step, bench/bus/can/sim_window.py) the host's delays change no frame's
+    time. Nor on a host with one CPU (`cpus`: this process's, by default): there the bus's nodes
+    would take it from the loop's other processes (the plant, the estimator), which the run
+    needs as much; the host's delays would only move from the bus to the loop."""
     from bench.bus.can.sim_window import bus_on_simulated_time
 
     config = getattr(scenario, "can", None)
     if config is None or name not in CAN_BUS_NODES or bus_on_simulated_time(scenario):
+        return 0
+    if (len(os.sched_getaffinity(0)) if cpus is None else cpus) < 2:
         return 0
     return config.realtime_priority

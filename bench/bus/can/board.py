@@ -253,7 +253,11 @@ class MagnetorquerBoard:
         """Process loop: wake on every frame or when the next periodic frame is due."""
         self.start(self.clock())
         while not stop.is_set():
-            wait_s = max(0.0, min(self._next_heartbeat_s, self._next_telemetry_s) - self.clock())
+            # next_due_s, not the telemetry's time: that stands still while the board is not
+            # operational, and waiting for it made this loop spin (a CPU burnt until the NMT
+            # start; at SCHED_FIFO on one CPU, the driver that would send it never ran).
+            now_s = self.clock()
+            wait_s = self.next_due_s(now_s) - now_s
             msg = self.bus.recv(timeout=min(wait_s, 0.01))
             now_s = self.clock()
             if msg is not None:
