@@ -175,6 +175,12 @@ class NodeContext:
     def declare_alive(self) -> None:
         self._keepalive.append(self.session.liveliness().declare_token(keys.key(self.run_id, f"{keys.ALIVE}/{self.name}")))
 
+    def leave_realtime_priority(self) -> None:
+        """The calling thread back to the default scheduler (a node's last work, writing its files,
+        must not hold up another run's nodes at the same priority)."""
+        if self.realtime_priority:
+            set_realtime_priority(0)
+
     def declare_ready(self, consumed_topics: list[str], timeout_s: float | None = None) -> None:
         """Declare `ready/<name>` once each of `consumed_topics` reaches a subscriber.
 

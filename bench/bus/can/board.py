@@ -253,11 +253,14 @@ class MagnetorquerBoard:
         """Process loop: wake on every frame or when the next periodic frame is due."""
         self.start(self.clock())
         while not stop.is_set():
-            # next_due_s, not the telemetry's time: that stands still while the board is not
-            # operational, and waiting for it made this loop spin (a CPU burnt until the NMT
-            # start; at SCHED_FIFO on one CPU, the driver that would send it never ran).
-            now_s = self.clock()
-            wait_s = self.next_due_s(now_s) - now_s
+            # The telemetry's time only when operational: it stands still until the NMT start, and
+            # waiting for it made this loop spin (a CPU burnt until then; at SCHED_FIFO on one CPU
+            # the driver that would send the start never ran). The 10 ms cap covers the rest of
+            # next_due_s (the command timeout, held EMCYs), which costs too much per frame in a flood.
+            due_s = self._next_heartbeat_s
+            if self.nmt_state == p.NMT_OPERATIONAL:
+                due_s = min(due_s, self._next_telemetry_s)
+            wait_s = max(0.0, due_s - self.clock())
             msg = self.bus.recv(timeout=min(wait_s, 0.01))
             now_s = self.clock()
             if msg is not None:

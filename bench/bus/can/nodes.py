@@ -29,7 +29,6 @@ from bench.bus.can.lockstep_bus import LockStepBus, StepCoils
 from bench.bus.can.sim_window import SIM_ZERO_NS, CanWindow, bus_on_simulated_time
 from bench.bus.can.transport import open_bus
 from bench.bus.schemas import MtqApplied, header
-from bench.runtime.priority import set_realtime_priority
 
 PEER_WAIT_S = 10.0
 CAPTURE_NAME = "can.log"             # in the run directory: what a sniffer on the bus would see
@@ -97,7 +96,7 @@ def run_board(ctx) -> int:
         ctx.declare_ready([])   # the plant starts the loop once every node is ready
         board.run(ctx.stop)
     finally:
-        set_realtime_priority(0)   # the files at normal priority: they must not hold up another run's bus
+        ctx.leave_realtime_priority()   # the files at normal priority: they must not hold up another run's bus
         summary = write_board_summary(ctx.run_dir, board, applied, ctx.realtime_priority)
         ctx.log.info("board: sent %s, accepted %d, rejected %s", summary["sent"], board.accepted, summary["rejected"])
         bus.shutdown()
@@ -160,7 +159,7 @@ def run_bus_model(ctx) -> int:
     finally:
         # Results first: whatever happens while the buses close, the run's record is on disk.
         # At normal priority: writing the capture must not hold up another run's bus.
-        set_realtime_priority(0)
+        ctx.leave_realtime_priority()
         report = model.report()
         report.update(bridge.report())
         report["t0_ns"] = t0_ns
