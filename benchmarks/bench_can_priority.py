@@ -1,15 +1,16 @@
-"""What the host does to a real-time fault run with and without SCHED_FIFO for the CAN nodes.
+"""What the host does to a real-time CAN run with and without SCHED_FIFO for the CAN nodes.
 
-`attitude_fault_all` (30 s of real time, five bus faults) run RUNS times with `[can]
-realtime_priority` at its default and at 0, alternated, while LOAD busy loops (and whatever else
-the machine runs) compete for the CPUs. Per variant it prints, for each fault window (0.5 s
-either side), how long the host held up the driver, the board or the bus model
-(`host_lateness.held_s` over their own records), the median and the largest over the runs; and
-the commands the board refused as stale (delivered past the freshness window) and the runs
+A real-time attitude scenario (`attitude_fault_all` by default: 30 s, five bus faults) run RUNS
+times with `[can] realtime_priority` at its default and at 0, alternated, while LOAD busy loops
+(and whatever else the machine runs) compete for the CPUs. Per variant it prints, for each fault
+window (0.5 s either side), how long the host held up the driver, the board or the bus model
+(`host_lateness.held_s` over their own records), the median and the largest over the runs; the
+commands the board refused as stale (delivered past the freshness window); sense -> board
+latency (metrics.json `latency.sense_to_board`, median of the runs' p50 and p99); and the runs
 whose criteria failed. The bus model's records are left out of the windows of the faults that
 delay frames themselves (board death, flood), as tests/test_attitude_processes.py does.
 
-    PYTHONPATH=$PWD .venv/bin/python benchmarks/bench_can_priority.py [--runs 4] [--load 2]
+    PYTHONPATH=$PWD .venv/bin/python benchmarks/bench_can_priority.py [--runs 4] [--load 2] [--scenario NAME]
 """
 from __future__ import annotations
 
@@ -30,7 +31,6 @@ from bench.report.timebase import RunClock
 from bench.scenario import load_scenario
 
 REPO = Path(__file__).resolve().parent.parent
-SCENARIO = "attitude_fault_all"
 MARGIN_S = 0.5
 FAULTS_THAT_DELAY_FRAMES = {"board_death", "flood"}
 
@@ -53,7 +53,9 @@ def one_run(scenario_file: Path, runs_dir: Path, run_id: str) -> dict:
     run_dir = runs_dir / run_id
     metrics = json.loads((run_dir / "metrics.json").read_text())
     board = json.loads((run_dir / "can" / "board.json").read_text())
+    latency = metrics["latency"]["sense_to_board"]
     return {"held": held_per_window(run_dir), "stale": board["rejected"].get("STALE", 0),
+            "p50_ms": latency["p50_ms"], "p99_ms": latency["p99_ms"],
             "priority": board.get("realtime_priority", 0), "passed": result.returncode == 0 and metrics.get("verdict", {}).get("passed") is True}
 
 
@@ -61,13 +63,14 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--runs", type=int, default=4)
     parser.add_argument("--load", type=int, default=2, help="busy loops beside the runs")
+    parser.add_argument("--scenario", default="attitude_fault_all", help="a real-time attitude scenario with a CAN bus")
     args = parser.parse_args()
     hogs = [subprocess.Popen([sys.executable, "-c", "while 1: pass"]) for _ in range(args.load)]
     results: dict[str, list[dict]] = {"priority": [], "none": []}
     try:
         with tempfile.TemporaryDirectory() as tmp:
             tmp = Path(tmp)
-            base = msgspec.to_builtins(load_scenario(SCENARIO))
+            base = msgspec.to_builtins(load_scenario(args.scenario))
             files = {}
             for variant, priority in (("priority", base["can"]["realtime_priority"]), ("none", 0)):
                 data = json.loads(json.dumps(base))
@@ -79,17 +82,22 @@ def main() -> None:
                     results[variant].append(one_run(files[variant], tmp, f"{variant}{i}"))
                     r = results[variant][-1]
                     print(f"run {i} {variant:8s} priority {r['priority']:2d} held " +
-                          " ".join(f"{k}={v:.3f}" for k, v in r["held"].items()) + f" stale {r['stale']} pass {r['passed']}", flush=True)
+                          " ".join(f"{k}={v:.3f}" for k, v in r["held"].items()) +
+                          f" stale {r['stale']} sense->board p50 {r['p50_ms']:.2f} p99 {r['p99_ms']:.2f} ms pass {r['passed']}",
+                          flush=True)
     finally:
         for hog in hogs:
             hog.kill()
-    print(f"\n{args.runs} runs each of {SCENARIO}, alternated, {args.load} busy loops beside them")
-    print("| variant | " + " | ".join(f"{w} held s (median / max)" for w in results["priority"][0]["held"]) + " | STALE refusals (median) | criteria failed |")
-    print("| --- " * (len(results["priority"][0]["held"]) + 3) + "|")
+    print(f"\n{args.runs} runs each of {args.scenario}, alternated, {args.load} busy loops beside them")
+    windows = list(results["priority"][0]["held"])
+    print("| variant | " + "".join(f"{w} held s (median / max) | " for w in windows) +
+          "STALE refusals (median) | sense -> board p50 / p99 ms (median) | criteria failed |")
+    print("| --- " * (len(windows) + 4) + "|")
     for variant, rows in results.items():
-        windows = rows[0]["held"]
         cells = [f"{np.median([r['held'][w] for r in rows]):.3f} / {max(r['held'][w] for r in rows):.3f}" for w in windows]
-        print(f"| {variant} | " + " | ".join(cells) + f" | {np.median([r['stale'] for r in rows]):.0f} | {sum(not r['passed'] for r in rows)} of {len(rows)} |")
+        print(f"| {variant} | " + "".join(f"{c} | " for c in cells) + f"{np.median([r['stale'] for r in rows]):.0f} | "
+              f"{np.median([r['p50_ms'] for r in rows]):.2f} / {np.median([r['p99_ms'] for r in rows]):.2f} | "
+              f"{sum(not r['passed'] for r in rows)} of {len(rows)} |")
 
 
 if __name__ == "__main__":
