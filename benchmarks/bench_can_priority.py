@@ -4,11 +4,10 @@ A real-time attitude scenario (`attitude_fault_all` by default: 30 s, five bus f
 times with `[can] realtime_priority` at its default and at 0, alternated, while LOAD busy loops
 (and whatever else the machine runs) compete for the CPUs. Per variant it prints, for each fault
 window (0.5 s either side), how long the host held up the driver, the board or the bus model
-(`host_lateness.held_s` over their own records), the median and the largest over the runs; the
+(`bench.report.canbus.host_held_per_fault_s`), the median and the largest over the runs; the
 commands the board refused as stale (delivered past the freshness window); sense -> board
 latency (metrics.json `latency.sense_to_board`, median of the runs' p50 and p99); and the runs
-whose criteria failed. The bus model's records are left out of the windows of the faults that
-delay frames themselves (board death, flood), as tests/test_attitude_processes.py does.
+whose criteria failed.
 
     PYTHONPATH=$PWD .venv/bin/python benchmarks/bench_can_priority.py [--runs 4] [--load 2] [--scenario NAME]
 """
@@ -24,26 +23,11 @@ from pathlib import Path
 import msgspec
 import numpy as np
 
-from bench.bus.can.host_lateness import held_s, load_host_late_records
-from bench.report.attitude import fault_windows_sim_s
+from bench.report.canbus import host_held_per_fault_s
 from bench.report.rundata import load_run
-from bench.report.timebase import RunClock
 from bench.scenario import load_scenario
 
 REPO = Path(__file__).resolve().parent.parent
-MARGIN_S = 0.5
-FAULTS_THAT_DELAY_FRAMES = {"board_death", "flood"}
-
-
-def held_per_window(run_dir: Path) -> dict[str, float]:
-    run = load_run(run_dir)
-    clock = RunClock.from_run(run.trajectory, run.scenario)
-    records = load_host_late_records(run_dir / "can")
-    out = {}
-    for name, start, end in fault_windows_sim_s(run_dir, run.scenario, run.trajectory):
-        lo, hi = (clock.monotonic_ns(t) for t in (start - MARGIN_S, end + MARGIN_S))
-        out[name] = held_s([r for r in records if not (r.node == "bus_model" and name in FAULTS_THAT_DELAY_FRAMES)], lo, hi)
-    return out
 
 
 def one_run(scenario_file: Path, runs_dir: Path, run_id: str) -> dict:
@@ -54,7 +38,7 @@ def one_run(scenario_file: Path, runs_dir: Path, run_id: str) -> dict:
     metrics = json.loads((run_dir / "metrics.json").read_text())
     board = json.loads((run_dir / "can" / "board.json").read_text())
     latency = metrics["latency"]["sense_to_board"]
-    return {"held": held_per_window(run_dir), "stale": board["rejected"].get("STALE", 0),
+    return {"held": host_held_per_fault_s(load_run(run_dir)), "stale": board["rejected"].get("STALE", 0),
             "p50_ms": latency["p50_ms"], "p99_ms": latency["p99_ms"],
             "priority": board.get("realtime_priority", 0), "passed": result.returncode == 0 and metrics.get("verdict", {}).get("passed") is True}
 

@@ -20,10 +20,11 @@ from bench.report.attitude_metrics import (
     applied_is_commanded_or_zero, continuous_rotation_angle_deg, fault_effect,
     loop_recovery_s, pointing_error_deg, whole_steps,
 )
-from bench.bus.can.host_lateness import held_s, load_host_late_records, longest_host_late_s
+from bench.bus.can.host_lateness import load_host_late_records, longest_host_late_s
 from bench.bus.schemas import STAGES
 from bench.sim import simulate_attitude_in_process
 from bench.report.attitude import fault_windows_sim_s
+from bench.report.canbus import host_held_per_fault_s
 from bench.report.rundata import load_run
 from conftest import run_bench_cli
 
@@ -305,7 +306,7 @@ def test_a_lock_step_fault_run_detects_what_its_real_time_twin_detects(fault_run
     assert bus["clock"] == "simulated"
     real_time, lock_step = first_detections(fault_runs[1]), first_detections(fault_lock_step_run)
     assert real_time.keys() == lock_step.keys() and len(lock_step) >= 5
-    held_s = flight_side_held_s(fault_runs[1])
+    held_s = host_held_per_fault_s(fault_runs[1])
     compared = []
     for name, (kinds, first_s) in lock_step.items():
         assert kinds & DETECTED_AS[name], (name, kinds)
@@ -325,28 +326,6 @@ def test_a_lock_step_fault_run_detects_what_its_real_time_twin_detects(fault_run
 
 
 REAL_TIME_HELD_S = 0.25      # a quarter of the loop's 1 s step
-HELD_MARGIN_S = 0.5          # a hold this close before a window changes what the fault meets
-# Faults that hold frames on the bus themselves (a dead board acknowledges nothing, a babbling
-# node takes the bus): in their windows the bus model's lateness is partly the fault's.
-FAULTS_THAT_DELAY_FRAMES = {"board_death", "flood"}
-
-
-def flight_side_held_s(run) -> dict[str, float]:
-    """Per fault window, from HELD_MARGIN_S before it to HELD_MARGIN_S after: how long the host
-    held up the driver, the board or the bus model (their own records, can/; `held_s`: one hold
-    that several records noticed counts once). A hold just before the window counts: a suite
-    run's bus model, held 0.16 s, delivered commands past the board's timeout 11 ms before the
-    drop fault began, and the board, already in its safe state, had no timeout left for the drop
-    to cause."""
-    from bench.report.timebase import RunClock
-    clock = RunClock.from_run(run.trajectory, run.scenario)
-    records = load_host_late_records(run.run_dir / "can")
-    held = {}
-    for name, start, end in fault_windows_sim_s(run.run_dir, run.scenario, run.trajectory):
-        lo_ns, hi_ns = (clock.monotonic_ns(t) for t in (start - HELD_MARGIN_S, end + HELD_MARGIN_S))
-        held[name] = held_s([r for r in records if not (r.node == "bus_model" and name in FAULTS_THAT_DELAY_FRAMES)],
-                            lo_ns, hi_ns)
-    return held
 
 
 def test_fault_effect_and_compare_report(fault_runs, runs):

@@ -21,6 +21,7 @@ import can
 import numpy as np
 
 from bench.bus.can.bittiming import DEFAULT_BITRATE_BPS, frame_bits
+from bench.bus.can.host_lateness import held_s, load_host_late_records
 from bench.report.document import fmt
 from bench.report.timebase import RunClock, wall_to_mono_ns
 from bench.report.rundata import RunData
@@ -136,6 +137,29 @@ def fault_windows_sim_s(run_dir: Path, can_cfg, clock: RunClock | None) -> list[
         start, end = (min(max(clock.sim_s(t), clock.start_sim_s), clock.end_sim_s) for t in (start_ns, end_ns))
         windows.append((str(fault.name), start, end))
     return windows
+
+
+# Faults that hold frames on the bus themselves (a dead board acknowledges nothing, a babbling node
+# takes the bus): in their windows the bus model's lateness is partly the fault's.
+FAULTS_THAT_DELAY_FRAMES = frozenset({"board_death", "flood"})
+HOST_HELD_MARGIN_S = 0.5      # a hold this close before a window changes what the fault meets
+
+
+def host_held_per_fault_s(run: RunData) -> dict[str, float]:
+    """Per fault window, from HOST_HELD_MARGIN_S before it to HOST_HELD_MARGIN_S after: how long the
+    host held up the driver, the board or the bus model (their own records, can/; `held_s`: one
+    hold that several records noticed counts once), the bus model left out in the windows of
+    FAULTS_THAT_DELAY_FRAMES. A hold just before the window counts: a suite run's bus model, held
+    0.16 s, delivered commands past the board's timeout 11 ms before the drop fault began, and the
+    board, already in its safe state, had no timeout left for the drop to cause."""
+    clock = RunClock.from_run(run.trajectory, run.scenario)
+    records = load_host_late_records(run.run_dir / "can")
+    held = {}
+    for name, start, end in fault_windows_sim_s(run.run_dir, run.scenario.can, clock):
+        lo_ns, hi_ns = (clock.monotonic_ns(t) for t in (start - HOST_HELD_MARGIN_S, end + HOST_HELD_MARGIN_S))
+        held[name] = held_s([r for r in records if not (r.node == "bus_model" and name in FAULTS_THAT_DELAY_FRAMES)],
+                            lo_ns, hi_ns)
+    return held
 
 
 def _injections(run_dir: Path, clock: RunClock | None) -> list[tuple[float, str, str]]:

@@ -41,26 +41,14 @@ class RunClock:
 
     def sim_s(self, mono_ns) -> np.ndarray | float:
         """Simulated seconds of monotonic stamps (scalar or array)."""
-        t = np.asarray(mono_ns, dtype=float)
-        x, y = self.step_mono_ns.astype(float), self.step_sim_s
-        out = np.interp(t, x, y)
-        if self.sim_s_per_wall_s is not None:
-            rate = self.sim_s_per_wall_s / 1e9
-            out = np.where(t < x[0], y[0] + (t - x[0]) * rate, out)
-            out = np.where(t > x[-1], y[-1] + (t - x[-1]) * rate, out)
-        return float(out) if out.ndim == 0 else out
+        rate = None if self.sim_s_per_wall_s is None else self.sim_s_per_wall_s / 1e9
+        return _through(mono_ns, self.step_mono_ns.astype(float), self.step_sim_s, rate)
 
     def monotonic_ns(self, sim_s) -> np.ndarray | float:
         """Monotonic ns of simulated seconds (scalar or array), the inverse of `sim_s`; outside the
         loop in lock-step, where no simulated time passes, the first or last step's stamp."""
-        t = np.asarray(sim_s, dtype=float)
-        x, y = self.step_sim_s, self.step_mono_ns.astype(float)
-        out = np.interp(t, x, y)
-        if self.sim_s_per_wall_s is not None:
-            ns_per_s = 1e9 / self.sim_s_per_wall_s
-            out = np.where(t < x[0], y[0] + (t - x[0]) * ns_per_s, out)
-            out = np.where(t > x[-1], y[-1] + (t - x[-1]) * ns_per_s, out)
-        return float(out) if out.ndim == 0 else out
+        ns_per_s = None if self.sim_s_per_wall_s is None else 1e9 / self.sim_s_per_wall_s
+        return _through(sim_s, self.step_sim_s, self.step_mono_ns.astype(float), ns_per_s)
 
     @property
     def end_sim_s(self) -> float:
@@ -69,6 +57,17 @@ class RunClock:
     @property
     def start_sim_s(self) -> float:
         return float(self.step_sim_s[0])
+
+
+def _through(t, x: np.ndarray, y: np.ndarray, slope: float | None) -> np.ndarray | float:
+    """y at t, linear between the points (x, y); beyond the first and the last, at `slope` from
+    them (real time), or held at their y (slope None: lock-step)."""
+    t = np.asarray(t, dtype=float)
+    out = np.interp(t, x, y)
+    if slope is not None:
+        out = np.where(t < x[0], y[0] + (t - x[0]) * slope, out)
+        out = np.where(t > x[-1], y[-1] + (t - x[-1]) * slope, out)
+    return float(out) if out.ndim == 0 else out
 
 
 def wall_to_mono_ns(wall_s, wall_offset_s: float) -> np.ndarray:
