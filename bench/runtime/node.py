@@ -30,8 +30,8 @@ from bench.bus.certs import check_identity, identity_files
 from bench.bus.deployment import DeploymentError, load_deployment
 from bench.bus.schemas import MalformedMessage, Message, ProcessStats, decode, encode, header
 from bench.bus.session import SessionOptions, open_session
-from bench.runtime.priority import node_realtime_priority, set_realtime_priority
 from bench.runtime.ownership import die_with_launcher
+from bench.runtime.priority import node_realtime_priority, set_realtime_priority
 from bench.runtime.reports import SIGNED_TYPES, key_from_environment, sign
 from bench.scenario import Scenario
 

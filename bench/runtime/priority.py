@@ -4,11 +4,10 @@ On a loaded host the default scheduler can hold a process up for a hundred milli
 For the controller's cycle thread that is a missed deadline (on the 2-core bench machine at load
 average 17, 200 cycles, 50 ms solve, 10 ms budget: command out at p99 budget + 5.5 ms and max
 + 8.3 ms under the default scheduler, budget + 0.2 ms under SCHED_FIFO: the wake-up after
-sem_timedwait waits for a CPU otherwise); for
-the CAN nodes it is a fault the bus never had: a board whose command timeout fires because the bus
-model delivered late, commands refused as stale, a dropped-frame fault hidden behind a timeout the
-host caused. The kernel's RT throttling (sched_rt_runtime_us) still leaves 5 % of each CPU to
-other tasks.
+sem_timedwait waits for a CPU otherwise); for the CAN nodes it is a fault the bus never had: a
+board whose command timeout fires because the bus model delivered late, commands refused as
+stale, a dropped-frame fault hidden behind a timeout the host caused. The kernel's RT throttling
+(sched_rt_runtime_us) still leaves 5 % of each CPU to other tasks.
 """
 from __future__ import annotations
 
