@@ -93,7 +93,7 @@ def _record(endpoint: str, ready, nice: int) -> None:
             subscriber.undeclare()
 
 
-def hop_us(variant: str, samples: int, recorder_nice: int) -> np.ndarray:
+def hop_us(variant: str, samples: int, recorder_nice: int, interval_s: float = 0.0) -> np.ndarray:
     import zenoh
 
     from bench.bus import data_auth
@@ -123,7 +123,9 @@ def hop_us(variant: str, samples: int, recorder_nice: int) -> np.ndarray:
         # The sender signs as a node publishes (raw and hand-off: no key, as a run without one).
         signer = data_auth.Signer(DATA_KEY, "ping") if variant in ("+ message work", "+ recorder") else None
         hops = np.empty(samples)
-        for i in range(-100, samples):
+        for i in range(-100 if interval_s == 0 else -3, samples):
+            if interval_s:
+                time.sleep(interval_s)     # every process asleep in between, as in a paced loop
             started = time.perf_counter_ns()
             ping.put(payload, attachment=signer(PING_KEY, payload) if signer else None)
             pongs.recv()
@@ -159,14 +161,18 @@ def main() -> int:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--samples", type=int, default=1500, help="ping-pongs per variant and repeat")
     parser.add_argument("--recorder-nice", type=int, default=0, help="nice value of the recorder stand-in")
+    parser.add_argument("--interval-s", type=float, default=0.0,
+                        help="sleep between ping-pongs (0.1: the real-time attitude loop's tick), so that each hop "
+                             "wakes idle processes; 0: back to back")
     args = parser.parse_args()
     print(f"1-min load average before: {os.getloadavg()[0]:.2f}")
     hops: dict[str, list[np.ndarray]] = {v: [] for v in VARIANTS}
     for _ in range(args.repeats):
         for variant in VARIANTS:
-            hops[variant].append(hop_us(variant, args.samples, args.recorder_nice))
+            hops[variant].append(hop_us(variant, args.samples, args.recorder_nice, args.interval_s))
     raw_p50 = float(np.median(np.concatenate(hops["raw"])))
-    print(f"\none-way hop, {args.repeats} x {args.samples} ping-pongs per variant (recorder nice {args.recorder_nice})")
+    print(f"\none-way hop, {args.repeats} x {args.samples} ping-pongs per variant (recorder nice {args.recorder_nice}, "
+          f"{args.interval_s:g} s between them)")
     print(f"{'variant':18s} {'p50 us':>8s} {'p90 us':>8s} {'p99 us':>8s} {'p50 / raw':>10s}")
     for variant in VARIANTS:
         values = np.concatenate(hops[variant])

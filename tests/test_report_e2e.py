@@ -143,6 +143,52 @@ def test_every_stressed_cycle_misses_and_the_fallback_holds(tmp_path):
     assert checks["position_xz"] and checks["position_y"] and checks["thrust"]
 
 
+HELD_CYCLE, HELD_S = 8, 0.25      # one cycle 2.5 steps long: two estimates queue behind it
+
+
+def test_a_real_time_controller_held_up_acts_on_the_newest_estimate(tmp_path):
+    """A controller held up for 2.5 steps (a 0.25 s solve, inside a 0.4 s budget so its own result
+    is sent) does not then work through the estimates queued meanwhile: it passes them over for the
+    newest and counts them. Checked against the recording: the estimates published before the held
+    cycle ended, and the commands that followed."""
+    path = tmp_path / "rendezvous_held.toml"
+    path.write_text(textwrap.dedent(f"""
+        name = "rendezvous_held"
+        [run]
+        mode = "real-time"
+        steps = 20
+        [controller.deadline]
+        budget_s = 0.4
+        [controller.deadline.stress]
+        process = "controller"
+        extra_cycle_time_s = {HELD_S}
+        cycles = [{HELD_CYCLE}]
+        kind = "sleep"
+    """))
+    bench_run(tmp_path, str(path), "--run-id", "held")
+    run_dir = tmp_path / "held"
+    estimated_ns, commands = {}, {}
+    with open(run_dir / "recording.mcap", "rb") as f:
+        for _schema, channel, message in make_reader(f).iter_messages():
+            header = json.loads(message.data)["header"]
+            if channel.topic == keys.ESTIMATE_TRANSLATION:
+                estimated_ns[header["seq"]] = header["stamps_ns"]["estimated"]
+            if channel.topic == keys.COMMAND_THRUST:
+                commands[header["seq"]] = header["stamps_ns"]
+    held_end_ns = commands[HELD_CYCLE]["commanded"]
+    after = min(k for k in commands if k > HELD_CYCLE)
+    # Every estimate out 20 ms (a hop, many times over) before the held cycle ended was waiting.
+    waiting = [k for k, t in estimated_ns.items() if k > HELD_CYCLE and t < held_end_ns - 20_000_000]
+    assert len(waiting) >= 2, (waiting, HELD_S)
+    assert after >= max(waiting), f"acted on estimate {after} with {max(waiting)} already waiting"
+    assert not set(range(HELD_CYCLE + 1, after)) & set(commands), "a passed-over estimate got a command"
+    summary = json.loads((run_dir / "deadline_controller.json").read_text())
+    assert summary["stale_estimates_skipped"] == after - HELD_CYCLE - 1 + sum(
+        1 for k in estimated_ns if k > after and k not in commands)
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    assert metrics["deadlines"]["stale_estimates_skipped"] == summary["stale_estimates_skipped"]
+
+
 def test_real_report_renders_in_chromium(realtime_run, tmp_path):
     from test_report_render import CHROMIUM, chromium, colourful_fraction
 

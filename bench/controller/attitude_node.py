@@ -1,7 +1,8 @@
 """The controller process of the attitude loop: estimate in, dipole out through the magnetorquer
 link, once per plant step, under the deadline monitor.
 
-reads:  estimate/attitude (AttitudeEstimate)
+reads:  estimate/attitude (AttitudeEstimate; real time: the newest, those queued behind it passed
+                           over and counted, bench/controller/newest.py)
         plan/attitude     (AttitudePlanMessage from `bench node planner`; law "tvlqr_plan" only,
                            bench.controller.plan_tracking: lock-step waits for a plan that is due)
         canstep/bus       (CanWindow: lock-step, bus on simulated time: the frames the driver heard)
@@ -29,6 +30,7 @@ from bench.bus.schemas import AttitudeEstimate, DipoleCommand
 from bench.controller.attitude_cycle import AttitudeCycle
 from bench.controller.config import PLANNED_LAWS
 from bench.controller.mtq_link import LockStepLink, MagnetorquerLink
+from bench.controller.newest import NewestEstimate
 from bench.runtime.node import NodeContext
 
 
@@ -94,6 +96,7 @@ def run(ctx: NodeContext) -> int:
         sender = DipoleSender(link)
     send_timeout_s = command_send_timeout_s(scenario)
     estimates = ctx.subscribe_queue(keys.ESTIMATE_ATTITUDE, AttitudeEstimate)
+    newest = NewestEstimate(scenario.run.mode == "real-time")
     follower = None
     if scenario.attitude_control.law in PLANNED_LAWS:
         from bench.controller.plan_tracking import PlanFollower
@@ -104,6 +107,7 @@ def run(ctx: NodeContext) -> int:
         link.start()
     ctx.declare_ready([keys.COMMAND_DIPOLE])
     for estimate in ctx.until_stopped(estimates):
+        estimate = newest.take(estimates, estimate)
         if follower is not None:   # before the deadline clock starts: a lock-step wait is not the law's time
             follower.before_cycle(estimate.header.seq, estimate.header.sim_time_s, estimate.valid, estimate.q_wxyz)
         received_ns = time.monotonic_ns()
@@ -124,6 +128,7 @@ def run(ctx: NodeContext) -> int:
             ctx.publish(keys.EVENT_DEADLINE, monitored.deadline_event(hdr))
     if link is not None:
         link.stop()
-    summary = cycle.summary() | (follower.summary() if follower is not None else {})
+    summary = (cycle.summary() | (follower.summary() if follower is not None else {})
+               | {"stale_estimates_skipped": newest.skipped})
     (ctx.run_dir / "deadline_controller.json").write_text(json.dumps(summary, indent=2))
     return 0

@@ -1,5 +1,9 @@
 """The controller process: estimate in, thrust command out, once per plant step, under a deadline.
 
+reads:  estimate/translation (TranslationEstimate; real time: the newest, those queued behind it
+        passed over and counted, bench/controller/newest.py)
+writes: command/thrust (ThrustCommand), event/deadline (DeadlineEvent, on a miss)
+
 Every cycle runs under the deadline monitor (in real-time mode the law runs in a solver worker
 process, bench/runtime/solver_worker.py, so the command leaves by the deadline); a miss applies the configured fallback and is
 published as a DeadlineEvent as it happens. The monitor's summary goes to deadline.json.
@@ -16,6 +20,7 @@ from bench.bus import keys
 from bench.bus.schemas import ThrustCommand, TranslationEstimate
 from bench.controller.cycle import ControlCycle
 from bench.controller.mtq_link import MagnetorquerLink
+from bench.controller.newest import NewestEstimate
 from bench.runtime.node import NodeContext
 
 
@@ -28,9 +33,11 @@ def run(ctx: NodeContext) -> int:
     if mtq is not None:
         mtq.start()
     estimates = ctx.subscribe_queue(keys.ESTIMATE_TRANSLATION, TranslationEstimate)
+    newest = NewestEstimate(ctx.scenario.run.mode == "real-time")
     ctx.declare_publisher(keys.EVENT_DEADLINE)
     ctx.declare_ready([keys.COMMAND_THRUST])
     for estimate in ctx.until_stopped(estimates):
+        estimate = newest.take(estimates, estimate)
         received_ns = time.monotonic_ns()
         hdr = estimate.header.stamped("controller_received", received_ns)
         state_m_mps = np.array(estimate.state_m_mps) if estimate.valid else None
@@ -46,6 +53,6 @@ def run(ctx: NodeContext) -> int:
     if mtq is not None:
         mtq.stop()
     control.close()
-    summary = control.summary()
+    summary = control.summary() | {"stale_estimates_skipped": newest.skipped}
     (ctx.run_dir / "deadline_controller.json").write_text(json.dumps(summary, indent=2))
     return 0

@@ -126,6 +126,7 @@ def deadline_section(result: DeadlineResult, plot_dir: Path) -> Section:
         ["plant-side missed steps (real-time)", fmt(m["plant_missed_steps"])],
         ["  of which the controller was slow", fmt(m["plant_misses_controller_slow"])],
         ["  of which transport/estimator was slow", fmt(m["plant_misses_transport_slow"])],
+        ["estimates passed over for a newer one (real-time controller behind)", fmt(m["stale_estimates_skipped"])],
         ["solve time p50 / p99 [ms]", f"{fmt(m['solve_time_p50_ms'])} / {fmt(m['solve_time_p99_ms'])}"],
         ["host late to wake the controller after a worker timeout, max [ms]", ms(m["host_wake_late_max_s"])],
         ["controller cycle p99 less that lateness [ms]", ms(m["cycle_time_less_host_p99_s"])],

@@ -36,6 +36,8 @@ class DeadlineResult:
     # worker timeout, the host's share of an overrun that the recording cannot show
     host_wake_late_max_s: float | None = None
     cycle_time_less_host_p99_s: float | None = None
+    # real time: estimates the controller passed over for a newer one queued behind them
+    stale_estimates_skipped: int | None = None
     # the attitude planner: per plan, the simulated time it started from and its wall time
     plan_time_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
     plan_wall_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
@@ -67,6 +69,7 @@ class DeadlineResult:
             "solve_time_p99_ms": _p(self.solve_time_s, 99),
             "host_wake_late_max_s": self.host_wake_late_max_s,
             "cycle_time_less_host_p99_s": self.cycle_time_less_host_p99_s,
+            "stale_estimates_skipped": self.stale_estimates_skipped,
             "external": self.external,
             **({"planner": {"plans": int(self.plan_wall_s.size), "budget_s": self.plan_budget_s,
                             "wall_time_p50_s": float(np.median(self.plan_wall_s)),
@@ -129,6 +132,7 @@ def deadlines(run: RunData) -> DeadlineResult:
         events_by_process=events_by_process,
         host_wake_late_max_s=summary.get("host_wake_late_max_s"),
         cycle_time_less_host_p99_s=summary.get("cycle_time_less_host_p99_s"),
+        stale_estimates_skipped=summary.get("stale_estimates_skipped"),
         plan_time_s=plan_time_s, plan_wall_s=plan_wall_s, plan_budget_s=plan_budget_s, external=external,
     )
 
