@@ -41,7 +41,7 @@ def simulate_in_process(scenario: Scenario) -> tuple[dict[str, np.ndarray], dict
             estimate = StateEstimate(np.full(6, np.nan), None, None)
             outcome = control.run(None)
         else:
-            outcome = control.run(estimate.state_m_mps, estimate.mean_motion_radps)
+            outcome = control.run(estimate.state_m_mps, estimate.mean_motion_radps, step=k)
         thrust_n = outcome.thrust_n
         cycles["solve_time_s"].append(float(outcome.info.get("solve_time", np.nan)))
         cycles["solver_iterations"].append(int(outcome.info.get("iterations", 0)))

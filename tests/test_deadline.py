@@ -116,6 +116,24 @@ def test_shifted_plan_is_shifted_by_the_cycles_elapsed_since_the_plan_not_by_the
     assert outcomes[5].thrust_n.tolist() == [0, 4, 0]
 
 
+def test_shifted_plan_counts_the_steps_a_real_time_controller_passed_over():
+    """A real-time controller acts on the newest estimate (bench/controller/newest.py): cycles for
+    steps 0, 1, 4, 5 after it passed over the estimates of steps 2 and 3. A miss at step 4 replays
+    the entry of the plan of step 1 for step 4 (entry 3), not for the second cycle since (entry 1)."""
+    clock = FakeClock()
+    monitor = DeadlineMonitor(DeadlineConfig(budget_s=BUDGET_S, fallback="shifted_plan"), clock_ns=clock)
+    evaluate = clock.controller([0.001, 0.001, 0.05, 0.05], plans=False)
+
+    def planning(x):
+        u, info = evaluate(x)
+        info["u_plan"] = [[u[0], k, 0.0] for k in range(5)]
+        return u, info
+
+    outcomes = [monitor.run_cycle(np.zeros(6), planning, step=step) for step in (0, 1, 4, 5)]
+    assert [o.fallback for o in outcomes] == [None, None, "shifted_plan", "shifted_plan"]
+    assert [o.thrust_n.tolist() for o in outcomes[2:]] == [[1, 3, 0], [1, 4, 0]]
+
+
 def test_lqr_fallback_uses_the_scenarios_lqr_gain():
     scenario = parse_scenario({"name": "t", "controller": {"deadline": {"budget_s": BUDGET_S, "fallback": "lqr"}}})
     params = scenario.params()

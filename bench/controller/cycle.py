@@ -51,8 +51,9 @@ class ControlCycle:
         self.waiting_for_estimate_cycles = 0
 
     def run(self, state_m_mps: np.ndarray | None, mean_motion_radps: float | None = None,
-            start_ns: int | None = None) -> CycleOutcome:
-        """start_ns: when the estimate arrived, so time spent queued counts against the budget.
+            start_ns: int | None = None, step: int | None = None) -> CycleOutcome:
+        """start_ns: when the estimate arrived, so time spent queued counts against the budget;
+        step: the plant step it acts at (the estimate's seq; DeadlineMonitor.run_cycle).
         state_m_mps None: no valid estimate yet (before the estimator's first fix); the law does
         not run and the thrust is zero, as the attitude loop switches its coils off."""
         if state_m_mps is None:
@@ -63,7 +64,7 @@ class ControlCycle:
         if self.law.update_model(mean_motion_radps) and self.worker is not None:
             self.worker.replace(self.law.factory)
         compute = self.worker if self.worker is not None else self.law.controller.eval
-        outcome = self.monitor.run_cycle(self.law.to_scaled(state_m_mps), compute, start_ns)
+        outcome = self.monitor.run_cycle(self.law.to_scaled(state_m_mps), compute, start_ns, step)
         saturated = np.clip(outcome.thrust_n, -self.max_abs_thrust_n, self.max_abs_thrust_n)
         if not np.array_equal(saturated, outcome.thrust_n):
             self.saturated_cycles += 1

@@ -65,11 +65,11 @@ class StressInjector:
 @dataclass
 class _LastGood:
     """What the fallbacks replay: the last command sent, the last plan that was on time and the
-    index of the cycle that made it (entry k of the plan is the input for k cycles later)."""
+    plant step it was made for (entry k of the plan is the input for k steps later)."""
 
     command: np.ndarray
     plan: np.ndarray | None = None
-    plan_cycle_index: int = 0
+    plan_step: int = 0
 
 
 class DeadlineMonitor:
@@ -114,11 +114,15 @@ class DeadlineMonitor:
         x: np.ndarray,
         compute: Callable[[np.ndarray], tuple[np.ndarray, dict]],
         start_ns: int | None = None,
+        step: int | None = None,
     ) -> CycleOutcome:
         """One controller cycle. start_ns: when the cycle began (the `controller_received`
-        stamp), so time spent queued in the node counts against the budget; default now."""
+        stamp), so time spent queued in the node counts against the budget; default now.
+        step: the plant step it acts at (the estimate's seq; default: one step per cycle), which
+        indexes the shifted plan: a real-time controller passes over superseded estimates."""
         start_ns = self.clock_ns() if start_ns is None else start_ns
         cycle_index = self.counter.cycles
+        step = cycle_index if step is None else step
         evaluate = getattr(compute, "evaluate", None)
         if evaluate is not None:
             # A law in a worker process (WorkerLaw): it answers by the deadline or not at all.
@@ -139,11 +143,11 @@ class DeadlineMonitor:
         self.counter.record(cycle_time_s, missed)
         self.cycle_times_s.append(cycle_time_s)
         if missed and (self.apply_fallback or result is None):
-            u, fallback = self._fallback(x, cycle_index)
+            u, fallback = self._fallback(x, step)
             self.fallbacks_applied[fallback] = self.fallbacks_applied.get(fallback, 0) + 1
         else:
             fallback = None
-            self._accept(info, cycle_index)
+            self._accept(info, step)
         self._last.command = np.asarray(u, dtype=float)
         return CycleOutcome(
             thrust_n=self._last.command.copy(),
@@ -157,24 +161,24 @@ class DeadlineMonitor:
             recovered=was_missing and not missed,
         )
 
-    def _accept(self, info: dict, cycle_index: int) -> None:
-        """An on-time result: remember its plan and when it was made."""
+    def _accept(self, info: dict, step: int) -> None:
+        """An on-time result: remember its plan and the step it was made for."""
         plan = info.get(PLAN_INFO_KEY)
         if plan is not None:
             self._last.plan = np.atleast_2d(np.asarray(plan, dtype=float))
-            self._last.plan_cycle_index = cycle_index
+            self._last.plan_step = step
 
-    def _fallback(self, x: np.ndarray, cycle_index: int) -> tuple[np.ndarray, str]:
+    def _fallback(self, x: np.ndarray, step: int) -> tuple[np.ndarray, str]:
         """The command the configured fallback gives. "shifted_plan" replays entry k of the last
-        on-time plan k cycles after the cycle that made it: k counts every cycle since, missed or
-        on time without a plan (an infeasible MPC cycle publishes none), since the plan's entry k
-        is the input for that time; with no plan, or past its end, LQR acts if a law was given,
-        else "hold". The name returned says which one acted."""
+        on-time plan k steps after the step it was made for: k counts every step since, missed,
+        on time without a plan (an infeasible MPC cycle publishes none) or passed over, since the
+        plan's entry k is the input for that time; with no plan, or past its end, LQR acts if a
+        law was given, else "hold". The name returned says which one acted."""
         policy = self.config.fallback
         if policy == "shifted_plan" and self._last.plan is not None:
-            elapsed_cycles = cycle_index - self._last.plan_cycle_index
-            if elapsed_cycles < len(self._last.plan):
-                return self._last.plan[elapsed_cycles].copy(), "shifted_plan"
+            elapsed_steps = step - self._last.plan_step
+            if elapsed_steps < len(self._last.plan):
+                return self._last.plan[elapsed_steps].copy(), "shifted_plan"
         if policy in ("lqr", "shifted_plan") and self.lqr_law is not None:
             return np.asarray(self.lqr_law(x), dtype=float), "lqr"
         return self._last.command.copy(), "hold"

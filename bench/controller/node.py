@@ -41,7 +41,8 @@ def run(ctx: NodeContext) -> int:
         received_ns = time.monotonic_ns()
         hdr = estimate.header.stamped("controller_received", received_ns)
         state_m_mps = np.array(estimate.state_m_mps) if estimate.valid else None
-        outcome = control.run(state_m_mps, estimate.mean_motion_radps, start_ns=received_ns)
+        outcome = control.run(state_m_mps, estimate.mean_motion_radps, start_ns=received_ns,
+                              step=estimate.header.seq)
         hdr = hdr.stamped("commanded", time.monotonic_ns())
         info = outcome.info
         ctx.publish(keys.COMMAND_THRUST, ThrustCommand(
