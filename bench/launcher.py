@@ -782,6 +782,8 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
                     collector.trust(name, group.report_keys[children[-1].process.pid])
                 _wait_alive(session, run_id, children, scenario.run.liveliness.startup_timeout_s, remote,
                             show=show_progress)
+                if write_report:
+                    _import_report_meanwhile()
                 _follow_run(session, run_id, children, scenario.n_steps, show_progress, scenario.run.liveliness, run_dir,
                             reports=collector, remote=remote)
                 collector.accept()
@@ -824,6 +826,16 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
             if zygote is not None:
                 zygote.close()
     return ending.code, run_dir
+
+
+def _import_report_meanwhile() -> None:
+    """Import the report's modules (matplotlib, ~0.5 s) on a thread while the run goes on, not
+    after it, where the user waits for them; the launcher's own thread only follows the run."""
+    def load() -> None:
+        import bench.report.build  # noqa: F401
+        import bench.report.summary  # noqa: F401
+
+    threading.Thread(target=load, name="import-report", daemon=True).start()
 
 
 def _finish(run_dir: Path, scenario: Scenario, children: list[Child], stats: dict, wall_s: float,

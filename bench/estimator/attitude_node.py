@@ -20,7 +20,7 @@ from bench.bus.schemas import (
 )
 from bench.estimator.attitude_frontend import AttitudeEstimator
 from bench.estimator.attitude_sensors import SensorInbox, SensorSchedule
-from bench.runtime.node import NodeContext
+from bench.runtime.node import STOP_POLL_S, NodeContext
 
 # How long a sample the schedule promises is awaited once its tick's gyro is in. The plant
 # publishes it before the gyro and one subscriber keeps that order, so it is normally there already;
@@ -39,7 +39,7 @@ def run(ctx: NodeContext) -> int:
     ctx.subscribe_topics("sense/*", {keys.SENSE_GYRO: GyroSample, keys.SENSE_MAG: MagnetometerSample,
                                      keys.SENSE_STAR: StarTrackerSample}, inbox.add)
     ctx.declare_ready([keys.ESTIMATE_ATTITUDE])
-    while (tick := inbox.next_tick(ctx.stop)) is not None:
+    while (tick := inbox.next_tick(ctx.stop, STOP_POLL_S)) is not None:
         received_ns = time.monotonic_ns()
         hdr = tick.header or header(ctx.run_id, tick.seq, tick.sim_time_s)
         hdr = hdr.stamped("estimator_received", received_ns)

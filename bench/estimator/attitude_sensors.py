@@ -128,7 +128,7 @@ class SensorInbox:
             self._cond.notify_all()
 
     # --- the estimator loop -----------------------------------------------------------------
-    def next_tick(self, stop: threading.Event, poll_s: float = 0.2) -> SensorTick | None:
+    def next_tick(self, stop: threading.Event, poll_s: float = 0.02) -> SensorTick | None:
         """The next tick once its gyro sample (or a later tick's) is in; None when told to stop."""
         with self._cond:
             while True:

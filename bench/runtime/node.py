@@ -35,6 +35,10 @@ from bench.runtime.priority import node_realtime_priority, set_realtime_priority
 from bench.runtime.reports import SIGNED_TYPES, key_from_environment, sign
 from bench.scenario import Scenario
 
+# How often a node waiting for a message looks at its stop flag: a run's end waits for the slowest
+# node of each stop stage to see it (0.2 s here made every `bench run` 0.1 s longer on average).
+STOP_POLL_S = 0.02
+
 # Node name -> module with run(ctx). Other parts add theirs (the magnetorquer board, the recorder).
 NODES: dict[str, str] = {
     "plant": "bench.plant.node",
@@ -163,7 +167,7 @@ class NodeContext:
         self.subscribe(topic, kind, q.put)
         return q
 
-    def until_stopped(self, messages: "queue.Queue[Message]", poll_s: float = 0.2):
+    def until_stopped(self, messages: "queue.Queue[Message]", poll_s: float = STOP_POLL_S):
         """Yield messages from a subscription queue until the node is told to stop."""
         while not self.stop.is_set():
             try:
