@@ -143,11 +143,11 @@ def test_every_stressed_cycle_misses_and_the_fallback_holds(tmp_path):
     assert checks["position_xz"] and checks["position_y"] and checks["thrust"]
 
 
-HELD_CYCLE, HELD_S = 8, 0.25      # one cycle 2.5 steps long: two estimates queue behind it
+HELD_CYCLE, HELD_S = 8, 0.35      # one cycle 3.5 steps long: three estimates queue behind it
 
 
 def test_a_real_time_controller_held_up_acts_on_the_newest_estimate(tmp_path):
-    """A controller held up for 2.5 steps (a 0.25 s solve, inside a 0.4 s budget so its own result
+    """A controller held up for 3.5 steps (a 0.35 s solve, inside a 0.45 s budget so its own result
     is sent) does not then work through the estimates queued meanwhile: it passes them over for the
     newest and counts them. Checked against the recording: the estimates published before the held
     cycle ended, and the commands that followed."""
@@ -158,7 +158,7 @@ def test_a_real_time_controller_held_up_acts_on_the_newest_estimate(tmp_path):
         mode = "real-time"
         steps = 20
         [controller.deadline]
-        budget_s = 0.4
+        budget_s = 0.45
         [controller.deadline.stress]
         process = "controller"
         extra_cycle_time_s = {HELD_S}
@@ -177,8 +177,9 @@ def test_a_real_time_controller_held_up_acts_on_the_newest_estimate(tmp_path):
                 commands[header["seq"]] = header["stamps_ns"]
     held_end_ns = commands[HELD_CYCLE]["commanded"]
     after = min(k for k in commands if k > HELD_CYCLE)
-    # Every estimate out 20 ms (a hop, many times over) before the held cycle ended was waiting.
-    waiting = [k for k, t in estimated_ns.items() if k > HELD_CYCLE and t < held_end_ns - 20_000_000]
+    # Every estimate out 0.1 s (a hop, many times over, on a loaded host too) before the held cycle
+    # ended was waiting: those of steps 9 and 10, published 0.25 s and 0.15 s before it ended.
+    waiting = [k for k, t in estimated_ns.items() if k > HELD_CYCLE and t < held_end_ns - 100_000_000]
     assert len(waiting) >= 2, (waiting, HELD_S)
     assert after >= max(waiting), f"acted on estimate {after} with {max(waiting)} already waiting"
     assert not set(range(HELD_CYCLE + 1, after)) & set(commands), "a passed-over estimate got a command"
