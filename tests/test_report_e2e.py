@@ -188,6 +188,8 @@ def test_a_real_time_controller_held_up_acts_on_the_newest_estimate(tmp_path):
         1 for k in estimated_ns if k > after and k not in commands)
     metrics = json.loads((run_dir / "metrics.json").read_text())
     assert metrics["deadlines"]["stale_estimates_skipped"] == summary["stale_estimates_skipped"]
+    # The plant ran the passed-over steps on a held command: the controller's doing, not transport's.
+    assert metrics["deadlines"]["plant_misses_controller_slow"] >= after - HELD_CYCLE - 1
 
 
 def test_real_report_renders_in_chromium(realtime_run, tmp_path):

@@ -36,8 +36,10 @@ class DeadlineResult:
     # worker timeout, the host's share of an overrun that the recording cannot show
     host_wake_late_max_s: float | None = None
     cycle_time_less_host_p99_s: float | None = None
-    # real time: estimates the controller passed over for a newer one queued behind them
+    # real time: estimates the controller passed over for a newer one queued behind them (its
+    # count, and the steps of the recorded estimates that got no command)
     stale_estimates_skipped: int | None = None
+    passed_over_seq: list[int] = field(default_factory=list)
     # the attitude planner: per plan, the simulated time it started from and its wall time
     plan_time_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
     plan_wall_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
@@ -48,11 +50,12 @@ class DeadlineResult:
 
     @property
     def plant_misses_controller_slow(self) -> int:
-        return len(set(self.plant_miss_seq) & set(self.controller_miss_seq))
+        """Plant-side misses whose cycle was over budget or never ran (its estimate passed over)."""
+        return len(set(self.plant_miss_seq) & (set(self.controller_miss_seq) | set(self.passed_over_seq)))
 
     @property
     def plant_misses_transport_slow(self) -> int:
-        return len(set(self.plant_miss_seq) - set(self.controller_miss_seq))
+        return len(self.plant_miss_seq) - self.plant_misses_controller_slow
 
     def to_metrics(self) -> dict:
         return {
@@ -105,7 +108,9 @@ def deadlines(run: RunData) -> DeadlineResult:
     attitude = run.scenario is not None and run.scenario.kind == "attitude"
     external = list(run.scenario.run.external) if run.scenario is not None else []
     seqs, cycle_s, solve_s, fallbacks = [], [], [], {}
+    commanded: set[int] = set()
     for m in run.on(keys.COMMAND_DIPOLE if attitude else keys.COMMAND_THRUST):
+        commanded.add(m.seq)
         stamps, body = m.stamps_ns, m.body
         if "controller" in external:
             continue     # its stamps and solve times are its own claims: not a measured cycle
@@ -121,6 +126,10 @@ def deadlines(run: RunData) -> DeadlineResult:
     if budget is None and run.scenario is not None:
         budget = run.scenario.controller.deadline.budget_s
     plan_time_s, plan_wall_s, plan_budget_s = _planner(run)
+    passed_over = []
+    if run.scenario is not None and run.scenario.run.mode == "real-time":
+        estimated = {m.seq for m in run.on(keys.ESTIMATE_ATTITUDE if attitude else keys.ESTIMATE_TRANSLATION)}
+        passed_over = sorted(estimated - commanded)
     return DeadlineResult(
         budget_s=budget,
         cycle_seq=np.asarray(seqs, dtype=int),
@@ -132,7 +141,7 @@ def deadlines(run: RunData) -> DeadlineResult:
         events_by_process=events_by_process,
         host_wake_late_max_s=summary.get("host_wake_late_max_s"),
         cycle_time_less_host_p99_s=summary.get("cycle_time_less_host_p99_s"),
-        stale_estimates_skipped=summary.get("stale_estimates_skipped"),
+        stale_estimates_skipped=summary.get("stale_estimates_skipped"), passed_over_seq=passed_over,
         plan_time_s=plan_time_s, plan_wall_s=plan_wall_s, plan_budget_s=plan_budget_s, external=external,
     )
 
