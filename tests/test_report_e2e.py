@@ -52,7 +52,9 @@ def realtime_run(tmp_path_factory):
 def test_realtime_latency_percentiles_agree_with_the_recording(realtime_run):
     metrics = json.loads((realtime_run / "metrics.json").read_text())["latency_ms"]
     headers = thrust_headers_from_mcap(realtime_run / "recording.mcap")
-    assert sorted(headers) == list(range(REALTIME_STEPS))
+    # A command per step, but for an estimate a controller behind passed over (a starved host's).
+    skipped = json.loads((realtime_run / "deadline_controller.json").read_text())["stale_estimates_skipped"]
+    assert set(headers) <= set(range(REALTIME_STEPS)) and len(headers) == REALTIME_STEPS - skipped
     hops = {
         "plant → estimator": ("sensed", "estimator_received"),
         "estimator compute": ("estimator_received", "estimated"),

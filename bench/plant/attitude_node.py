@@ -135,17 +135,26 @@ class CoilBlankingGate:
         return True
 
 
-def _publish_step(ctx: NodeContext, plant: AttitudePlant, k: int) -> None:
-    """Truth, then the sensors of tick k, each on its own topic; the gyro last, as it closes the
-    tick for the estimator (one session, one link: Zenoh delivers them in this order)."""
+def _publish_step(ctx: NodeContext, plant: AttitudePlant, k: int, estimator_on_truth: bool) -> None:
+    """The sensors of tick k, each on its own topic, the gyro last, as it closes the tick for the
+    estimator (one session, one link: Zenoh delivers them in this order); and the truth: first
+    when the estimator runs on it, else after the sensors (then only the recorder reads it, and the
+    loop's sense -> estimator hop does not wait for its encoding and MAC)."""
     sample = plant.sense()
     hdr = header(ctx.run_id, k, plant.time_s, sensed=time.monotonic_ns())
+    if estimator_on_truth:
+        _publish_truth(ctx, plant, hdr)
+    for topic, message in sensor_messages(hdr, sample):
+        ctx.publish(topic, message)
+    if not estimator_on_truth:
+        _publish_truth(ctx, plant, hdr)
+
+
+def _publish_truth(ctx: NodeContext, plant: AttitudePlant, hdr) -> None:
     truth = plant.sim.truth()
     ctx.publish(keys.TRUTH_ATTITUDE, AttitudeTruth(
         hdr, truth.q_wxyz.tolist(), truth.omega_body_radps.tolist(), truth.gyro_bias_radps.tolist(),
         plant.sim.field_body_t().tolist(), plant.orbit.position_m(plant.time_s).tolist()))
-    for topic, message in sensor_messages(hdr, sample):
-        ctx.publish(topic, message)
 
 
 def sensor_messages(hdr, sample: AttitudeSample) -> list[tuple[str, Message]]:
@@ -222,7 +231,7 @@ def run(ctx: NodeContext) -> int:
                 raise LoopBroken(f"peer '{lost}' lost at step {k}")
             if realtime:
                 clock.sleep_until(clock.tick_s(k))
-            _publish_step(ctx, plant, k)
+            _publish_step(ctx, plant, k, estimator_truth)
             if realtime:
                 command = clock.collect_command(ctx, commands, k, command_gate, value=lambda c: c.dipole_am2)
                 outcome = clock.deadline.check(k, time.monotonic() - clock.tick_s(k))
