@@ -60,19 +60,22 @@ def bench_run(tmp_path: Path, scenario: str, run_id: str):
 def check_only_commanded_applied(run) -> None:
     """Plant side and board side: every applied dipole is zero or the board's version of a dipole
     the law published (the recording's command/dipole); and the law ran: it published a command
-    for every step from the first to its last but those whose estimate it passed over for a newer
-    one (a real-time controller behind, as a starved guest's is: bench/controller/newest.py, counted
-    in deadline_controller.json), its last at least a second past the drops' start (so the check
+    for every step from the first estimate to its last command but those whose estimate it passed
+    over for a newer one (a real-time controller behind, as a starved guest's is:
+    bench/controller/newest.py, counted in deadline_controller.json), its last at least a second
+    past the drops' start (so the check
     covers the fault and what followed). Steps after the law's last are a starved guest's backlog
     when the plant ends and the launcher stops the controller (CI, host loaded: the plant ran its
     120 steps of 0.1 s in 13.4 s): the host's, judged by the verdict, not here."""
     commands = run.on("command/dipole")
     assert commands, "the controller published no command"
     steps = sorted(m.seq for m in commands)
-    passed_over = sorted(set(range(steps[0], steps[-1] + 1)) - set(steps))
-    skipped = json.loads((run.run_dir / "deadline_controller.json").read_text())["stale_estimates_skipped"]
     estimated = {m.seq for m in run.on("estimate/attitude")}
-    assert steps[0] <= 1 and len(passed_over) <= skipped and set(passed_over) <= estimated, (
+    # From the first estimate on (a starved guest's controller, still starting, has passed over
+    # the first three, CI89).
+    passed_over = sorted(set(range(min(estimated), steps[-1] + 1)) - set(steps))
+    skipped = json.loads((run.run_dir / "deadline_controller.json").read_text())["stale_estimates_skipped"]
+    assert min(estimated) <= 1 and len(passed_over) <= skipped and set(passed_over) <= estimated, (
         f"steps without a command: {passed_over}, estimates the controller passed over: {skipped}")
     assert steps[-1] * run.scenario.step_s >= DROP_START_S + 1.0, f"the law's last command was for step {steps[-1]}"
     published = [m.body["dipole_am2"] for m in commands]
