@@ -63,10 +63,10 @@ def check_only_commanded_applied(run) -> None:
     for every step from the first estimate to its last command but those whose estimate it passed
     over for a newer one (a real-time controller behind, as a starved guest's is:
     bench/controller/newest.py, counted in deadline_controller.json), its last at least a second
-    past the drops' start (so the check
-    covers the fault and what followed). Steps after the law's last are a starved guest's backlog
-    when the plant ends and the launcher stops the controller (CI, host loaded: the plant ran its
-    120 steps of 0.1 s in 13.4 s): the host's, judged by the verdict, not here."""
+    past the drops' start (so the check covers the fault and what followed). Steps after the law's
+    last are a starved guest's backlog when the plant ends and the launcher stops the controller
+    (CI, host loaded: the plant ran its 120 steps of 0.1 s in 13.4 s): the host's, judged by the
+    verdict, not here."""
     commands = run.on("command/dipole")
     assert commands, "the controller published no command"
     steps = sorted(m.seq for m in commands)
