@@ -185,9 +185,10 @@ def test_a_real_time_controller_held_up_acts_on_the_newest_estimate(tmp_path):
     assert len(waiting) >= 2, (waiting, HELD_S)
     assert after >= max(waiting), f"acted on estimate {after} with {max(waiting)} already waiting"
     assert not set(range(HELD_CYCLE + 1, after)) & set(commands), "a passed-over estimate got a command"
+    # Counted: every recorded estimate that got no command (on a loaded host, also some the
+    # controller passed over elsewhere, as a starved one does while it starts).
     summary = json.loads((run_dir / "deadline_controller.json").read_text())
-    assert summary["stale_estimates_skipped"] == after - HELD_CYCLE - 1 + sum(
-        1 for k in estimated_ns if k > after and k not in commands)
+    assert summary["stale_estimates_skipped"] == len(set(estimated_ns) - set(commands)) >= after - HELD_CYCLE - 1
     metrics = json.loads((run_dir / "metrics.json").read_text())
     assert metrics["deadlines"]["stale_estimates_skipped"] == summary["stale_estimates_skipped"]
     # The plant ran the passed-over steps on a held command: the controller's doing, not transport's.
