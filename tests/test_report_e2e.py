@@ -28,12 +28,12 @@ def bench_run(tmp_path, *args: str):
     return result
 
 
-def thrust_headers_from_mcap(path) -> dict[int, dict]:
-    """seq -> stamps of the thrust command, straight from the MCAP file (no bench code)."""
+def headers_from_mcap(path, topic: str = keys.COMMAND_THRUST) -> dict[int, dict]:
+    """seq -> stamps of one topic's messages, straight from the MCAP file (no bench code)."""
     out = {}
     with open(path, "rb") as f:
         for _schema, channel, message in make_reader(f).iter_messages():
-            if channel.topic == keys.COMMAND_THRUST:
+            if channel.topic == topic:
                 hdr = json.loads(message.data)["header"]
                 out[hdr["seq"]] = hdr["stamps_ns"]
     return out
@@ -51,19 +51,22 @@ def realtime_run(tmp_path_factory):
 
 def test_realtime_latency_percentiles_agree_with_the_recording(realtime_run):
     metrics = json.loads((realtime_run / "metrics.json").read_text())["latency_ms"]
-    headers = thrust_headers_from_mcap(realtime_run / "recording.mcap")
-    # A command per step, but for an estimate a controller behind passed over (a starved host's).
+    headers = headers_from_mcap(realtime_run / "recording.mcap")
+    estimates = headers_from_mcap(realtime_run / "recording.mcap", keys.ESTIMATE_TRANSLATION)
+    # An estimate per step; a command per step but for an estimate a controller behind passed over
+    # (a starved host's, counted): the hops up to the estimator's are measured on every step.
     skipped = json.loads((realtime_run / "deadline_controller.json").read_text())["stale_estimates_skipped"]
-    assert set(headers) <= set(range(REALTIME_STEPS)) and len(headers) == REALTIME_STEPS - skipped
+    assert sorted(estimates) == list(range(REALTIME_STEPS))
+    assert set(headers) <= set(estimates) and len(headers) == REALTIME_STEPS - skipped
     hops = {
-        "plant → estimator": ("sensed", "estimator_received"),
-        "estimator compute": ("estimator_received", "estimated"),
-        "estimator → controller": ("estimated", "controller_received"),
-        "controller compute": ("controller_received", "commanded"),
-        "sensed → commanded": ("sensed", "commanded"),
+        "plant → estimator": ("sensed", "estimator_received", estimates),
+        "estimator compute": ("estimator_received", "estimated", estimates),
+        "estimator → controller": ("estimated", "controller_received", headers),
+        "controller compute": ("controller_received", "commanded", headers),
+        "sensed → commanded": ("sensed", "commanded", headers),
     }
-    for hop, (start, end) in hops.items():
-        independent_ms = np.array([(h[end] - h[start]) / 1e6 for h in headers.values()])
+    for hop, (start, end, source) in hops.items():
+        independent_ms = np.array([(h[end] - h[start]) / 1e6 for h in source.values()])
         for p in (50, 90, 99):
             assert metrics[hop][f"p{p}_ms"] == pytest.approx(np.percentile(independent_ms, p), abs=1e-6), hop
     # The plant's record of what it applied carries the same upstream stamps as the recording.
@@ -79,10 +82,14 @@ def test_realtime_latency_percentiles_agree_with_the_recording(realtime_run):
 
 def test_realtime_recording_misses_nothing(realtime_run):
     counts = json.loads((realtime_run / "recorder_counts.json").read_text())["topics"]
-    for topic in (keys.TRUTH, keys.ESTIMATE_TRANSLATION, keys.COMMAND_THRUST, keys.STATUS_STEP):
-        assert counts[topic]["published"] == counts[topic]["recorded"] == REALTIME_STEPS, topic
+    # The controller commands every step but those whose estimate it passed over (counted).
+    skipped = json.loads((realtime_run / "deadline_controller.json").read_text())["stale_estimates_skipped"]
+    commands = REALTIME_STEPS - skipped
+    for topic, published in ((keys.TRUTH, REALTIME_STEPS), (keys.ESTIMATE_TRANSLATION, REALTIME_STEPS),
+                             (keys.COMMAND_THRUST, commands), (keys.STATUS_STEP, REALTIME_STEPS)):
+        assert counts[topic]["published"] == counts[topic]["recorded"] == published, topic
         assert counts[topic]["missing"] == 0 and counts[topic]["malformed"] == 0
-    assert "| command/thrust | 40 | 40 | 0 | 0 |" in (realtime_run / "report.md").read_text()
+    assert f"| command/thrust | {commands} | {commands} | 0 | 0 |" in (realtime_run / "report.md").read_text()
 
 
 def stress_scenario(tmp_path) -> str:
