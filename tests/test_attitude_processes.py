@@ -197,7 +197,11 @@ def fault_runs(runs):
 def test_no_faulted_command_was_applied(fault_runs):
     for run in fault_runs:
         published = [m.body["dipole_am2"] for m in run.on("command/dipole")]
-        assert len(published) >= len(run.trajectory["att_time_s"]) - 5
+        # A command per step, but for estimates the controller passed over (bench/controller/newest.py:
+        # a real-time controller behind, e.g. while a flood keeps the bus's nodes busy at its own
+        # priority; CI96 passed over 6) and a few at the end.
+        skipped = json.loads((run.run_dir / "deadline_controller.json").read_text())["stale_estimates_skipped"]
+        assert len(published) >= len(run.trajectory["att_time_s"]) - skipped - 5
         assert applied_is_commanded_or_zero(run.trajectory, run.scenario.can, published).all(), run.run_id
         # and the board applied nothing else either (its own log of every accepted command)
         board = json.loads((run.run_dir / "can" / "board.json").read_text())

@@ -223,7 +223,10 @@ def test_only_the_plant_may_publish_the_attitude_sensors_and_the_estimator_reads
 # ------------------------------------------------------------------------------------------------
 # A rogue with the estimator's certificate tries to command the plant during a run.
 # ------------------------------------------------------------------------------------------------
-STEPS = 60
+# Long enough for the rogue to be connected to the plant while the loop runs: it joins through the
+# launcher's endpoint after the run has started, and a 60-step lock-step loop (about 0.1 s) was
+# once over before it heard a truth sample (CI96, three test workers on two cores).
+STEPS = 600
 
 
 def _wait_port(port: int, timeout_s: float) -> None:
@@ -239,14 +242,18 @@ def _wait_port(port: int, timeout_s: float) -> None:
 class RogueCommander:
     """Answers every truth sample of step k with its own thrust command for step k, at once:
     it wins the race against the real controller whenever its command is delivered. signer: the
-    run's data key (bench/bus/data_auth.py), for a rogue that could read the run's bus.key."""
+    run's data key (bench/bus/data_auth.py), for a rogue that could read the run's bus.key. It
+    stops after max_commands: a plant flown by it for hundreds of steps diverges and ends the run."""
 
-    def __init__(self, session, run_id: str, signer=None):
+    def __init__(self, session, run_id: str, signer=None, max_commands: int = 30):
         self.session, self.run_id, self.sent, self.signer = session, run_id, 0, signer
+        self.max_commands = max_commands
         self.publisher = session.declare_publisher(keys.key(run_id, keys.COMMAND_THRUST))
         self.subscriber = session.declare_subscriber(keys.key(run_id, keys.TRUTH), self._on_truth)
 
     def _on_truth(self, sample) -> None:
+        if self.sent >= self.max_commands:
+            return
         k = decode(sample.payload.to_bytes(), TruthState).header.seq
         payload = encode(ThrustCommand(header(self.run_id, k, 0.0), [0.9, -0.9, 0.9], True, "rogue", 0.0))
         attachment = self.signer(str(self.publisher.key_expr), payload) if self.signer else None
