@@ -11,6 +11,7 @@ import pytest
 
 from bench.bus.deployment import DeploymentError, load_deployment
 from bench.launcher import Child, NodeFailed, _check_children, _wait_alive
+from bench.plant.divergence import EXIT_DIVERGED
 from bench.scenario import MAX_NESTING, Scenario, ScenarioError, load_scenario, parse_scenario
 from conftest import bench_processes, run_bench_cli
 
@@ -171,6 +172,14 @@ def test_a_plant_that_ended_cleanly_during_start_up_ran_the_loop(tmp_path):
                 Child("controller", Exited(None, 11), tmp_path / "controller.log")]
     _wait_alive(NoTokensYet(), "r", children, timeout_s=0.2)
     # A node that failed is still named, whatever the plant did.
+    children[1] = Child("controller", Exited(1, 11), tmp_path / "controller.log")
+    with pytest.raises(NodeFailed, match=r"^process 'controller' \(pid 11\) exited with code 1"):
+        _wait_alive(NoTokensYet(), "r", children, timeout_s=0.2)
+    # A plant that stopped on divergence during start-up (CI97: step 4, 36 ms after its peers were
+    # ready) is left to _follow_run, which names the divergence; a node that failed still comes first.
+    children = [Child("plant", Exited(EXIT_DIVERGED, 10), tmp_path / "plant.log"),
+                Child("controller", Exited(None, 11), tmp_path / "controller.log")]
+    _wait_alive(NoTokensYet(), "r", children, timeout_s=0.2)
     children[1] = Child("controller", Exited(1, 11), tmp_path / "controller.log")
     with pytest.raises(NodeFailed, match=r"^process 'controller' \(pid 11\) exited with code 1"):
         _wait_alive(NoTokensYet(), "r", children, timeout_s=0.2)
