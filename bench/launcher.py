@@ -502,6 +502,8 @@ class StatsCollector:
         entry = {"published": message.published, "malformed": message.malformed}
         if message.unauthentic:
             entry["unauthentic"] = message.unauthentic
+        if message.realtime_priority:
+            entry["realtime_priority"] = message.realtime_priority
         with self._lock:
             if message.process not in self.remote:
                 # Signed by the process itself, which sends its stats once: a second is a replay.

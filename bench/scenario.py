@@ -108,6 +108,10 @@ class RunConfig(msgspec.Struct, forbid_unknown_fields=True):
     steps: Annotated[int, msgspec.Meta(ge=1, le=MAX_STEPS)] | None = None   # default: the reference's 288
     time_factor: Annotated[float, msgspec.Meta(ge=1e-2, le=1e6)] = 6000.0   # real-time: 600 s steps at 10 Hz
     seed: Annotated[int, msgspec.Meta(ge=0, le=2**63 - 1)] = 1
+    # real-time: SCHED_FIFO priority of the loop's processes, the plant, the estimator and the
+    # controller, every thread of them (0: the default scheduler); bench/runtime/priority.py.
+    # They stand for the spacecraft and its flight computer, which no other program holds up.
+    realtime_priority: Annotated[int, msgspec.Meta(ge=0, le=99)] = 20
     # lock-step: how long the plant waits for a command before it declares the loop broken.
     command_timeout_s: Annotated[float, msgspec.Meta(gt=0, le=3600.0)] = 10.0
     liveliness: LivelinessConfig = msgspec.field(default_factory=LivelinessConfig)

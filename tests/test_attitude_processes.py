@@ -214,17 +214,25 @@ def test_no_faulted_command_was_applied(fault_runs):
     assert board["rejected"].get("WRONG_CRC", 0) + board["rejected"].get("WRONG_MAC", 0) >= 1
 
 
-def test_the_real_time_can_nodes_ran_at_realtime_priority(fault_runs, fault_lock_step_run):
+def test_the_real_time_can_and_loop_nodes_ran_at_realtime_priority(fault_runs, fault_lock_step_run):
     """Every process of the wall-clock bus (the board, the bus model, the controller with the
-    driver) says it ran at [can] realtime_priority (none on a host with one CPU); the simulated
-    bus of the lock-step twin took none."""
+    driver) says it ran at [can] realtime_priority, the plant and the estimator at [run]
+    realtime_priority, the recorder at none (none at all on a host with one CPU); the lock-step
+    twin's nodes took none."""
     from bench.runtime.priority import node_realtime_priority
+    two_cpus = len(os.sched_getaffinity(0)) > 1
     for run in fault_runs:
         expected = node_realtime_priority("mtq", run.scenario)
-        assert expected == (run.scenario.can.realtime_priority if len(os.sched_getaffinity(0)) > 1 else 0)
+        assert expected == (run.scenario.can.realtime_priority if two_cpus else 0)
         reports = {name: json.loads((run.run_dir / "can" / name).read_text()) for name in ("board.json", "busmodel.json", "driver.json")}
         assert {name: r["realtime_priority"] for name, r in reports.items()} == dict.fromkeys(reports, expected)
+        stats = json.loads((run.run_dir / "metrics.json").read_text())["process_stats"]
+        loop = run.scenario.run.realtime_priority if two_cpus else 0
+        assert {name: stats[name].get("realtime_priority", 0) for name in ("plant", "estimator", "controller", "recorder")} == \
+            {"plant": loop, "estimator": loop, "controller": max(loop, expected), "recorder": 0}
     assert json.loads((fault_lock_step_run.run_dir / "can" / "busmodel.json").read_text()).get("realtime_priority", 0) == 0
+    stats = json.loads((fault_lock_step_run.run_dir / "metrics.json").read_text())["process_stats"]
+    assert all("realtime_priority" not in entry for entry in stats.values()), stats
 
 
 def broken_steps_after(part: dict, run, end_s: float, excused: np.ndarray) -> str:

@@ -1,4 +1,4 @@
-"""SCHED_FIFO for the wall-clock CAN nodes (bench/runtime/priority.py), and the measures a fault
+"""SCHED_FIFO for the real-time loop and the wall-clock CAN nodes (bench/runtime/priority.py), and the measures a fault
 check uses to tell the host's hold-ups from the fault (host_lateness.held_s, RunClock's inverse)."""
 from __future__ import annotations
 
@@ -49,19 +49,32 @@ def test_monotonic_ns_is_the_inverse_of_sim_s():
     assert clock.monotonic_ns(0.05) == pytest.approx((steps_ns[0] + steps_ns[1]) / 2)
 
 
-def test_only_the_nodes_of_a_bus_on_the_wall_clock_take_the_priority():
+def test_the_loop_in_real_time_and_the_nodes_of_a_bus_on_the_wall_clock_take_the_priority():
     real_time = load_scenario("attitude_fault_all")
-    assert real_time.can.realtime_priority == 20
-    assert {n: node_realtime_priority(n, real_time, cpus=2) for n in ("plant", "estimator", "recorder", "planner", *CAN_BUS_NODES)} == \
-        {"plant": 0, "estimator": 0, "recorder": 0, "planner": 0, "mtq": 20, "canbus": 20, "controller": 20}
+    assert real_time.can.realtime_priority == 20 and real_time.run.realtime_priority == 20
+    everyone = ("plant", "estimator", "recorder", "planner", *CAN_BUS_NODES)
+    assert {n: node_realtime_priority(n, real_time, cpus=2) for n in everyone} == \
+        {"plant": 20, "estimator": 20, "recorder": 0, "planner": 0, "mtq": 20, "canbus": 20, "controller": 20}
     # one CPU (the user-mode Linux guest of tests/test_kernel_can_uml.py): the loop needs it all
-    assert all(node_realtime_priority(n, real_time, cpus=1) == 0 for n in CAN_BUS_NODES)
-    # lock-step with the bus on simulated time: the host's delays change no frame's time
+    assert all(node_realtime_priority(n, real_time, cpus=1) == 0 for n in everyone)
+    # lock-step with the bus on simulated time: the host's delays change no step and no frame's time
     lock_step = msgspec.structs.replace(real_time, run=msgspec.structs.replace(real_time.run, mode="lock-step"))
-    assert all(node_realtime_priority(n, lock_step, cpus=2) == 0 for n in CAN_BUS_NODES)
-    assert node_realtime_priority("controller", load_scenario("rendezvous_lqr"), cpus=2) == 0      # no CAN bus
-    off = msgspec.structs.replace(real_time, can=msgspec.structs.replace(real_time.can, realtime_priority=0))
-    assert node_realtime_priority("mtq", off, cpus=2) == 0
+    assert all(node_realtime_priority(n, lock_step, cpus=2) == 0 for n in everyone)
+    # each setting on its own; the controller, in both, takes the higher
+    def with_priorities(run_priority: int, can_priority: int):
+        return msgspec.structs.replace(real_time, run=msgspec.structs.replace(real_time.run, realtime_priority=run_priority),
+                                       can=msgspec.structs.replace(real_time.can, realtime_priority=can_priority))
+    assert {n: node_realtime_priority(n, with_priorities(0, 20), cpus=2) for n in ("plant", "estimator", "controller", "mtq")} == \
+        {"plant": 0, "estimator": 0, "controller": 20, "mtq": 20}
+    assert {n: node_realtime_priority(n, with_priorities(30, 0), cpus=2) for n in ("plant", "estimator", "controller", "mtq")} == \
+        {"plant": 30, "estimator": 30, "controller": 30, "mtq": 0}
+    assert all(node_realtime_priority(n, with_priorities(0, 0), cpus=2) == 0 for n in everyone)
+    # no CAN bus: the loop in real time only
+    rendezvous = load_scenario("rendezvous_lqr")
+    assert all(node_realtime_priority(n, rendezvous, cpus=2) == 0 for n in everyone)
+    rendezvous_rt = msgspec.structs.replace(rendezvous, run=msgspec.structs.replace(rendezvous.run, mode="real-time"))
+    assert {n: node_realtime_priority(n, rendezvous_rt, cpus=2) for n in ("plant", "estimator", "controller", "recorder")} == \
+        {"plant": 20, "estimator": 20, "controller": 20, "recorder": 0}
 
 
 INHERITANCE = """

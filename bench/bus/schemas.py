@@ -138,6 +138,8 @@ class ProcessStats(Message, tag="process_stats"):
     # Messages it dropped for their data-topic MAC (bench/bus/data_auth.py): "forged" or
     # "replayed" -> topic -> count.
     unauthentic: dict[str, dict[str, NonNegInt]] = {}
+    # The SCHED_FIFO priority its process ran at (0: the default scheduler; bench/runtime/priority.py).
+    realtime_priority: NonNegInt = 0
 
 
 M = TypeVar("M", bound=Message)

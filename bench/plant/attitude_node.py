@@ -271,6 +271,7 @@ def run(ctx: NodeContext) -> int:
         ctx.log.error("%s", exc)
         return 1
     finally:
+        ctx.leave_realtime_priority()   # the loop is over; its files must not hold up another run
         for _, applied in chains.expire():
             ctx.publish(keys.COMMAND_APPLIED, applied)
         _write_trajectory(ctx, plant, chains, clock, log, acceptance)

@@ -108,6 +108,7 @@ def run(ctx: NodeContext) -> int:
         ctx.log.error("%s", exc)
         return 1
     finally:
+        ctx.leave_realtime_priority()   # the loop is over; its files must not hold up another run
         _write_trajectory(ctx, plant, stamps, clock, dipoles)
         _write_acceptance(ctx, {"thrust": gate.counts(), "dipole": dipoles.gate.counts() if dipoles.gate else None})
     return 0

@@ -168,12 +168,14 @@ class NodeContext:
         return q
 
     def until_stopped(self, messages: "queue.Queue[Message]", poll_s: float = STOP_POLL_S):
-        """Yield messages from a subscription queue until the node is told to stop."""
+        """Yield messages from a subscription queue until the node is told to stop; then the
+        calling thread leaves its real-time priority (what follows is the node's files)."""
         while not self.stop.is_set():
             try:
                 yield messages.get(timeout=poll_s)
             except queue.Empty:
                 continue
+        self.leave_realtime_priority()
 
     # --- liveliness -----------------------------------------------------------------------
     def declare_alive(self) -> None:
@@ -258,6 +260,7 @@ class NodeContext:
             published=dict(self.published),
             malformed=dict(self.malformed),
             unauthentic={reason: dict(counts) for reason, counts in self.unauthentic.items()},
+            realtime_priority=self.realtime_priority,
         )
         self.publish(f"{keys.STATUS_STATS}/{self.name}", stats)
         self.log.info("published %s; malformed %s; unauthentic %s", dict(self.published), dict(self.malformed),

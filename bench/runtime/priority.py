@@ -1,4 +1,4 @@
-"""SCHED_FIFO for the parts of a real-time run that stand for hardware or flight software.
+"""SCHED_FIFO for the parts of a real-time run that stand for hardware, physics or flight software.
 
 On a loaded host the default scheduler can hold a process up for a hundred milliseconds or more.
 For the controller's cycle thread that is a missed deadline (on the 2-core bench machine at load
@@ -46,20 +46,29 @@ def realtime_priority(priority: int):
 # The processes that carry the actuator bus: the board ("mtq"), the bus model ("canbus") and the
 # controller, one of whose threads is the flight-side driver.
 CAN_BUS_NODES = ("mtq", "canbus", "controller")
+# The processes of the loop from sensing to the command: in real time each wakes for every step.
+LOOP_NODES = ("plant", "estimator", "controller")
 
 
 def node_realtime_priority(name: str, scenario, cpus: int | None = None) -> int:
-    """The SCHED_FIFO priority node `name` takes for its whole process before its session opens
-    (`[can] realtime_priority`), or 0: only the nodes of a CAN bus on the wall clock take one; on
-    simulated time (lock-step, bench/bus/can/sim_window.py) the host's delays change no frame's
-    time. Nor on a host with one CPU (`cpus`: this process's, by default): there the bus's nodes
-    would take it from the loop's other processes (the plant, the estimator), which the run
-    needs as much; the host's delays would only move from the bus to the loop."""
+    """The SCHED_FIFO priority node `name` takes for its whole process before its session opens,
+    or 0. In real time the loop's nodes take `[run] realtime_priority`: a loop node the host holds
+    up delays every step's command (sense -> board p99 at SCHED_FIFO 20 against the default
+    scheduler: docs/performance.md). The nodes of a CAN bus on the wall clock (real time, a
+    kernel bus, a part from outside) take `[can] realtime_priority`; on simulated time (lock-step,
+    bench/bus/can/sim_window.py) the host's delays change no frame's time. The controller, in both,
+    takes the higher. The recorder and the planner never take one: what they do can wait, and
+    the planner's long solves would hold the loop up. Nor does any node on a host with one CPU
+    (`cpus`: this process's, by default): there the priority would only move the host's delays
+    from one of the loop's processes to another."""
     from bench.bus.can.sim_window import bus_on_simulated_time
 
-    config = getattr(scenario, "can", None)
-    if config is None or name not in CAN_BUS_NODES or bus_on_simulated_time(scenario):
-        return 0
     if (len(os.sched_getaffinity(0)) if cpus is None else cpus) < 2:
         return 0
-    return config.realtime_priority
+    priority = 0
+    if name in LOOP_NODES and scenario.run.mode == "real-time":
+        priority = scenario.run.realtime_priority
+    config = getattr(scenario, "can", None)
+    if config is not None and name in CAN_BUS_NODES and not bus_on_simulated_time(scenario):
+        priority = max(priority, config.realtime_priority)
+    return priority
