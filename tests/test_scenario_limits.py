@@ -28,6 +28,7 @@ BAD = {
     "absurd initial state": ('name = "x"\n[plant]\ninitial_state_m_mps = [1e20, 0.0, 0.0, 0.0, 0.0, 0.0]\n',
                              "plant.initial_state_m_mps"),
     "huge weight list": ('name = "x"\n[controller]\nr_diag = [' + ", ".join(["1.0"] * 5000) + "]\n", "controller.r_diag"),
+    "real-time priority above SCHED_FIFO's 99": ('name = "x"\n[run]\nrealtime_priority = 100\n', "run.realtime_priority"),
     "negative lease": ('name = "x"\n[run.liveliness]\nlease_s = -1.0\n', "run.liveliness.lease_s"),
     "oversized file": ('name = "x"\n' + "# padding\n" * (MAX_SCENARIO_BYTES // 10 + 1), "at most"),
 }
