@@ -92,6 +92,19 @@ def test_realtime_recording_misses_nothing(realtime_run):
     assert f"| command/thrust | {commands} | {commands} | 0 | 0 |" in (realtime_run / "report.md").read_text()
 
 
+def test_realtime_report_names_each_process_scheduler(realtime_run):
+    """The report's process table says the scheduler each process ran under, from its own stats:
+    the loop's at [run] realtime_priority, the recorder's the default (bench/runtime/priority.py)."""
+    import os
+    from bench.scenario import load_scenario
+    loop = load_scenario("rendezvous_lqr").run.realtime_priority if len(os.sched_getaffinity(0)) > 1 else 0
+    rows = {line.split("|")[1].strip(): line.split("|")[-2].strip()
+            for line in (realtime_run / "report.md").read_text().splitlines() if line.count("|") == 7}
+    expected = f"SCHED_FIFO {loop}" if loop else "default"
+    assert {p: rows.get(p) for p in ("plant", "estimator", "controller", "recorder")} == \
+        {"plant": expected, "estimator": expected, "controller": expected, "recorder": "default"}, rows
+
+
 def stress_scenario(tmp_path) -> str:
     path = tmp_path / "stress.toml"
     path.write_text(textwrap.dedent(f"""

@@ -104,11 +104,21 @@ def latency_section(run: RunData, result: LatencyResult, plot_dir: Path) -> Sect
 
 
 def clock_table(run: RunData) -> Table:
-    rows = [[p, o.get("host", "?"), fmt(o["offset_ns"] / 1e3), fmt(o["uncertainty_ns"] / 1e3), str(o.get("rounds", ""))]
-            for p, o in sorted(run.clock_offsets.items())]
+    """Each process's clock against the launcher's, and the scheduler it ran under (its stats in
+    metrics.json: a process at SCHED_FIFO is not held up by other programs on its host)."""
+    stats = run.metrics.get("process_stats") or {}
+
+    def scheduler(process: str) -> str:
+        if process not in stats:
+            return "?"
+        priority = stats[process].get("realtime_priority", 0)
+        return f"SCHED_FIFO {priority}" if priority else "default"
+
+    rows = [[p, o.get("host", "?"), fmt(o["offset_ns"] / 1e3), fmt(o["uncertainty_ns"] / 1e3), str(o.get("rounds", "")),
+             scheduler(p)] for p, o in sorted(run.clock_offsets.items())]
     if not rows:
-        rows = [["(no clock readings)", "", "", "", ""]]
-    return Table(["process", "host", "offset [µs]", "± [µs]", "pings"], rows)
+        rows = [["(no clock readings)", "", "", "", "", ""]]
+    return Table(["process", "host", "offset [µs]", "± [µs]", "pings", "scheduler"], rows)
 
 
 def deadline_section(result: DeadlineResult, plot_dir: Path) -> Section:
