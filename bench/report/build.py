@@ -110,7 +110,7 @@ def clock_table(run: RunData) -> Table:
 
     def scheduler(process: str) -> str:
         if process not in stats:
-            return "?"
+            return "not reported"     # a part from outside, or a process that died before its stats
         priority = stats[process].get("realtime_priority", 0)
         return f"SCHED_FIFO {priority}" if priority else "default"
 
