@@ -104,3 +104,25 @@ def test_a_whole_process_priority_reaches_threads_started_after_it_and_a_thread_
     assert run("1") == ["True", "7", "True"]
     # one thread's (the controller's cycle): its workers and other threads start at normal priority
     assert run("0") == ["False", "0", "False"]
+
+
+RAISING = """
+import threading
+from bench.runtime.priority import raise_realtime_priority, set_realtime_priority, thread_realtime_priority
+seen = [thread_realtime_priority()]
+assert set_realtime_priority(20, inherited=True)           # a loop node's whole process
+seen += [raise_realtime_priority(10), thread_realtime_priority()]   # the controller's cycle: not lowered
+seen += [raise_realtime_priority(30), thread_realtime_priority()]   # raised where asked higher
+t = threading.Thread(target=lambda: seen.append(thread_realtime_priority()))
+t.start(); t.join()                                        # started after the raise: reset on fork, as a worker
+print(*seen)
+"""
+
+
+@pytest.mark.skipif(not hasattr(__import__("os"), "sched_setscheduler"), reason="no sched_setscheduler")
+def test_the_controller_cycle_never_runs_below_its_process_priority():
+    result = subprocess.run([sys.executable, "-c", RAISING], capture_output=True, text=True, timeout=60)
+    if "AssertionError" in result.stderr:
+        pytest.skip("SCHED_FIFO refused here (no CAP_SYS_NICE)")
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.split() == ["0", "True", "20", "True", "30", "0"]

@@ -103,6 +103,9 @@ def test_realtime_report_names_each_process_scheduler(realtime_run):
     expected = f"SCHED_FIFO {loop}" if loop else "default"
     assert {p: rows.get(p) for p in ("plant", "estimator", "controller", "recorder")} == \
         {"plant": expected, "estimator": expected, "controller": expected, "recorder": "default"}, rows
+    # the controller's cycle thread ([controller.deadline] realtime_priority 10) is not below its process
+    cycle = json.loads((realtime_run / "deadline_controller.json").read_text())["cycle_realtime_priority"]
+    assert cycle == max(loop, load_scenario("rendezvous_lqr").controller.deadline.realtime_priority)
 
 
 def stress_scenario(tmp_path) -> str:

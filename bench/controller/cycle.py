@@ -13,7 +13,7 @@ from bench.controller.config import StressConfig
 from bench.controller.deadline import DeadlineMonitor, StressInjector, lqr_fallback_law
 from bench.controller.thrust import ThrustLaw
 from bench.runtime.deadline import CycleOutcome
-from bench.runtime.priority import set_realtime_priority
+from bench.runtime.priority import raise_realtime_priority, thread_realtime_priority
 from bench.runtime.solver_worker import WorkerLaw
 from bench.scenario import Scenario
 
@@ -35,15 +35,18 @@ class ControlCycle:
         stress = StressInjector(deadline.stress, "controller")
         self.worker = None
         self.realtime_priority_granted = False
+        self.cycle_realtime_priority = 0
         if real_time:
             # The stress acts on the solve, in the worker, as a slow solver would.
             self.worker = WorkerLaw(self.law.factory, nx=6, nu=3, plan_rows=max(scenario.controller.horizon, 1),
                                     hard_limit_s=deadline.hard_limit_s, stress=stress)
             self.worker.wait_ready()
             stress = StressInjector(StressConfig(), "controller")
-            # The thread that builds the cycle runs it (the node's main loop).
+            # The thread that builds the cycle runs it (the node's main loop); at its process's
+            # priority if that is higher (the loop's, [run] realtime_priority), never below it.
             self.realtime_priority_granted = (deadline.realtime_priority > 0
-                                              and set_realtime_priority(deadline.realtime_priority))
+                                              and raise_realtime_priority(deadline.realtime_priority))
+            self.cycle_realtime_priority = thread_realtime_priority()
         self.monitor = DeadlineMonitor(deadline, n_inputs=3, lqr_law=lqr_law, stress=stress,
                                        apply_fallback=real_time)
         self.max_abs_thrust_n = self.law.params.max_abs_thrust_n
@@ -79,6 +82,7 @@ class ControlCycle:
             out["solver_worker"] = self.worker.stats.summary()
             out["stress_injected_cycles"] = self.worker.stats.stress_injected     # applied in the worker
             out["realtime_priority_granted"] = self.realtime_priority_granted
+            out["cycle_realtime_priority"] = self.cycle_realtime_priority     # SCHED_FIFO the cycle ran at
         return out
 
     def close(self) -> None:

@@ -32,6 +32,20 @@ def set_realtime_priority(priority: int, inherited: bool = False) -> bool:
         return False
 
 
+def thread_realtime_priority() -> int:
+    """The calling thread's SCHED_FIFO priority; 0 under any other policy."""
+    policy = os.sched_getscheduler(0) & ~getattr(os, "SCHED_RESET_ON_FORK", 0)
+    return os.sched_getparam(0).sched_priority if policy == os.SCHED_FIFO else 0
+
+
+def raise_realtime_priority(priority: int) -> bool:
+    """The calling thread at SCHED_FIFO `priority` unless it already runs higher (a thread of a
+    process at [run] realtime_priority); whether it now runs at `priority` or above."""
+    if thread_realtime_priority() >= priority:
+        return True
+    return set_realtime_priority(priority)
+
+
 @contextlib.contextmanager
 def realtime_priority(priority: int):
     """The calling thread at SCHED_FIFO `priority` inside the block; yields whether it took."""
