@@ -342,7 +342,7 @@ class RunEnding:
 
 def _follow_run(session, run_id: str, children: list[Child], n_steps: int, show_progress: bool,
                 liveliness: LivelinessConfig, run_dir: Path, reports: "StatsCollector",
-                remote: dict[str, str] | None = None) -> None:
+                remote: dict[str, str] | None = None, interrupted=lambda: None) -> None:
     """Block until the plant finishes; raise NodeFailed if any process dies or hangs first,
     Diverged if the plant stopped on a diverged state.
 
@@ -350,6 +350,7 @@ def _follow_run(session, run_id: str, children: list[Child], n_steps: int, show_
     the plant's StepDone messages only move the progress bar and open `reports`' window for the
     stats of remote nodes, and count only when signed by the plant (`reports.genuine_step`).
     remote: node -> host of the nodes on other hosts; their liveliness token is all we see of them.
+    interrupted: called at every look (SignalGuard.check: a signal whose exception was lost).
     """
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
@@ -400,6 +401,7 @@ def _follow_run(session, run_id: str, children: list[Child], n_steps: int, show_
                     raise
                 _check_liveliness(children, lost, liveliness)
                 _check_remote(session, run_id, remote or {}, lost)
+                interrupted()
                 time.sleep(FOLLOW_PERIOD_S)
                 if steps_done[0] != done:
                     done = steps_done[0]
@@ -550,10 +552,11 @@ class StatsCollector:
 
 
 def _wait_alive(session, run_id: str, children: list[Child], timeout_s: float = STARTUP_TIMEOUT_S,
-                remote: dict[str, str] | None = None, show: bool = False) -> None:
+                remote: dict[str, str] | None = None, show: bool = False, interrupted=lambda: None) -> None:
     """Until every node's alive token is there. Past timeout_s, a node still starting is given up
     to three times that while its CPU time advances (slow on a busy machine), not while it idles.
-    show: say on stderr when each node comes up (the terminal is never blank while they start)."""
+    show: say on stderr when each node comes up (the terminal is never blank while they start).
+    interrupted: called at every look, as in _follow_run."""
     names = {c.name for c in children} | set(remote or {})
     started = time.monotonic()
     progress = {c.name: CpuProgress(c.process.pid) for c in children}
@@ -585,6 +588,7 @@ def _wait_alive(session, run_id: str, children: list[Child], timeout_s: float = 
             still_working = all(idle_s.get(n, float("inf")) < STARTUP_IDLE_S for n in missing)
             if not still_working or now - started > 3 * timeout_s:
                 raise NodeFailed(f"processes not alive after {now - started:.0f} s: {', '.join(missing)}")
+        interrupted()
         time.sleep(0.05)
 
 
@@ -630,6 +634,7 @@ class SignalGuard:
     def __init__(self, group: ProcessGroup):
         self.group = group
         self.first: int | None = None
+        self.delivered = False      # the first signal's RunInterrupted reached the launcher's handler
         self.hurry = False
         self._saved: dict = {}
 
@@ -642,6 +647,16 @@ class SignalGuard:
     def __exit__(self, *exc) -> None:
         for signum, handler in self._saved.items():
             signal.signal(signum, handler)
+
+    def check(self) -> None:
+        """Raise the first signal's RunInterrupted if it never reached the launcher. Python runs a
+        signal handler between any two bytecodes of the main thread, also inside a weakref callback
+        or a __del__, where what it raises is printed as "Exception ignored" and dropped (CI105: a
+        SIGINT inside an import's module-lock callback; the run went on). The launcher's waits call
+        this at every look."""
+        if self.first is not None and not self.delivered:
+            self.delivered = True
+            raise RunInterrupted(self.first)
 
     def _handle(self, signum, _frame) -> None:
         if self.first is None:
@@ -785,11 +800,12 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
                                            placement.node_args, zygote))
                     collector.trust(name, group.report_keys[children[-1].process.pid])
                 _wait_alive(session, run_id, children, scenario.run.liveliness.startup_timeout_s, remote,
-                            show=show_progress)
+                            show=show_progress, interrupted=guard.check)
                 if write_report:
                     _import_report_meanwhile()
                 _follow_run(session, run_id, children, scenario.n_steps, show_progress, scenario.run.liveliness, run_dir,
-                            reports=collector, remote=remote)
+                            reports=collector, remote=remote, interrupted=guard.check)
+                guard.check()
                 collector.accept()
                 _stop_remote(session, run_id, launcher_token, remote)
                 _stop_children(children)
@@ -803,6 +819,7 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
                 print(f"bench: error: {exc}", file=sys.stderr)
                 ending = RunEnding(EXIT_DIVERGED, str(exc))
             except (RunInterrupted, KeyboardInterrupt) as exc:
+                guard.delivered = True
                 signum = exc.signum if isinstance(exc, RunInterrupted) else signal.SIGINT
                 print(f"bench: {signal.Signals(signum).name}: stopping all processes", file=sys.stderr)
                 ending = RunEnding(RunInterrupted(signum).exit_code, f"interrupted by {signal.Signals(signum).name}")

@@ -160,3 +160,29 @@ def test_non_finite_state_is_divergence_and_metrics_stay_valid_json(tmp_path):
     assert divergence.step == 7 and divergence.quantity == "y_m" and divergence.value is None
     text = dumps_finite({"a": float("nan"), "b": [1.0, float("inf")], "c": np.float64("-inf"), "d": np.arange(2)})
     assert json.loads(text, parse_constant=lambda c: pytest.fail(c)) == {"a": None, "b": [1.0, None], "c": None, "d": [0, 1]}
+
+
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")   # the dropped exception, on purpose
+def test_a_signal_whose_exception_python_dropped_still_ends_the_run():
+    """A signal handler's exception raised inside a weakref callback (an import's module lock, as
+    in CI105) or a __del__ is printed as "Exception ignored" and lost; the launcher's waits ask
+    the guard at every look, and it raises then, once."""
+    import gc
+    import weakref
+
+    from bench.launcher import RunInterrupted, SignalGuard
+
+    class Freed:
+        pass
+
+    guard = SignalGuard(group=None)
+    guard.check()                                   # no signal: nothing to raise
+    freed = Freed()
+    ref = weakref.ref(freed, lambda _: guard._handle(signal.SIGINT, None))
+    del freed                                       # the handler runs in the callback; Python drops its exception
+    gc.collect()
+    assert ref() is None and guard.first == signal.SIGINT
+    with pytest.raises(RunInterrupted) as raised:
+        guard.check()
+    assert raised.value.signum == signal.SIGINT
+    guard.check()                                   # delivered: not raised a second time during the cleanup

@@ -5,12 +5,13 @@ The generated cases are in test_scenario_fuzz.py (hypothesis)."""
 from __future__ import annotations
 
 import re
+import signal
 
 import msgspec.inspect as mi
 import pytest
 
 from bench.bus.deployment import DeploymentError, load_deployment
-from bench.launcher import Child, NodeFailed, _check_children, _wait_alive
+from bench.launcher import Child, NodeFailed, RunInterrupted, SignalGuard, _check_children, _wait_alive
 from bench.plant.divergence import EXIT_DIVERGED
 from bench.scenario import MAX_NESTING, Scenario, ScenarioError, load_scenario, parse_scenario
 from conftest import bench_processes, run_bench_cli
@@ -188,3 +189,14 @@ def test_a_plant_that_ended_cleanly_during_start_up_ran_the_loop(tmp_path):
                 Child("controller", Exited(0, 11), tmp_path / "controller.log")]
     with pytest.raises(NodeFailed, match=r"^process 'controller' \(pid 11\) exited with code 0"):
         _wait_alive(NoTokensYet(), "r", children, timeout_s=0.2)
+
+
+def test_the_start_up_wait_delivers_a_signal_whose_exception_was_dropped(tmp_path):
+    """A SIGINT whose RunInterrupted Python dropped (raised inside a weakref callback: CI105, the
+    run went on for its 2000 steps) ends the wait for the nodes at its next look."""
+    children = [Child("plant", Exited(None, 10), tmp_path / "plant.log"),
+                Child("controller", Exited(None, 11), tmp_path / "controller.log")]
+    guard = SignalGuard(group=None)
+    guard.first = signal.SIGINT          # what the handler leaves when its exception is dropped
+    with pytest.raises(RunInterrupted):
+        _wait_alive(NoTokensYet(), "r", children, timeout_s=60.0, interrupted=guard.check)
