@@ -562,15 +562,17 @@ def _wait_alive(session, run_id: str, children: list[Child], timeout_s: float = 
     progress = {c.name: CpuProgress(c.process.pid) for c in children}
     announced: set[str] = set()
     plant = next((c for c in children if c.name == "plant"), None)
+    others = [c for c in children if c is not plant]
     while True:
         # The plant steps only once it has seen every peer, so a plant that ended cleanly ran the
         # whole loop: a short run can end before this query sees every token (seen through a
         # router: 20 steps in 60 ms), or stop on divergence (CI97: at step 4, 36 ms in). The run's
-        # end is judged after this, by _follow_run. Another node that failed is named all the same.
-        _check_children([c for c in children if c is not plant], allowed_done=set())
-        if plant is not None and plant.process.poll() in (0, EXIT_DIVERGED):
-            return
-        _check_children(children, allowed_done={"plant"})
+        # end is judged after this, by _follow_run. Another node that failed is named first.
+        _check_children(others, allowed_done=set())
+        if plant is not None:
+            if plant.process.poll() in (0, EXIT_DIVERGED):
+                return
+            _check_children([plant], allowed_done=set())
         alive = set()
         for reply in session.liveliness().get(keys.key(run_id, f"{keys.ALIVE}/*"), timeout=0.5):
             if reply.ok is not None:
