@@ -31,6 +31,7 @@ import zenoh
 from bench.bus import acl, data_auth, keys
 from bench.bus.can import run_key
 from bench.bus.can.sim_window import bus_on_simulated_time
+from bench.bus.presence import PresenceQuery, PresenceResponder, PresenceWatcher
 from bench.bus.schemas import ProcessStats, StepDone, decode, MalformedMessage
 from bench.bus.certs import CertificateError, identity_files, read_secoc_key, write_deployment_certs
 from bench.bus.deployment import LAUNCHER, Deployment, DeploymentError, load_deployment
@@ -272,11 +273,12 @@ class TokenLoss:
 
 def _check_liveliness(children: list[Child], lost: dict[str, TokenLoss], liveliness: LivelinessConfig,
                       final: bool = False) -> None:
-    """A node whose token vanished while its process runs on is hung, if it is stopped (state T:
-    SIGSTOP, a debugger) for stopped_grace_s, or if its token stays away for hang_timeout_s.
+    """A node silent on the control plane (no authentic presence answer for a lease: `lost`, from
+    _follow_run's PresenceWatcher) while its process runs on is hung, if it is stopped (state T:
+    SIGSTOP, a debugger) for stopped_grace_s, or if it stays silent for hang_timeout_s.
 
-    A node starved of CPU on a busy machine may miss its lease too; it is still runnable and its
-    token comes back, so it is not called hung before hang_timeout_s. `final`: the run is ending
+    A node starved of CPU on a busy machine may miss its lease too; it is still runnable and
+    answers again, so it is not called hung before hang_timeout_s. `final`: the run is ending
     anyway (a peer gave up on it): any node still without its token is the cause to name.
 
     A zombie (state Z) has exited: its exit status, once its parent collects it, says how it
@@ -296,18 +298,18 @@ def _check_liveliness(children: list[Child], lost: dict[str, TokenLoss], livelin
         if state.state == "Z":
             if away_s >= 2 * liveliness.hang_timeout_s:
                 raise NodeFailed(f"process '{name}' (pid {child.process.pid}) exited, but its exit status was not "
-                                 f"collected {away_s:.1f} s after its liveliness token went (state Z)")
+                                 f"collected {away_s:.1f} s after its liveliness lease ran out (state Z)")
             continue
         progress = "no CPU progress" if loss.cpu_ticks == state.cpu_ticks else "CPU time still advancing"
         if state.stopped and (final or away_s >= liveliness.stopped_grace_s):
             raise NodeFailed(
                 f"process '{name}' (pid {child.process.pid}) is stopped (state {state.state}, {progress}): its "
-                f"liveliness token expired {away_s:.1f} s ago"
+                f"liveliness lease ran out {away_s:.1f} s ago (no authenticated presence answer since)"
             )
         if final or away_s >= liveliness.hang_timeout_s:
             raise NodeFailed(
-                f"process '{name}' (pid {child.process.pid}) stopped answering on Zenoh: its liveliness token "
-                f"expired {away_s:.1f} s ago (state {state.state}, {progress}; hung, or cut off from the bus)"
+                f"process '{name}' (pid {child.process.pid}) stopped answering on Zenoh: its liveliness lease "
+                f"ran out {away_s:.1f} s ago (state {state.state}, {progress}; hung, or cut off from the bus)"
             )
 
 
@@ -342,15 +344,17 @@ class RunEnding:
 
 def _follow_run(session, run_id: str, children: list[Child], n_steps: int, show_progress: bool,
                 liveliness: LivelinessConfig, run_dir: Path, reports: "StatsCollector",
-                remote: dict[str, str] | None = None, interrupted=lambda: None) -> None:
+                remote: dict[str, str] | None = None, interrupted=lambda: None,
+                data_key: bytes | None = None) -> None:
     """Block until the plant finishes; raise NodeFailed if any process dies or hangs first,
     Diverged if the plant stopped on a diverged state.
 
     The end of the run is the plant process's exit and its code, which nobody on the bus can fake;
     the plant's StepDone messages only move the progress bar and open `reports`' window for the
     stats of remote nodes, and count only when signed by the plant (`reports.genuine_step`).
-    remote: node -> host of the nodes on other hosts; their liveliness token is all we see of them.
+    remote: node -> host of the nodes on other hosts; their presence answers are all we see of them.
     interrupted: called at every look (SignalGuard.check: a signal whose exception was lost).
+    data_key: the run's key, under which every node's presence answers must be signed.
     """
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
@@ -373,16 +377,19 @@ def _follow_run(session, run_id: str, children: list[Child], n_steps: int, show_
     subscriber = session.declare_subscriber(keys.key(run_id, keys.STATUS_STEP), on_step)
     lost: dict[str, TokenLoss] = {}
     pids = {c.name: c.process.pid for c in children}
+    # Liveliness is an authenticated presence answer (bench/bus/presence.py), not a Zenoh token:
+    # a token anyone on the bus can declare would hide a hung node.
+    watcher = PresenceWatcher(session, run_id, data_key, set(pids) | set(remote or {}), liveliness.lease_s).start()
 
-    def on_token(sample) -> None:
-        name = str(sample.key_expr).rsplit("/", 1)[-1]
-        if sample.kind == zenoh.SampleKind.DELETE and (name in pids or name in (remote or {})):
-            state = process_state(pids[name]) if name in pids else None
-            lost.setdefault(name, TokenLoss(time.monotonic(), state.cpu_ticks if state else None))
-        else:
-            lost.pop(name, None)    # back: it was slow, not hung
-
-    tokens = session.liveliness().declare_subscriber(keys.key(run_id, f"{keys.ALIVE}/*"), on_token)
+    def note_silent() -> None:
+        now = time.monotonic()
+        for name in watcher.names:
+            since = watcher.silent_since(name, now)
+            if since is None:
+                lost.pop(name, None)    # answering (again): slow, not hung
+            elif name not in lost:
+                state = process_state(pids[name]) if name in pids else None
+                lost[name] = TokenLoss(since, state.cpu_ticks if state else None)
     plant = next(c for c in children if c.name == "plant")
     columns = [TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn()]
     try:
@@ -399,8 +406,9 @@ def _follow_run(session, run_id: str, children: list[Child], n_steps: int, show_
                     # over; the hung one is the cause to name.
                     _check_liveliness(children, lost, liveliness, final=True)
                     raise
+                note_silent()
                 _check_liveliness(children, lost, liveliness)
-                _check_remote(session, run_id, remote or {}, lost)
+                _check_remote(watcher.query, remote or {}, lost)
                 interrupted()
                 time.sleep(FOLLOW_PERIOD_S)
                 if steps_done[0] != done:
@@ -409,7 +417,7 @@ def _follow_run(session, run_id: str, children: list[Child], n_steps: int, show_
             progress.update(task, completed=steps_done[0])
     finally:
         subscriber.undeclare()
-        tokens.undeclare()
+        watcher.stop()
     if plant.process.returncode == EXIT_DIVERGED:
         divergence = read_divergence(run_dir)
         raise Diverged(f"plant {divergence.describe()}" if divergence else "plant state diverged (no divergence.json)")
@@ -418,30 +426,29 @@ def _follow_run(session, run_id: str, children: list[Child], n_steps: int, show_
         _check_children([plant], allowed_done=set())
 
 
-def _check_remote(session, run_id: str, remote: dict[str, str], lost: dict[str, "TokenLoss"]) -> None:
-    """A node on another host whose token vanished died, hung, or lost its link.
+def _check_remote(presence: PresenceQuery, remote: dict[str, str], lost: dict[str, "TokenLoss"]) -> None:
+    """A node on another host that stopped answering presence queries died, hung, or lost its link.
 
-    Asked again before it is declared lost: with a router, a token's route can change while peers
-    connect to each other directly, and Zenoh then reports a delete of a token that is still there
-    (seen in the router test of tests/test_deployment.py).
+    Asked again, with a longer wait, before it is declared lost: with a router, routes change
+    while peers connect to each other directly (seen in the router test of tests/test_deployment.py).
     """
     for name in [n for n in lost if n in remote]:
-        replies = session.liveliness().get(keys.key(run_id, f"{keys.ALIVE}/{name}"), timeout=1.0)
-        if any(r.ok is not None for r in replies):
+        if name in presence.ask(name, timeout_s=1.0):
             lost.pop(name)
             continue
-        raise NodeFailed(f"process '{name}' on host '{remote[name]}' left the bus (its liveliness token "
-                         f"vanished: it died, hung, or its link to this host is down)")
+        raise NodeFailed(f"process '{name}' on host '{remote[name]}' left the bus (no authenticated liveliness "
+                         f"answer for a lease: it died, hung, or its link to this host is down)")
 
 
-def _stop_remote(session, run_id: str, launcher_token, remote: dict[str, str], grace_s: float = SHUTDOWN_GRACE_S) -> None:
-    """Nodes on other hosts stop when the launcher's token vanishes; wait until their tokens go."""
+def _stop_remote(presence: PresenceQuery, launcher_presence: PresenceResponder, launcher_token,
+                 remote: dict[str, str], grace_s: float = SHUTDOWN_GRACE_S) -> None:
+    """Nodes on other hosts stop when the launcher stops answering presence queries (its token's
+    delete makes them ask at once: node.py stop_when_gone); wait until they stop answering too."""
+    launcher_presence.undeclare()
     launcher_token.undeclare()
     deadline = time.monotonic() + grace_s
     while remote and time.monotonic() < deadline:
-        alive = {str(r.ok.key_expr).rsplit("/", 1)[-1]
-                 for r in session.liveliness().get(keys.key(run_id, f"{keys.ALIVE}/*"), timeout=0.5) if r.ok is not None}
-        if not alive & set(remote):
+        if not set(presence.ask()) & set(remote):
             return
         time.sleep(0.05)
 
@@ -551,9 +558,9 @@ class StatsCollector:
         self._subscriber.undeclare()
 
 
-def _wait_alive(session, run_id: str, children: list[Child], timeout_s: float = STARTUP_TIMEOUT_S,
+def _wait_alive(presence: PresenceQuery, children: list[Child], timeout_s: float = STARTUP_TIMEOUT_S,
                 remote: dict[str, str] | None = None, show: bool = False, interrupted=lambda: None) -> None:
-    """Until every node's alive token is there. Past timeout_s, a node still starting is given up
+    """Until every node answers presence queries under the run's key (bench/bus/presence.py). Past timeout_s, a node still starting is given up
     to three times that while its CPU time advances (slow on a busy machine), not while it idles.
     show: say on stderr when each node comes up (the terminal is never blank while they start).
     interrupted: called at every look, as in _follow_run."""
@@ -573,10 +580,7 @@ def _wait_alive(session, run_id: str, children: list[Child], timeout_s: float = 
             if plant.process.poll() in (0, EXIT_DIVERGED):
                 return
             _check_children([plant], allowed_done=set())
-        alive = set()
-        for reply in session.liveliness().get(keys.key(run_id, f"{keys.ALIVE}/*"), timeout=0.5):
-            if reply.ok is not None:
-                alive.add(str(reply.ok.key_expr).rsplit("/", 1)[-1])
+        alive = set(presence.ask())
         for name in sorted((alive & names) - announced) if show else ():
             print(f"bench: {name} up after {time.monotonic() - started:.1f} s", file=sys.stderr)
             announced.add(name)
@@ -771,7 +775,11 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
     run_key.write_private(scenario_path, msgspec.json.format(msgspec.json.encode(scenario)))
     # The data topics' key (bench/bus/data_auth.py): the deployment's, else new per run; bus.key
     # (0600) beside scenario.json is where this run's nodes, by hand or outside ones too, read it.
-    run_key.write_private(run_dir / data_auth.KEY_FILE, (_data_key(identity).hex() + "\n").encode())
+    data_key = _data_key(identity)
+    run_key.write_private(run_dir / data_auth.KEY_FILE, (data_key.hex() + "\n").encode())
+    # The launcher answers presence queries too: nodes on other hosts stop when it no longer does.
+    launcher_presence = PresenceResponder(session, run_id, LAUNCHER, data_key)
+    presence = PresenceQuery(session, run_id, data_key)
     children: list[Child] = []
     group = ProcessGroup()
     started = time.monotonic()
@@ -801,15 +809,15 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
                     children.append(_spawn(name, run_id, scenario_path, hub, run_dir, peers, zenoh_config, group,
                                            placement.node_args, zygote))
                     collector.trust(name, group.report_keys[children[-1].process.pid])
-                _wait_alive(session, run_id, children, scenario.run.liveliness.startup_timeout_s, remote,
+                _wait_alive(presence, children, scenario.run.liveliness.startup_timeout_s, remote,
                             show=show_progress, interrupted=guard.check)
                 if write_report:
                     _import_report_meanwhile()
                 _follow_run(session, run_id, children, scenario.n_steps, show_progress, scenario.run.liveliness, run_dir,
-                            reports=collector, remote=remote, interrupted=guard.check)
+                            reports=collector, remote=remote, interrupted=guard.check, data_key=data_key)
                 guard.check()
                 collector.accept()
-                _stop_remote(session, run_id, launcher_token, remote)
+                _stop_remote(presence, launcher_presence, launcher_token, remote)
                 _stop_children(children)
                 collector.wait_for_stats({c.name for c in children}, 0.1)   # the last ones are on their way
                 _check_children(children, allowed_done={c.name for c in children})

@@ -55,6 +55,7 @@ import msgspec
 from mcap.writer import Writer
 
 from bench.bus import clock_sync, data_auth, keys
+from bench.bus.presence import PresenceQuery
 from bench.bus.can import protocol as can_protocol
 from bench.bus.can import zenoh_wire
 from bench.bus.can.zenoh_interface import CAN_TOPIC
@@ -441,21 +442,23 @@ class ClockSyncThread(threading.Thread):
         super().__init__(name="clock-sync", daemon=True)
         self.ctx = ctx
         self.offsets: dict[str, clock_sync.ClockOffset] = {}
+        # Only readings signed under the run's key (bench/bus/presence.py): a forged reply cannot
+        # move a process's clock, and so no latency of the report.
+        self.query = PresenceQuery(ctx.session, ctx.run_id, ctx.data_key)
 
     def run(self) -> None:
         early_until = time.monotonic() + CLOCK_SYNC_EARLY_FOR_S
         while not self.ctx.stop.wait(CLOCK_SYNC_EARLY_PERIOD_S if time.monotonic() < early_until
                                      else CLOCK_SYNC_PERIOD_S):
             try:
-                self.offsets = clock_sync.estimate_offsets(self.ctx.session, self.ctx.run_id, rounds=3,
-                                                           known=self.offsets)
+                self.offsets = clock_sync.estimate_offsets(self.query, rounds=3, known=self.offsets)
             except Exception as exc:   # a closed session at shutdown is not worth a crash
                 self.ctx.log.warning("clock sync failed: %s", exc)
                 return
         if not self.offsets:
             # A run shorter than the first period still gets one reading of each live process.
             try:
-                self.offsets = clock_sync.estimate_offsets(self.ctx.session, self.ctx.run_id, rounds=3)
+                self.offsets = clock_sync.estimate_offsets(self.query, rounds=3)
             except Exception as exc:
                 self.ctx.log.warning("clock sync failed: %s", exc)
 

@@ -13,15 +13,17 @@ writes into the run directory.
 What it does, per the contract:
 - opens its Zenoh session with multicast scouting off and the launcher's hub as its only connect
   endpoint (never Zenoh's default configuration);
-- declares the liveliness token `bench/<run>/alive/controller` (the launcher waits for it), then
-  `ready/controller` once its command publisher is matched by the plant's subscriber;
+- answers presence queries on `bench/<run>/presence/controller` (the launcher waits for an answer,
+  the plant for one that says ready, which it does once its command publisher is matched by the
+  plant's subscriber): each answer carries the query's nonce and is signed like a message;
 - takes an estimate only with a valid MAC under the run's key (bus.key beside scenario.json) and a
   counter above the last one taken, and signs each command (the attachment: version, sender,
   counter, HMAC-SHA256 over key expression, those and the payload; stdlib hmac);
 - for each TranslationEstimate on `estimate/translation`, publishes one ThrustCommand on
   `command/thrust` whose header is the estimate's (same seq, same sim_time_s, the upstream stamps
   carried) plus its own `controller_received` and `commanded` stamps;
-- stops when the launcher's token `alive/launcher` goes.
+- stops when the launcher's token `alive/launcher` goes (a real outside node would also ask the
+  launcher's presence, `presence/launcher`, since a token is no proof).
 
 The law is the bench's LQR: u = K V x with K from the DARE on the scaled CWH model of the orbit the
 flight side believes (seed 003: V scales metres to Mm and m/s to km/s; Q and R from the scenario's
@@ -86,6 +88,13 @@ def mac_sender_counter(key: bytes, key_expr: str, payload: bytes, attachment: by
     if not hmac.compare_digest(expected, attachment[head_len:]):
         return None
     return head[2:head_len - 8], int.from_bytes(head[head_len - 8:], "big")
+
+
+def presence_answer(key: bytes, key_expr: str, nonce: str, ready: bool) -> tuple[bytes, bytes]:
+    """Payload and attachment of this node's answer to a presence query (docs/contract.md, "Presence")."""
+    payload = json.dumps({"process": NAME, "host": "outside", "ready": ready,
+                          "monotonic_ns": time.monotonic_ns(), "nonce": nonce}).encode()
+    return payload, mac_attachment(key, key_expr, payload, time.time_ns())
 
 
 # --- the law ----------------------------------------------------------------------------------
@@ -178,7 +187,15 @@ def main(argv: list[str] | None = None) -> int:
     estimates: queue.Queue = queue.Queue()
     launcher_gone = threading.Event()
     try:
-        keep = [session.liveliness().declare_token(prefix + f"alive/{NAME}")]
+        ready = threading.Event()
+        presence_key = prefix + f"presence/{NAME}"
+
+        def on_presence(query) -> None:
+            nonce = query.payload.to_bytes().decode("ascii", "replace") if query.payload is not None else ""
+            payload, attachment = presence_answer(bus_key, presence_key, nonce, ready.is_set())
+            query.reply(presence_key, payload, attachment=attachment)
+
+        keep = [session.declare_queryable(presence_key, on_presence)]
         last_counter: dict[bytes, int] = {}
 
         def on_estimate(sample) -> None:
@@ -206,7 +223,7 @@ def main(argv: list[str] | None = None) -> int:
             if time.monotonic() > deadline or launcher_gone.is_set():
                 raise SystemExit("no subscriber for command/thrust: is the plant running?")
             time.sleep(0.005)
-        keep.append(session.liveliness().declare_token(prefix + f"ready/{NAME}"))
+        ready.set()
 
         counter = time.time_ns()     # goes up by one per message, and on from a restart
         while not launcher_gone.is_set():

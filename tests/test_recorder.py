@@ -8,7 +8,7 @@ import time
 from mcap.reader import make_reader
 
 from bench.bus import keys
-from bench.bus.clock_sync import declare_clock_responder
+from bench.bus.presence import PresenceResponder
 from bench.bus.schemas import RelativePosition, StepDone, ThrustCommand, TruthState, encode, header
 from bench.recorder import COUNTS_FILE, OFFSETS_FILE, RECORDING_FILE, Recorder, run
 from recording_helpers import node_context, session_pair
@@ -107,11 +107,11 @@ def test_recorder_reports_a_sample_the_publisher_sent_but_it_never_saw(tmp_path)
 def test_recorder_node_declares_ready_measures_clock_offsets_and_stops(tmp_path):
     with session_pair() as (recorder_session, other_session):
         ctx = node_context("recorder", RUN_ID, recorder_session, tmp_path)
-        responder = declare_clock_responder(other_session, RUN_ID, "plant")
+        responder = PresenceResponder(other_session, RUN_ID, "plant", None)
         node = threading.Thread(target=lambda: setattr(ctx, "exit_code", run(ctx)))
         node.start()
         watcher = node_context("launcher", RUN_ID, other_session, tmp_path)
-        watcher.wait_for_tokens(keys.READY, ["recorder"], timeout_s=10.0)
+        watcher.wait_for_ready(["recorder"], timeout_s=10.0)
         ctx.stop.set()
         node.join(timeout=15.0)
         responder.undeclare()

@@ -156,14 +156,11 @@ def test_the_process_that_failed_is_named(tmp_path):
 
 
 class NoTokensYet:
-    """A session whose liveliness query has seen no node's token yet (as through a router, where
-    the tokens can arrive after a 20-step run has ended)."""
+    """A presence query that no node has answered yet (as through a router, where the answers can
+    come after a 20-step run has ended)."""
 
-    def liveliness(self):
-        return self
-
-    def get(self, key, timeout):
-        return []
+    def ask(self, names="*", timeout_s=0.5):
+        return {}
 
 
 def test_a_plant_that_ended_cleanly_during_start_up_ran_the_loop(tmp_path):
@@ -171,24 +168,24 @@ def test_a_plant_that_ended_cleanly_during_start_up_ran_the_loop(tmp_path):
     # not a node that died while the others were starting.
     children = [Child("plant", Exited(0, 10), tmp_path / "plant.log"),
                 Child("controller", Exited(None, 11), tmp_path / "controller.log")]
-    _wait_alive(NoTokensYet(), "r", children, timeout_s=0.2)
+    _wait_alive(NoTokensYet(), children, timeout_s=0.2)
     # A node that failed is still named, whatever the plant did.
     children[1] = Child("controller", Exited(1, 11), tmp_path / "controller.log")
     with pytest.raises(NodeFailed, match=r"^process 'controller' \(pid 11\) exited with code 1"):
-        _wait_alive(NoTokensYet(), "r", children, timeout_s=0.2)
+        _wait_alive(NoTokensYet(), children, timeout_s=0.2)
     # A plant that stopped on divergence during start-up (CI97: step 4, 36 ms after its peers were
     # ready) is left to _follow_run, which names the divergence; a node that failed still comes first.
     children = [Child("plant", Exited(EXIT_DIVERGED, 10), tmp_path / "plant.log"),
                 Child("controller", Exited(None, 11), tmp_path / "controller.log")]
-    _wait_alive(NoTokensYet(), "r", children, timeout_s=0.2)
+    _wait_alive(NoTokensYet(), children, timeout_s=0.2)
     children[1] = Child("controller", Exited(1, 11), tmp_path / "controller.log")
     with pytest.raises(NodeFailed, match=r"^process 'controller' \(pid 11\) exited with code 1"):
-        _wait_alive(NoTokensYet(), "r", children, timeout_s=0.2)
+        _wait_alive(NoTokensYet(), children, timeout_s=0.2)
     # Any other node that ends during start-up has failed, even cleanly.
     children = [Child("plant", Exited(None, 10), tmp_path / "plant.log"),
                 Child("controller", Exited(0, 11), tmp_path / "controller.log")]
     with pytest.raises(NodeFailed, match=r"^process 'controller' \(pid 11\) exited with code 0"):
-        _wait_alive(NoTokensYet(), "r", children, timeout_s=0.2)
+        _wait_alive(NoTokensYet(), children, timeout_s=0.2)
 
 
 def test_the_start_up_wait_delivers_a_signal_whose_exception_was_dropped(tmp_path):
@@ -199,4 +196,4 @@ def test_the_start_up_wait_delivers_a_signal_whose_exception_was_dropped(tmp_pat
     guard = SignalGuard(group=None)
     guard.first = signal.SIGINT          # what the handler leaves when its exception is dropped
     with pytest.raises(RunInterrupted):
-        _wait_alive(NoTokensYet(), "r", children, timeout_s=60.0, interrupted=guard.check)
+        _wait_alive(NoTokensYet(), children, timeout_s=60.0, interrupted=guard.check)

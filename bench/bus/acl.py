@@ -7,8 +7,9 @@ section, deny by default, which every secure session carries (nodes, the launche
 router), so every process enforces the table on each of its links:
 
 - ingress (what a remote identity sends to us): its puts only on its own publications, its
-  subscriber declarations only on its own subscriptions, its liveliness tokens only under its own
-  name (`alive/<cn>`, `ready/<cn>`), its clock queryable only `clock/<cn>`;
+  subscriber declarations only on its own subscriptions, its presence queryable (liveliness,
+  readiness and clock: bench/bus/presence.py) only `presence/<cn>`, a liveliness token only the
+  launcher's `alive/launcher` and the CAN transport's members;
 - egress (what we send to a remote identity): puts only on what it subscribes to, so the
   estimator never receives `truth` unless its role reads it, and a rogue cannot subscribe its way
   to the commands.
@@ -25,10 +26,11 @@ rule with `**`.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 from bench.bus import keys
 from bench.bus.can.config import CanConfig
+from bench.bus.presence import PRESENCE
 
 ANY_RUN = "*"
 
@@ -40,8 +42,6 @@ class Role:
     publishes: tuple[str, ...] = ()
     subscribes: tuple[str, ...] = ()
     can_channels: tuple[str, ...] = ()   # CAN frames over Zenoh: bench/<run>/can/<channel>
-    queries_clocks: bool = False         # the reference clock: pings every process's clock
-    extra_liveliness: tuple[str, ...] = field(default=())
 
 
 _CAN = CanConfig()
@@ -70,7 +70,7 @@ ROLES: dict[str, Role] = {
     # In lock-step with the bus on simulated time the board runs inside canbus (sim_window.py).
     "canbus": Role(publishes=(keys.CAN_STEP_BUS, keys.ACTUATOR_MTQ), subscribes=(keys.CAN_STEP_FLIGHT,),
                    can_channels=(_CAN.flight_channel, _CAN.board_channel)),
-    "recorder": Role(subscribes=("**",), queries_clocks=True),
+    "recorder": Role(subscribes=("**",)),
     "launcher": Role(subscribes=(keys.STATUS_STEP, f"{keys.STATUS_STATS}/*")),
     "router": Role(),
 }
@@ -103,7 +103,9 @@ def subscriptions(name: str) -> list[str]:
 
 
 def _own_tokens(name: str) -> list[str]:
-    tokens = [f"{keys.ALIVE}/{name}", f"{keys.READY}/{name}"]
+    # The launcher's token only hints that it left (nodes on other hosts then ask its presence at
+    # once); every other sign of life is a signed presence answer.
+    tokens = [f"{keys.ALIVE}/{name}"] if name == "launcher" else []
     return tokens + [f"can/{ch}/member/*" for ch in ROLES[name].can_channels]
 
 
@@ -116,23 +118,24 @@ def _rules_for(name: str) -> list[dict]:
     """Allow-rules for the remote identity `name` (deny is the default)."""
     rules = []
     pubs, subs = publications(name), subscriptions(name)
-    clock = f"clock/{name}"
+    presence = f"{PRESENCE}/{name}"
     if pubs:
         rules.append(_rule(f"{name}-sends", "ingress", ["put", "delete"], pubs))
     if subs:
         rules.append(_rule(f"{name}-receives", "egress", ["put", "delete"], subs))
         rules.append(_rule(f"{name}-subscribes", "ingress", ["declare_subscriber"], subs))
-    if name not in ("router", "launcher"):
-        # The node's clock answers the reference clock's pings (clock_sync.py).
-        rules.append(_rule(f"{name}-clock", "ingress", ["declare_queryable", "reply"], [clock]))
-        rules.append(_rule(f"{name}-pinged", "egress", ["query"], ["clock/*"]))
-    if ROLES[name].queries_clocks:
-        rules.append(_rule(f"{name}-pings", "ingress", ["query"], ["clock/*"]))
-        rules.append(_rule(f"{name}-pongs", "egress", ["reply"], ["clock/*"]))
     if name != "router":
-        rules.append(_rule(f"{name}-tokens", "ingress", ["liveliness_token"], _own_tokens(name)))
+        # Every process answers presence queries on its own key only, and may ask the others
+        # (the launcher and the plant watch their peers, the recorder pings their clocks, a node
+        # on another host watches the launcher). The answers are signed besides (presence.py).
+        rules.append(_rule(f"{name}-presence", "ingress", ["declare_queryable", "reply"], [presence]))
+        rules.append(_rule(f"{name}-asked", "egress", ["query"], [f"{PRESENCE}/*"]))
+        rules.append(_rule(f"{name}-asks", "ingress", ["query"], [f"{PRESENCE}/*"]))
+        rules.append(_rule(f"{name}-answered", "egress", ["reply"], [f"{PRESENCE}/*"]))
+        if _own_tokens(name):
+            rules.append(_rule(f"{name}-tokens", "ingress", ["liveliness_token"], _own_tokens(name)))
         rules.append(_rule(f"{name}-watches", "ingress", ["declare_liveliness_subscriber", "liveliness_query"],
-                           [f"{keys.ALIVE}/*", f"{keys.READY}/*", "can/*/member/*"]))
+                           [f"{keys.ALIVE}/launcher", "can/*/member/*"]))
     # What we tell this identity about ourselves: declarations and liveliness, never data.
     rules.append(_rule(f"{name}-told", "egress", _DECLARATIONS, ["**"]))
     return rules

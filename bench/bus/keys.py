@@ -28,8 +28,7 @@ PLAN_ATTITUDE = "plan/attitude"       # MILQR plans, planner -> controller (issu
 EVENT_DEADLINE = "event/deadline"
 STATUS_STEP = "status/step"
 STATUS_STATS = "status/stats"
-ALIVE = "alive"      # liveliness tokens: alive/<process>
-READY = "ready"      # liveliness tokens: ready/<process>, declared once its subscribers match
+ALIVE = "alive"      # the launcher's liveliness token alive/launcher, a hint that it left (presence.py decides)
 
 # First character a letter or digit: no ".", ".." (a run written into the parent folder) and
 # no "-x" (read as an option by every tool handed the directory name).

@@ -50,7 +50,7 @@ def keys_markdown() -> str:
     for t in TOPICS:
         lines.append(f"| `{t.topic}` | {', '.join(m.__name__ for m in t.messages)} | {t.loop} | "
                      f"{', '.join(t.publishers)} | {', '.join(t.readers) or '(recorder)'} | {t.what} |")
-    lines += ["", "## Liveliness tokens", "", "| token | meaning |", "|---|---|"]
+    lines += ["", "## Control plane (presence queries and the launcher's token)", "", "| key | meaning |", "|---|---|"]
     lines += [f"| `{keys.PREFIX}/<run_id>/{token}` | {meaning} |" for token, meaning in TOKENS.items()]
     return "\n".join(lines) + "\n"
 
@@ -86,11 +86,22 @@ the bench does not run are that part's own claims; the report marks them as such
 ## Start
 
 1. Each node opens its Zenoh session (multicast scouting off, the launcher's hub as connect
-   endpoint) and declares `alive/<name>`. The launcher waits for every node's token, up to
-   `startup_timeout_s` = {live.startup_timeout_s:g} s.
-2. Each node declares `ready/<name>` once every topic it publishes into the loop has a subscriber
-   (a sample published before its subscriber matched is lost).
-3. The plant waits for `ready/<name>` of every peer, then publishes step 0.
+   endpoint) and answers presence queries on `presence/<name>` (below). The launcher waits for
+   an authentic answer from every node, up to `startup_timeout_s` = {live.startup_timeout_s:g} s.
+2. A node's answer says `"ready": true` once every topic it publishes into the loop has a
+   subscriber (a sample published before its subscriber matched is lost).
+3. The plant waits for a ready answer from every peer, then publishes step 0.
+
+## Presence: liveliness, readiness and clock
+
+A presence query on `presence/*` (or `presence/<name>`) carries a nonce, 32 hex digits, as its
+payload. A node answers on its own key `presence/<name>` with the JSON payload
+`{{"process": "<name>", "host": "<host>", "ready": true|false, "monotonic_ns": <CLOCK_MONOTONIC ns>,
+"nonce": "<the query's nonce>"}}` and the tag of a message (the attachment above, sender
+`<name>`) over that key expression and payload. An answer counts only with a valid tag whose
+sender is the name in the key and in the payload, and the query's nonce: without the run's key
+nothing can declare a node alive or ready, hide that one stopped (a stopped process answers
+nothing), or skew the clock offsets the recorder measures from the same answers.
 
 ## Lock-step (`[run] mode = "lock-step"`)
 
@@ -128,10 +139,13 @@ own budget, from the estimate's arrival to the command leaving, is `[controller.
 
 ## Liveliness and the end
 
-Leases are `lease_s` = {live.lease_s:g} s. A peer whose `alive` token stays away `hang_timeout_s` = {live.hang_timeout_s:g} s is
-lost: the plant breaks the loop and the launcher names the process. After the last step (its
-`status/step` has `finished` = true) the launcher undeclares `alive/launcher` and stops its own
-nodes; a node the launcher did not start stops when `alive/launcher` vanishes. A node may publish
+Leases are `lease_s` = {live.lease_s:g} s: the launcher and the plant ask every lease / 4, and a
+node that gives no authentic presence answer for a lease is silent; one silent for `hang_timeout_s`
+= {live.hang_timeout_s:g} s (or stopped, state T, for `stopped_grace_s` = {live.stopped_grace_s:g} s) is lost: the plant
+breaks the loop and the launcher names the process. After the last step (its `status/step` has
+`finished` = true) the launcher stops answering `presence/launcher`, undeclares its liveliness token
+`alive/launcher` (a hint to ask at once) and stops its own nodes; a node the launcher did not start
+stops when the launcher no longer answers. A node may publish
 its counts once as it stops (`status/stats/<name>`, ProcessStats).
 """
 
@@ -150,7 +164,7 @@ def export(directory: Path) -> list[Path]:
         written.append(path)
     table = {"prefix": f"{keys.PREFIX}/<run_id>/", "schema_version": SCHEMA_VERSION,
              "topics": [t.to_json() for t in TOPICS],
-             "liveliness_tokens": [{"key": keys.key("<run_id>", k), "meaning": v} for k, v in TOKENS.items()]}
+             "control_plane": [{"key": keys.key("<run_id>", k), "meaning": v} for k, v in TOKENS.items()]}
     for name, text in (("keys.json", json.dumps(table, indent=2) + "\n"), ("keys.md", keys_markdown()),
                        ("protocol.md", protocol_markdown())):
         (directory / name).write_text(text)

@@ -70,13 +70,15 @@ TOPICS: tuple[Topic, ...] = (
           ("plant", "estimator", "controller", "planner", "mtq", "canbus", "recorder"), ("launcher",),
           "a node's counts, once, as it stops (under its own name)"),
 )
-# Liveliness tokens (not data): what the launcher and the plant wait for.
+# The control plane (not data): what the launcher and the plant wait for (bench/bus/presence.py).
 TOKENS = {
-    f"{keys.ALIVE}/<process>": "declared once the node's session is open; the launcher waits for every node's, "
-                               "and its vanishing means the node died, hung or lost its link",
-    f"{keys.READY}/<process>": "declared once every topic the node publishes into the loop has a subscriber; "
-                               "the plant starts step 0 when every peer's is there",
-    f"{keys.ALIVE}/launcher": "the launcher's: a node not started by the launcher stops when it goes",
+    "presence/<process>": "each node's queryable: it answers a presence query (payload: a nonce) with its "
+                          "name, host, readiness and monotonic clock, signed under the run's key; the launcher "
+                          "waits for every node's answer and watches them, the plant waits for every peer's "
+                          "ready answer, the recorder takes its clock offsets from them",
+    "presence/launcher": "the launcher's answer: a node not started by the launcher stops when it no longer answers",
+    f"{keys.ALIVE}/launcher": "the launcher's liveliness token, a hint only: its delete at the end of a run makes "
+                              "the nodes not started by the launcher ask presence/launcher at once",
 }
 
 

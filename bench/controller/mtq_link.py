@@ -101,7 +101,7 @@ class LockStepLink:
         # canbus's ready token, not a matching subscriber: the recorder (bench/<run_id>/**) matches
         # too, and a window it alone hears is never answered (a controller from outside, started
         # before the launcher's canbus is up, sent its boot window to the recorder only).
-        self.ctx.wait_for_tokens(keys.READY, ["canbus"], timeout_s=timeout_s)
+        self.ctx.wait_for_ready(["canbus"], timeout_s=timeout_s)
         for step, start_ns, end_ns in BOOT_WINDOWS:
             self._send_window(step, start_ns, end_ns, None)
             self._catch_up(timeout_s=max(0.0, deadline - time.monotonic()))

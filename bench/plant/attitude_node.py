@@ -207,7 +207,7 @@ def run(ctx: NodeContext) -> int:
     for topic in (*keys.SENSE_ATTITUDE_TOPICS, keys.TRUTH_ATTITUDE, keys.EVENT_DEADLINE, keys.COMMAND_APPLIED):
         ctx.declare_publisher(topic)
     ctx.declare_ready([keys.TRUTH_ATTITUDE] if estimator_truth else list(keys.SENSE_ATTITUDE_TOPICS))
-    ctx.wait_for_tokens(keys.READY, ctx.peers, timeout_s=ctx.scenario.run.liveliness.startup_timeout_s)
+    ctx.wait_for_ready(ctx.peers, timeout_s=ctx.scenario.run.liveliness.startup_timeout_s)
     ctx.watch_peers(ctx.peers)
     ctx.log.info("peers ready (%s); attitude loop, %d steps of %.3f s in %s mode", ", ".join(ctx.peers), n_steps,
                  plant.dt_s, scenario.run.mode)

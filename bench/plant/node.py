@@ -65,7 +65,7 @@ def run(ctx: NodeContext) -> int:
     ctx.declare_publisher(keys.SENSE_RANGE_BEARING)
     ctx.declare_publisher(keys.EVENT_DEADLINE)
     ctx.declare_ready([sense_topic])
-    ctx.wait_for_tokens(keys.READY, ctx.peers, timeout_s=scenario.run.liveliness.startup_timeout_s)
+    ctx.wait_for_ready(ctx.peers, timeout_s=scenario.run.liveliness.startup_timeout_s)
     ctx.watch_peers(ctx.peers)
     ctx.log.info("peers ready (%s); running %d steps in %s mode", ", ".join(ctx.peers), n_steps, scenario.run.mode)
 

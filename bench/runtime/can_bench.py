@@ -32,6 +32,7 @@ from bench.bus.can.driver import CommandLoop, FaultEvent, MagnetorquerDriver
 from bench.bus.can.nodes import ACCOUNTING_NAME, BOARD_NAME, CAPTURE_NAME, INJECTIONS_NAME, REPORT_NAME
 from bench.bus.can.transport import open_can_bus
 from bench.bus.schemas import MtqApplied, decode
+from bench.bus.presence import PresenceQuery
 from bench.bus.session import SessionOptions, free_loopback_port, loopback_endpoint, open_session
 from bench.runtime.process import start_node
 from bench.scenario import load_scenario
@@ -141,15 +142,17 @@ class CanBench:
         self.procs[name] = start_node(name, self.run_id, self.scenario_path, self.hub, self.run_dir,
                                       self.run_dir / f"{name}.log")
 
-    def _wait_token(self, kind: str, name: str) -> None:
+    def _wait_ready(self, name: str) -> None:
+        # No bus.key in this run directory: the nodes answer presence queries unsigned.
+        query = PresenceQuery(self.session, self.run_id, None)
         deadline = time.monotonic() + STARTUP_TIMEOUT_S
         while time.monotonic() < deadline:
-            for reply in self.session.liveliness().get(keys.key(self.run_id, f"{kind}/{name}"), timeout=0.5):
-                if reply.ok is not None:
-                    return
+            answer = query.ask(name).get(name)
+            if answer is not None and answer.ready:
+                return
             self._check_alive()
             time.sleep(0.05)
-        raise TimeoutError(f"node {name} not {kind} after {STARTUP_TIMEOUT_S} s (see {self.run_dir}/{name}.log)")
+        raise TimeoutError(f"node {name} not ready after {STARTUP_TIMEOUT_S} s (see {self.run_dir}/{name}.log)")
 
     def _check_alive(self) -> None:
         for name, proc in self.procs.items():
@@ -159,7 +162,7 @@ class CanBench:
 
     def start(self) -> "CanBench":
         self._spawn("canbus")
-        self._wait_token("ready", "canbus")
+        self._wait_ready("canbus")
         # The driver listens before the board exists: every frame the board sends is counted.
         self.bus = open_can_bus(self.config.transport, self.config.flight_channel, run_id=self.run_id,
                                 session_options=SessionOptions(connect=(self.hub,)))

@@ -8,6 +8,9 @@ messages to the node's queue, so a node's logic runs on one thread and a malform
 counted and logged where it arrives, never raised into the node. With the run's data key
 (bench/bus/data_auth.py) every published message carries a MAC in its attachment (`_tag`), and a
 received one without a valid, fresh MAC is dropped and counted before it is decoded (`_refused`).
+Liveliness, readiness and clock readings are authenticated the same way: a node answers presence
+queries on `presence/<name>` under the run's key (bench/bus/presence.py), and what it learns of its
+peers comes only from such answers.
 """
 from __future__ import annotations
 
@@ -25,7 +28,7 @@ from typing import Callable
 import zenoh
 
 from bench.bus import data_auth, keys
-from bench.bus.clock_sync import declare_clock_responder
+from bench.bus.presence import PresenceQuery, PresenceResponder, PresenceWatcher
 from bench.bus.certs import check_identity, identity_files
 from bench.bus.deployment import DeploymentError, load_deployment
 from bench.bus.schemas import MalformedMessage, Message, ProcessStats, decode, encode, header
@@ -38,6 +41,8 @@ from bench.scenario import Scenario
 # How often a node waiting for a message looks at its stop flag: a run's end waits for the slowest
 # node of each stop stage to see it (0.2 s here made every `bench run` 0.1 s longer on average).
 STOP_POLL_S = 0.02
+# ProcessStats' name for the presence answers a node refused (bench/bus/presence.py).
+PRESENCE_TOPIC = "presence"
 
 # Node name -> module with run(ctx). Other parts add theirs (the magnetorquer board, the recorder).
 NODES: dict[str, str] = {
@@ -62,8 +67,8 @@ class NodeContext:
     stop: threading.Event = field(default_factory=threading.Event)
     peers: list[str] = field(default_factory=list)   # nodes whose ready token this one awaits
     lost_peers: list[str] = field(default_factory=list)    # every loss seen (log, tests)
-    # Peers whose alive token is gone right now, with the monotonic time it vanished. A token
-    # that comes back (a slow peer whose lease lapsed, then reconnected) clears the entry.
+    # Peers silent right now (no authentic presence answer for a lease), with the monotonic time
+    # their lease ran out. A peer that answers again (a slow peer, starved past its lease) clears it.
     lost_since_s: dict[str, float] = field(default_factory=dict)
     published: Counter = field(default_factory=Counter)
     malformed: Counter = field(default_factory=Counter)
@@ -80,6 +85,9 @@ class NodeContext:
     # The SCHED_FIFO priority this process runs at (bench/runtime/priority.py); 0: the default scheduler.
     realtime_priority: int = 0
     _signer: data_auth.Signer | None = None
+    _presence: PresenceResponder | None = None       # this node's answer (declare_alive)
+    _presence_query: PresenceQuery | None = None     # its questions (wait_for_ready, recorder's clocks)
+    _watcher: PresenceWatcher | None = None          # its peers (watch_peers)
 
     # --- publishing -----------------------------------------------------------------------
     def publish(self, topic: str, message: Message) -> None:
@@ -178,8 +186,18 @@ class NodeContext:
         self.leave_realtime_priority()
 
     # --- liveliness -----------------------------------------------------------------------
-    def declare_alive(self) -> None:
-        self._keepalive.append(self.session.liveliness().declare_token(keys.key(self.run_id, f"{keys.ALIVE}/{self.name}")))
+    def declare_alive(self, host: str | None = None) -> None:
+        """Answer presence queries from now on (alive; ready once declare_ready says so).
+        host: the deployment's name of this host, reported with the clock readings."""
+        self._presence = PresenceResponder(self.session, self.run_id, self.name, self.data_key, host)
+        self._keepalive.append(self._presence)
+
+    @property
+    def presence(self) -> PresenceQuery:
+        """This node's presence queries, under the run's key (one object: its refusals are counted once)."""
+        if self._presence_query is None:
+            self._presence_query = PresenceQuery(self.session, self.run_id, self.data_key)
+        return self._presence_query
 
     def leave_realtime_priority(self) -> None:
         """The calling thread back to the default scheduler (a node's last work, writing its files,
@@ -188,7 +206,7 @@ class NodeContext:
             set_realtime_priority(0)
 
     def declare_ready(self, consumed_topics: list[str], timeout_s: float | None = None) -> None:
-        """Declare `ready/<name>` once each of `consumed_topics` reaches a subscriber.
+        """Answer `ready` to presence queries once each of `consumed_topics` reaches a subscriber.
 
         Lock-step depends on it: a sample published before its subscriber is matched is lost.
         The default wait is the scenario's [run.liveliness] startup_timeout_s.
@@ -202,50 +220,46 @@ class NodeContext:
                 if time.monotonic() > deadline or self.stop.is_set():
                     raise TimeoutError(f"{self.name}: no subscriber for {topic} after {timeout_s} s")
                 time.sleep(0.005)
-        self._keepalive.append(self.session.liveliness().declare_token(keys.key(self.run_id, f"{keys.READY}/{self.name}")))
+        if self._presence is None:
+            self.declare_alive()
+        self._presence.ready = True
 
-    def wait_for_tokens(self, kind: str, names: list[str], timeout_s: float) -> None:
-        """Block until liveliness tokens `<kind>/<name>` exist for every name."""
-        deadline = time.monotonic() + timeout_s
-        missing = set(names)
-        while missing:
-            replies = self.session.liveliness().get(keys.key(self.run_id, f"{kind}/*"), timeout=1.0)
-            for reply in replies:
-                if reply.ok is not None:
-                    missing.discard(str(reply.ok.key_expr).rsplit("/", 1)[-1])
-            if not missing:
-                return
-            if time.monotonic() > deadline or self.stop.is_set():
-                raise TimeoutError(f"{self.name}: no {kind} token from {', '.join(sorted(missing))} after {timeout_s} s")
-            time.sleep(0.02)
+    def wait_for_ready(self, names: list[str], timeout_s: float) -> None:
+        """Block until every name answers `ready`, authenticated (TimeoutError naming the others)."""
+        self.presence.wait_ready(names, timeout_s, self.stop, who=self.name)
 
     def watch_peers(self, names: list[str]) -> None:
-        """Note a peer whose `alive` token vanishes (process died, or hung past the lease).
+        """Note a peer that stops answering presence queries for a lease (process died, or hung).
 
-        The node's loop reads `lost_peers`; Zenoh drops a hung peer's token after the lease.
+        The node's loop reads `lost_peer`; only an authentic answer counts as a sign of life, so
+        nothing without the run's key can hide a hung peer.
         """
-        watched = set(names)
+        # Its thread ends with the session (a query on a closed session raises).
+        self._watcher = PresenceWatcher(self.session, self.run_id, self.data_key, names,
+                                        self.scenario.run.liveliness.lease_s).start()
 
-        def on_token(sample: zenoh.Sample) -> None:
-            peer = str(sample.key_expr).rsplit("/", 1)[-1]
-            if peer not in watched:
-                return
-            if sample.kind == zenoh.SampleKind.DELETE:
+    def _refresh_lost(self) -> None:
+        if self._watcher is None:
+            return
+        now = time.monotonic()
+        for peer in sorted(self._watcher.names):
+            since = self._watcher.silent_since(peer, now)
+            if since is None:
+                if self.lost_since_s.pop(peer, None) is not None:
+                    self.log.warning("peer '%s' is back (it answers presence queries again)", peer)
+            elif peer not in self.lost_since_s:
+                self.lost_since_s[peer] = since
                 self.lost_peers.append(peer)
-                self.lost_since_s.setdefault(peer, time.monotonic())
-                self.log.warning("peer '%s' lost (its liveliness token vanished)", peer)
-            elif self.lost_since_s.pop(peer, None) is not None:
-                self.log.warning("peer '%s' is back (its liveliness token reappeared)", peer)
-
-        self._keepalive.append(self.session.liveliness().declare_subscriber(
-            keys.key(self.run_id, f"{keys.ALIVE}/*"), on_token))
+                self.log.warning("peer '%s' lost (no authentic presence answer for %.1f s)", peer,
+                                 self._watcher.lease_s)
 
     def lost_peer(self, min_age_s: float) -> str | None:
-        """A peer whose token has been gone for at least min_age_s, else None.
+        """A peer silent for at least min_age_s past its lease, else None.
 
-        A busy machine can starve a peer past its lease without it being hung; the token comes
-        back when it is scheduled again, so only a loss that lasts is a lost peer.
+        A busy machine can starve a peer past its lease without it being hung; it answers again
+        when it is scheduled, so only a silence that lasts is a lost peer.
         """
+        self._refresh_lost()
         now = time.monotonic()
         for peer, since in list(self.lost_since_s.items()):
             if now - since >= min_age_s:
@@ -253,13 +267,20 @@ class NodeContext:
         return None
 
     # --- shutdown -------------------------------------------------------------------------
+    def _unauthentic_counts(self) -> dict:
+        counts = {reason: dict(by_topic) for reason, by_topic in self.unauthentic.items()}
+        refused = sum(q.refused for q in (self._presence_query, self._watcher and self._watcher.query) if q)
+        if refused:     # presence answers that did not authenticate (bench/bus/presence.py)
+            counts.setdefault(data_auth.FORGED, {})[PRESENCE_TOPIC] = refused
+        return counts
+
     def publish_stats(self) -> None:
         stats = ProcessStats(
             header=header(self.run_id, 0, 0.0),
             process=self.name,
             published=dict(self.published),
             malformed=dict(self.malformed),
-            unauthentic={reason: dict(counts) for reason, counts in self.unauthentic.items()},
+            unauthentic=self._unauthentic_counts(),
             realtime_priority=self.realtime_priority,
         )
         self.publish(f"{keys.STATUS_STATS}/{self.name}", stats)
@@ -292,27 +313,41 @@ def node_options(args) -> SessionOptions:
 
 
 def stop_when_gone(ctx: NodeContext, process: str) -> None:
-    """Stop the node when `process`'s alive token vanishes (the launcher, for nodes on other hosts:
-    it cannot signal them, so it ends the run by leaving the bus)."""
+    """Stop the node when `process` (the launcher, for nodes on other hosts: it cannot signal them,
+    so it ends the run by leaving the bus) stops answering presence queries for a lease.
 
+    Its liveliness token's delete is a hint that makes the node ask at once (the launcher
+    undeclares its presence answer before its token at the end of a run); the answer, signed under
+    the run's key, decides: a token held by anyone else can neither keep the node running nor stop it.
+    """
     key_expr = keys.key(ctx.run_id, f"{keys.ALIVE}/{process}")
+    watcher = PresenceWatcher(ctx.session, ctx.run_id, ctx.data_key, [process],
+                              ctx.scenario.run.liveliness.lease_s).start()
+
+    def gone(why: str) -> None:
+        if not ctx.stop.is_set():
+            ctx.log.info("'%s' left the bus (%s): stopping", process, why)
+            ctx.stop.set()
 
     def confirm() -> None:
-        # Asked again first: with a router Zenoh can report the delete of a token that is still
-        # there while peers reconnect directly (launcher.py `_check_remote`). Not in Zenoh's
-        # callback thread: a query from there would wait on that same thread.
+        # Not in Zenoh's callback thread: a query from there would wait on that same thread.
         try:
-            if any(r.ok is not None for r in ctx.session.liveliness().get(key_expr, timeout=1.0)):
+            if process in ctx.presence.ask(process, timeout_s=1.0):
                 return
-        except Exception:   # the session is closing: stopping anyway
+        except Exception:   # noqa: BLE001 - the session is closing: stopping anyway
             pass
-        ctx.log.info("'%s' left the bus: stopping", process)
-        ctx.stop.set()
+        gone("its token went and it does not answer")
+
+    def follow() -> None:
+        while not ctx.stop.wait(watcher.period_s):
+            if watcher.silent_since(process) is not None:
+                gone(f"no authentic presence answer for {watcher.lease_s:g} s")
 
     def on_token(sample: zenoh.Sample) -> None:
         if sample.kind == zenoh.SampleKind.DELETE:
             threading.Thread(target=confirm, name=f"{process}-gone", daemon=True).start()
 
+    threading.Thread(target=follow, name=f"{process}-watch", daemon=True).start()
     ctx._keepalive.append(ctx.session.liveliness().declare_subscriber(key_expr, on_token))
 
 
@@ -356,8 +391,7 @@ def run_node(name: str, run_id: str, scenario: Scenario, options: SessionOptions
     try:
         if stop_with:
             stop_when_gone(ctx, stop_with)
-        ctx.declare_alive()
-        ctx._keepalive.append(declare_clock_responder(session, run_id, name, host))   # clock offsets (recorder)
+        ctx.declare_alive(host)     # presence answers: liveliness, readiness and the recorder's clock pings
         code = module.run(ctx)
         ctx.publish_stats()
         time.sleep(0.05)  # let the stats sample leave before the session closes
