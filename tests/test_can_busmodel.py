@@ -226,17 +226,24 @@ def test_bus_off_recovery_is_the_restart_delay_then_128_times_11_recessive_bits_
     assert bus.report()["dropped"] == {"bus_off": 1, "bus_off_flush": 4}
 
 
-def test_frames_during_recovery_count_once_each_and_a_lone_transmitter_stops_at_error_passive():
+def test_frames_during_recovery_count_by_their_recessive_bits_and_a_lone_transmitter_stops_at_error_passive():
     bus, restart_ns, back_ns, telemetry = _bus_off_then(3)
     # Worked by hand. With the flight side bus-off the board is alone: no ACK. Each attempt runs
-    # to the ACK slot (frame bits - 13 tail + CRC delimiter + ACK slot) and an error frame (23
-    # bits), and ends in 11 recessive bits: one of the 128 occurrences recovery waits for. The
-    # attempts are back to back from the restart, so recovery takes 128 of them.
-    attempt_bits = bittiming.frame_bits(telemetry[0]) - 13 + 2 + 23
-    assert back_ns - restart_ns == 128 * attempt_bits * 1000
+    # to the ACK slot (frame bits - 13 tail + CRC delimiter + ACK slot), then an error frame.
+    # Error-active (attempts 1-16, TEC 8..128): a dominant flag and its echo (12 bits), delimiter
+    # and intermission: 11 recessive bits at the end, one of the 128 occurrences recovery waits
+    # for. Error-passive (from attempt 17): the flag is recessive (6 + 8 + 3 bits), so CRC
+    # delimiter, ACK slot and the error frame make 19 recessive bits, and suspend transmission 8
+    # more before the next start of frame: 27, two occurrences per attempt (the 5 left over end at
+    # the dominant start of frame; the 16th attempt's 11 and the suspend after it, 19, make one).
+    # 16 + 2 x 55 = 126 after 71 attempts; the 72nd's tail makes 127 and leaves 8 bits of a run,
+    # which 3 bits of its suspend complete: the 128th.
+    frame = bittiming.frame_bits(telemetry[0])
+    active_bits, passive_bits = frame - 13 + 2 + 23, frame - 13 + 2 + 17
+    assert back_ns - restart_ns == (16 * active_bits + 8 + 55 * (passive_bits + 8) + passive_bits + 3) * 1000
     # ACK errors raise an error-passive transmitter's TEC no further (ISO 11898-1 rule 3, exception 1).
     assert bus.stats.tec_max["board"] == 128 and not bus.counters["board"].bus_off
-    assert bus.stats.bus_errors["ack"] == 128          # then the flight side ACKs again
+    assert bus.stats.bus_errors["ack"] == 72           # then the flight side ACKs again
 
 
 def test_stepping_from_event_to_event_through_a_bus_off_recovery_delivers_as_one_run():

@@ -244,6 +244,53 @@ def test_can_bus_load_and_fault_timeline_on_simulated_time(tmp_path):
     assert "## CAN bus" in report and "inf" not in report.split("## CAN bus")[1].split("##")[0]
 
 
+def test_can_section_lists_bus_off_episodes_and_their_recoveries(tmp_path):
+    """A bus-off and its recovery, from the bus model's own report to metrics.json, the report and
+    the summary. On a bus model with a listener beside the two ends, the board (TEC 248,
+    error-passive) loses one collision at 1000.5 s on the monotonic clock and goes bus-off when the
+    winning frame ends; the bus then idle, it is back 128 x 11 = 1408 bit times later: 1.408 ms at
+    1 Mbit/s. The run is real time at 6000x (as above), so 1000.5 s is simulated 3000 s and the
+    1.408 ms off the bus are 8.448 simulated seconds."""
+    import can
+
+    from bench.bus.can import protocol as p
+    from bench.bus.can.busmodel import BOARD, FLIGHT, BusModel
+    from bench.bus.can.injector import FaultInjector
+    from bench.report.summary import summary_rows
+
+    run_dir = make_run(tmp_path / "run")
+    writer = can.Logger(str(run_dir / "can.log"))
+    for i in range(10):
+        writer.on_message_received(can.Message(timestamp=1000.0 + 0.1 * i, arbitration_id=0x101, data=bytes(8),
+                                               is_extended_id=False, channel="bus"))
+    writer.stop()
+    t_ns = 10**12 + 500_000_000
+    bus = BusModel(FaultInjector([], p.Protocol()), p.Protocol(), 10**12, nodes=(FLIGHT, BOARD, "listener"))
+    bus.counters[BOARD].tec = 248
+    bus.submit(FLIGHT, can.Message(arbitration_id=0x555, data=b"\x00", is_extended_id=False), t_ns)
+    bus.submit(BOARD, can.Message(arbitration_id=0x555, data=b"\x80", is_extended_id=False), t_ns)
+    bus.run_until(t_ns + 10_000_000)
+    model = bus.report()
+    (run_dir / "can").mkdir()
+    (run_dir / "can" / "busmodel.json").write_text(json.dumps({**model, "t0_ns": 10**12, "wall_offset_s": 0.0}))
+    write_report(run_dir)
+
+    bus_off = json.loads((run_dir / "metrics.json").read_text())["can_bus"]["bus_off"]
+    assert bus_off["nodes"] == {"board": {"episodes": 1, "recovered": 1, "longest_ms": pytest.approx(1.408),
+                                          "total_ms": pytest.approx(1.408)}}
+    [episode] = bus_off["episodes"]
+    assert episode["node"] == "board" and episode["off_ms"] == pytest.approx(1.408)
+    assert 3000.0 < episode["bus_off_s"] < 3000.0 + 6000 * 100e-6          # the collision took < 100 us
+    assert episode["recovered_s"] - episode["bus_off_s"] == pytest.approx(6000 * 1.408e-3)
+    section = (run_dir / "report.md").read_text().split("## CAN bus")[1].split("\n## ")[0]
+    assert "| bus-off board | 1 times, 1 recovered (each after 128 x 11 recessive bits" in section
+    assert "longest 1.41 ms" in section
+    assert f"| bus-off board at {episode['bus_off_s']:.7g} s (simulated) | recovered at" in section
+    assert "(1.41 ms off the bus)" in section
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    assert ("CAN bus-off episodes (recovered)", "board 1 (1)") in summary_rows(metrics)
+
+
 def test_a_recording_cut_short_is_read_up_to_its_last_whole_chunk(tmp_path):
     """A recorder killed before finishing its file: the report keeps what was written and says so."""
     run_dir = make_run(tmp_path / "run")

@@ -206,7 +206,9 @@ def can_section(run: RunData, plot_dir: Path) -> tuple[Section | None, dict | No
     rows += [[f"fault {f['name']} (simulated time)", f"{fmt(f['start_sim_s'])} s to {fmt(f['end_sim_s'])} s"]
              for f in m["faults"]]
     rows += [[f"injected {what}", fmt(n)] for what, n in sorted(m["injections"].items())]
-    section = Section("CAN bus", ["From can.log (candump format)."], [Table(["bus", "value"], rows)])
+    rows += canbus.bus_off_rows(m.get("bus_off") or {})
+    section = Section("CAN bus", ["From can.log (candump format); bus-off episodes from can/busmodel.json."],
+                      [Table(["bus", "value"], rows)])
     driver_table = None if driver_rows is None else Table(
         ["driver event", "count", "first latency [ms]", "worst latency [ms]"], driver_rows)
     if driver_table is not None:

@@ -175,6 +175,61 @@ def _injections(run_dir: Path, clock: RunClock | None) -> list[tuple[float, str,
     return [(float(t), r["fault"], r["action"]) for t, r in zip(np.atleast_1d(times), records)]
 
 
+BUS_OFF_EPISODES_IN_REPORT = 10      # the report's table lists the first ones; metrics.json has every one listed
+
+
+def bus_off_metrics(run_dir: Path, clock: RunClock | None) -> dict:
+    """Each node's bus-off episodes and their recoveries (ISO 11898-1: back after 128 x 11 recessive
+    bits) from busmodel.json: per node the episodes, how many recovered, the longest and total time
+    off the bus (ms), and the episodes the bus model listed, on simulated time where the run has
+    a clock (else the bus model's seconds since its start). Empty: no bus-off, or no report."""
+    model = _bus_model_report(run_dir)
+    counts = model.get("bus_off") or {}
+    if not isinstance(counts, dict) or not counts:
+        return {}
+    recovered = model.get("bus_off_recovered") or {}
+    clock = _bus_clock(model, clock)
+    t0_ns = model.get("t0_ns") or 0
+
+    def when_s(t_ns):
+        if t_ns is None:
+            return None
+        return float(clock.sim_s(t_ns)) if clock is not None else (t_ns - t0_ns) / 1e9
+
+    nodes = {node: {"episodes": int(n), "recovered": int(recovered.get(node, 0)),
+                    "longest_ms": (model.get("bus_off_longest_ns") or {}).get(node, 0) / 1e6,
+                    "total_ms": (model.get("bus_off_time_ns") or {}).get(node, 0) / 1e6}
+             for node, n in sorted(counts.items())}
+    episodes = [{"node": e["node"], "bus_off_s": when_s(e["bus_off_ns"]), "recovered_s": when_s(e["recovered_ns"]),
+                 "off_ms": None if e["recovered_ns"] is None else (e["recovered_ns"] - e["bus_off_ns"]) / 1e6}
+                for e in model.get("bus_off_episodes") or []]
+    return {"nodes": nodes, "episodes": episodes, "episodes_left_off": int(model.get("bus_off_episodes_left_off", 0)),
+            "recovery_bits": model.get("bus_off_recovery_bits"),
+            "on_sim_time": clock is not None}
+
+
+def bus_off_rows(bus_off: dict) -> list[list[str]]:
+    """The report's rows for bus-off episodes: one per node, then the first episodes."""
+    if not bus_off:
+        return []
+    rows = []
+    for node, n in bus_off["nodes"].items():
+        still = n["episodes"] - n["recovered"]
+        rows.append([f"bus-off {node}", f"{n['episodes']} times, {n['recovered']} recovered (each after 128 x 11 "
+                     f"recessive bits: {bus_off.get('recovery_bits') or 1408} bit times on an idle bus, more on a busy "
+                     f"one); longest {fmt(n['longest_ms'])} ms, total {fmt(n['total_ms'])} ms"
+                     + ("; still bus-off at the end" if still else "")])
+    time_kind = "simulated" if bus_off.get("on_sim_time") else "since the bus model started"
+    for e in bus_off["episodes"][:BUS_OFF_EPISODES_IN_REPORT]:
+        back = "not recovered by the end" if e["recovered_s"] is None else \
+            f"recovered at {fmt(e['recovered_s'], 7)} s ({fmt(e['off_ms'])} ms off the bus)"
+        rows.append([f"bus-off {e['node']} at {fmt(e['bus_off_s'], 7)} s ({time_kind})", back])
+    left_off = len(bus_off["episodes"]) - BUS_OFF_EPISODES_IN_REPORT + bus_off.get("episodes_left_off", 0)
+    if left_off > 0:
+        rows.append(["bus-off episodes not listed", fmt(left_off)])
+    return rows
+
+
 def driver_events(path: Path) -> tuple[list[list[str]] | None, dict | None]:
     """What the flight-side driver detected (can/driver.json), per kind: table rows (count, first
     and worst detection latency in ms, the final health) and the metrics."""
@@ -202,6 +257,7 @@ def can_metrics(run: RunData) -> tuple[BusLoad | None, dict | None, list[list[st
     m = load.to_metrics()
     can = getattr(run.scenario, "can", None)
     m["authenticated"] = can.security.authenticated if can is not None else None
+    m["bus_off"] = bus_off_metrics(run.run_dir, RunClock.from_run(run.trajectory, run.scenario))
     driver_rows, driver_metrics = driver_events(run.run_dir / "can" / "driver.json")
     if driver_metrics is not None:
         m["driver"] = driver_metrics

@@ -165,6 +165,10 @@ def _bus_rows(bus: dict | None) -> list[tuple[str, str]]:
     rows = [("CAN frames / peak load", f"{bus.get('frames', 0)} / {100 * bus.get('peak_load', 0.0):.0f} %")]
     if bus.get("authenticated") is False:
         rows.append(("CAN bus authentication", "NONE (e2e profile): anyone on the bus can command the coils"))
+    bus_off = (bus.get("bus_off") or {}).get("nodes") or {}
+    if bus_off:
+        rows.append(("CAN bus-off episodes (recovered)",
+                     ", ".join(f"{node} {n['episodes']} ({n['recovered']})" for node, n in bus_off.items())))
     driver = bus.get("driver") or {}
     if driver:
         events = driver.get("events", {})

@@ -37,6 +37,11 @@ NODES = (FLIGHT, BOARD)   # the nodes of a bench bus; BusModel(nodes=...) takes 
 LOAD_WINDOW_NS = 100_000_000
 CHANNEL_BUS, CHANNEL_DROPPED, CHANNEL_REPLACED = "bus", "dropped", "replaced"
 CHANNEL_ERRORS = "errors"   # error reports to nodes other than the flight side (not on the wire)
+RECESSIVE_RUN_BITS = 11                                   # ISO 11898-1: one occurrence for bus-off recovery
+RECOVERY_OCCURRENCES = bittiming.BUS_OFF_RECOVERY_BITS // RECESSIVE_RUN_BITS   # 128
+PASSIVE_ERROR_FRAME_BITS = 6 + 8 + 3                      # passive (recessive) error flag, delimiter, intermission
+SUSPEND_TRANSMISSION_BITS = 8                             # an error-passive transmitter's wait after intermission
+BUS_OFF_EPISODES_LISTED = 100                             # the report lists the first ones; counts cover all
 
 
 @dataclass(frozen=True)
@@ -55,6 +60,22 @@ class _InFlight:
     error: errors.BusError | None = None        # a bus error the bus itself causes (collision, no ACK)
     together: tuple[Transmission, ...] = ()     # other transmitters of the same frame (equal id, equal data)
     collided: tuple[Transmission, ...] = ()     # other transmitters in an equal-id collision
+    # Error-passive transmitters that lost at a data bit: their error flag is recessive, the frame
+    # goes on without them (ISO 11898-1); each has a bit error all the same.
+    passive_losers: tuple[Transmission, ...] = ()
+    # Recessive bits at the attempt's end (ACK delimiter, end of frame, intermission; or an error
+    # delimiter and intermission): what a bus-off node counts towards its recovery.
+    recessive_tail_bits: int = RECESSIVE_RUN_BITS
+
+
+@dataclass
+class _Recovery:
+    """A bus-off node watching the bus for the 128 occurrences of 11 consecutive recessive bits
+    after which it rejoins (ISO 11898-1), counted bit for bit from `counted_ns` on."""
+    bus_off_ns: int
+    counted_ns: int             # the bus is counted up to here (after a restart delay: from its end)
+    run_bits: int = 0           # recessive bits of the current run not yet an occurrence
+    occurrences: int = 0
 
 
 @dataclass
@@ -68,6 +89,11 @@ class BusStats:
     bus_errors: Counter = field(default_factory=Counter)      # by kind (bit, ack, ...)
     command_latency_ns: dict = field(default_factory=lambda: {"without_flood": [], "with_flood": []})
     load_windows: Counter = field(default_factory=Counter)    # window index -> busy ns
+    bus_off_recovered: Counter = field(default_factory=Counter)   # by node
+    bus_off_time_ns: Counter = field(default_factory=Counter)     # by node, recovered episodes
+    bus_off_longest_ns: Counter = field(default_factory=Counter)  # by node
+    bus_off_episodes: list = field(default_factory=list)          # [node, bus-off ns, recovered ns | None], the first few
+    bus_off_episodes_left_off: int = 0
 
 
 class BusModel:
@@ -90,8 +116,9 @@ class BusModel:
         for node in nodes:
             self.add_node(node)
         self._held: list[Transmission] = []    # the injector's frames and frames it holds back, by time
-        self.recover_at_ns: dict[str, int] = {}
-        self.restart_ns: dict[str, int] = {}
+        self.recover_at_ns: dict[str, int] = {}   # bus-off nodes: when they rejoin if the bus stays idle
+        self._recovery: dict[str, _Recovery] = {}
+        self._suspended_until_ns: dict[str, int] = {}   # error-passive transmitters (suspend transmission)
         self.in_flight: _InFlight | None = None
         self.bus_free_ns = t0_ns
         self.now_ns = t0_ns
@@ -182,8 +209,16 @@ class BusModel:
     def _queued(self, tx: Transmission) -> bool:
         return any(tx is queued for queued in self.queues.get(tx.source, ())) or any(tx is h for h in self._held)
 
+    def _ready_ns(self, tx: Transmission) -> int:
+        """When tx may start: an error-passive node that transmitted the last frame waits 8 more
+        bits after the intermission (suspend transmission), and hears whatever starts meanwhile."""
+        if not self._suspended_until_ns:
+            return tx.ready_ns
+        return max(tx.ready_ns, self._suspended_until_ns.get(tx.source, tx.ready_ns))
+
     def _next_start_ns(self) -> int | None:
-        readies = [tx.ready_ns for tx in self._ready_heads()]
+        heads = self._ready_heads()
+        readies = [self._ready_ns(tx) for tx in heads] if self._suspended_until_ns else [tx.ready_ns for tx in heads]
         babbler = self.injector.babbler()
         if babbler is not None:
             readies.append(babbler[1])
@@ -194,14 +229,24 @@ class BusModel:
     def _arbitrate(self, start_ns: int) -> None:
         """Bitwise arbitration: every ready transmitter sends its arbitration field; a recessive
         bit overwritten by a dominant one loses. Equal fields go on together: one frame if their
-        frames are identical, else a bit error where they first differ (both transmitters)."""
+        frames are identical, else a bit error where they first differ: for every transmitter if
+        an error-active one sent the recessive bit, else only for the error-passive ones that did
+        (_without_passive_losers)."""
         contenders: list[tuple[tuple[int, ...], object]] = [
-            (bittiming.message_arbitration_bits(tx.msg), tx) for tx in self._ready_heads() if tx.ready_ns <= start_ns]
+            (bittiming.message_arbitration_bits(tx.msg), tx) for tx in self._ready_heads()
+            if (self._ready_ns(tx) if self._suspended_until_ns else tx.ready_ns) <= start_ns]
         babbler = self.injector.babbler()
         if babbler is not None and babbler[1] <= start_ns:
             contenders.append((bittiming.message_arbitration_bits(babbler[0].msg), babbler[0]))
+        if self._suspended_until_ns:           # a suspension is over once a frame starts after it
+            self._suspended_until_ns = {n: t for n, t in self._suspended_until_ns.items() if t > start_ns}
+        if self._recovery:
+            self._count_recessive_until(start_ns)  # the start of frame is dominant: a run ends here
         best = min(key for key, _ in contenders)
         winners = [item for key, item in contenders if key == best]
+        passive_losers: tuple[Transmission, ...] = ()
+        if len(winners) > 1:
+            winners, passive_losers = self._without_passive_losers(winners)
         first = winners[0]
         if isinstance(first, Flood):
             if first.affected == 0:
@@ -213,7 +258,7 @@ class BusModel:
         others = tuple(w for w in winners[1:] if isinstance(w, Transmission))
         frames = {_frame_identity(w.msg) for w in winners}
         bits = bittiming.frame_bits(msg)
-        flight = _InFlight(tx, msg, start_ns, 0)
+        flight = _InFlight(tx, msg, start_ns, 0, passive_losers=passive_losers)
         if len(frames) > 1:
             # Equal arbitration fields, different frames: a bit error at the first differing bit.
             streams = [bittiming.stuffed_bits(w.msg) for w in winners]
@@ -222,11 +267,16 @@ class BusModel:
             flight.error, flight.collided = errors.BusError.BIT, others
         else:
             flight.together = others
-            transmitters = {w.source for w in winners if isinstance(w, Transmission)}
+            transmitters = {w.source for w in (*winners, *passive_losers) if isinstance(w, Transmission)}
             if transmitters <= set(self.nodes) and tx is not None and not any(
                     self._on_bus(n) for n in self.nodes if n not in transmitters):
-                # Nobody else on the bus to acknowledge: ACK error after the ACK slot.
-                bits = bits - bittiming.TAIL_BITS + 2 + bittiming.ERROR_FRAME_BITS
+                # Nobody else on the bus to acknowledge: ACK error after the ACK slot (CRC delimiter
+                # and ACK slot, recessive). Error-passive transmitters' error flag is recessive too.
+                if all(self._error_passive(t) for t in (tx, *others)):
+                    bits = bits - bittiming.TAIL_BITS + 2 + PASSIVE_ERROR_FRAME_BITS
+                    flight.recessive_tail_bits = 2 + PASSIVE_ERROR_FRAME_BITS
+                else:
+                    bits = bits - bittiming.TAIL_BITS + 2 + bittiming.ERROR_FRAME_BITS
                 flight.error = errors.BusError.ACK
             else:
                 flight.destroyed_by = self.injector.destroys(tx, start_ns) if tx is not None and tx.source in self.queues else None
@@ -237,6 +287,30 @@ class BusModel:
         self.bus_free_ns = flight.end_ns
         self._account_busy(start_ns, flight.end_ns)
 
+    def _error_passive(self, item: object) -> bool:
+        counters = self.counters.get(item.source) if isinstance(item, Transmission) else None
+        return counters is not None and not counters.bus_off and \
+            (counters.tec >= errors.PASSIVE_LIMIT or counters.rec >= errors.PASSIVE_LIMIT)
+
+    def _without_passive_losers(self, winners: list) -> tuple[list, tuple[Transmission, ...]]:
+        """Equal arbitration fields, different frames: at the first bit where they differ, the
+        transmitters of a recessive bit read a dominant one, a bit error (ISO 11898-1). If one of
+        them is error-active, its active error flag destroys the frame for all (the caller's
+        collision). If all are error-passive, their error flags are recessive: nobody sees them,
+        they drop out, and the frame goes on for the transmitters of the dominant bit (compared
+        again from there). The babbler and the injector have no controller: taken as error-active."""
+        losers: list[Transmission] = []
+        while len({_frame_identity(w.msg) for w in winners}) > 1:
+            streams = [bittiming.stuffed_bits(w.msg) for w in winners]
+            at = min(_first_difference(streams[0], s) for s in streams[1:])
+            sent = [s[at] if at < len(s) else 1 for s in streams]   # past its CRC: the recessive delimiter
+            recessive = [w for w, bit in zip(winners, sent) if bit == 1]
+            if not recessive or len(recessive) == len(winners) or not all(self._error_passive(w) for w in recessive):
+                break
+            losers += recessive
+            winners = [w for w, bit in zip(winners, sent) if bit == 0]
+        return winners, tuple(losers)
+
     def _flush_queue(self, node: str, t_ns: int) -> None:
         """Bus-off: the controller's transmit buffers are cleared (nothing stale is sent later)."""
         queue = self.queues[node]
@@ -246,15 +320,38 @@ class BusModel:
             self.stats.dropped["bus_off_flush"] += 1
 
     def _complete(self, flight: _InFlight) -> list[Delivery]:
-        tx = flight.tx
-        frame_ns = flight.end_ns - flight.start_ns
-        eleven_bits_ns = bittiming.duration_ns(11, self.bitrate_bps)
-        for node, restart_ns in self.restart_ns.items():
-            if node in self.recover_at_ns and flight.start_ns >= restart_ns:
-                # A frame on the bus is one occurrence of 11 recessive bits (its end), not len/11.
-                self.recover_at_ns[node] += max(0, frame_ns - eleven_bits_ns)
+        if self._recovery:
+            self._count_recessive_tail(flight)
         if flight.destroyed_by is not None or flight.error is not None:
-            return self._transmission_error(flight)
+            deliveries = self._transmission_error(flight)
+        else:
+            deliveries = self._transmitted(flight)
+        if flight.passive_losers:
+            deliveries += self._passive_losses(flight)
+        # Suspend transmission (ISO 11898-1): an error-passive transmitter of this frame waits
+        # 8 bits after the intermission before it may start again.
+        transmitters = (flight.tx,) if not (flight.together or flight.collided or flight.passive_losers) \
+            else (flight.tx, *flight.together, *flight.collided, *flight.passive_losers)
+        for t in transmitters:
+            if self._error_passive(t):
+                self._suspended_until_ns[t.source] = flight.end_ns + bittiming.duration_ns(
+                    SUSPEND_TRANSMISSION_BITS, self.bitrate_bps)
+        return deliveries
+
+    def _passive_losses(self, flight: _InFlight) -> list[Delivery]:
+        """Error-passive transmitters that lost at a data bit: a bit error each (TEC + 8), and
+        bus-off at the end of this frame if it takes them above 255; they retry otherwise."""
+        deliveries: list[Delivery] = []
+        for loser in flight.passive_losers:
+            self.stats.bus_errors[errors.BusError.BIT.value] += 1
+            deliveries += self._count(loser.source, flight.end_ns, transmit=True, ok=False, error=errors.BusError.BIT)
+            if self.counters[loser.source].bus_off:
+                self._go_bus_off(loser, flight)
+        return deliveries
+
+    def _transmitted(self, flight: _InFlight) -> list[Delivery]:
+        """The frame went through: counters, capture, and the nodes that hear it."""
+        tx = flight.tx
         deliveries: list[Delivery] = []
         transmitters = [t for t in (tx, *flight.together) if t is not None]
         for sender in transmitters:
@@ -262,6 +359,7 @@ class BusModel:
             if sender.source in self.queues:
                 deliveries += self._count(sender.source, flight.end_ns, transmit=True, ok=True)
         senders = {t.source for t in transmitters}
+        senders.update(t.source for t in flight.passive_losers)
         hearing = tuple(n for n in self.nodes if n not in senders and self._on_bus(n))
         for node in hearing:
             deliveries += self._count(node, flight.end_ns, transmit=False, ok=True)
@@ -320,7 +418,7 @@ class BusModel:
             deliveries += self._count(tx.source, flight.end_ns, transmit=True, ok=False, error=error)
             if self.counters[tx.source].bus_off:
                 self._go_bus_off(tx, flight)
-        senders = {t.source for t in transmitters}
+        senders = {t.source for t in (*transmitters, *flight.passive_losers)}
         for node in self.nodes:
             if node not in senders and self._on_bus(node) and error is not errors.BusError.ACK:
                 deliveries += self._count(node, flight.end_ns, transmit=False, ok=False)
@@ -332,22 +430,62 @@ class BusModel:
         self.stats.dropped["bus_off"] += 1
         self.stats.bus_off[tx.source] += 1
         self._flush_queue(tx.source, flight.end_ns)
-        # SocketCAN restarts the controller restart-ms after bus-off; the controller then joins
-        # the bus only after 128 occurrences of 11 recessive bits (ISO 11898-1): 1408 bit times
-        # on an idle bus, more when frames pass meanwhile (see _complete).
-        restart_s = flight.destroyed_by.spec.param("restart_delay_s") if flight.destroyed_by is not None else 0.1
-        restart_ns = flight.end_ns + round(restart_s * 1e9)
-        self.restart_ns[tx.source] = restart_ns
-        self.recover_at_ns[tx.source] = restart_ns + bittiming.duration_ns(bittiming.BUS_OFF_RECOVERY_BITS,
-                                                                            self.bitrate_bps)
+        # The controller rejoins after it has seen 128 occurrences of 11 consecutive recessive bits
+        # (ISO 11898-1), counted from the end of the error frame that took it bus-off: 1408 bit
+        # times on an idle bus, more when frames pass meanwhile (_count_recessive_*). Whoever
+        # caused it, collisions included. Only the error_frames fault adds its restart_delay_s
+        # before the count (SocketCAN's restart-ms, a host restarting the controller).
+        restart_s = 0.0
+        if flight.destroyed_by is not None and tx is flight.tx:
+            restart_s = flight.destroyed_by.spec.param("restart_delay_s")
+        self._recovery[tx.source] = _Recovery(flight.end_ns, flight.end_ns + round(restart_s * 1e9))
+        self._predict_recovery(tx.source)
+        self.stats.bus_off_episodes_left_off += len(self.stats.bus_off_episodes) >= BUS_OFF_EPISODES_LISTED
+        if len(self.stats.bus_off_episodes) < BUS_OFF_EPISODES_LISTED:
+            self.stats.bus_off_episodes.append([tx.source, flight.end_ns, None])
+
+    def _count_recessive_until(self, t_ns: int) -> None:
+        """A frame starts at t_ns: the idle bus before it counts for each bus-off node, and its
+        start-of-frame bit (dominant) ends the run of recessive bits."""
+        for node, r in self._recovery.items():
+            if t_ns > r.counted_ns:
+                run = r.run_bits + (t_ns - r.counted_ns) * self.bitrate_bps // 1_000_000_000
+                r.occurrences += run // RECESSIVE_RUN_BITS
+                r.run_bits, r.counted_ns = 0, t_ns
+                self._predict_recovery(node)
+
+    def _count_recessive_tail(self, flight: _InFlight) -> None:
+        """An attempt ended: its recessive tail counts for each bus-off node that watched it (a
+        frame's stuffed bits hold no 6 equal bits, its tail 11 or more recessive ones)."""
+        for node, r in self._recovery.items():
+            if flight.end_ns > r.counted_ns:
+                seen = min(flight.recessive_tail_bits,
+                           (flight.end_ns - r.counted_ns) * self.bitrate_bps // 1_000_000_000)
+                run = r.run_bits + seen
+                r.occurrences += run // RECESSIVE_RUN_BITS
+                r.run_bits, r.counted_ns = run % RECESSIVE_RUN_BITS, flight.end_ns
+                self._predict_recovery(node)
+
+    def _predict_recovery(self, node: str) -> None:
+        """When the node rejoins if the bus stays idle from what has been counted (an idle bus is
+        recessive: one occurrence every 11 bit times); a frame that starts first is counted anew."""
+        r = self._recovery[node]
+        left_bits = RECESSIVE_RUN_BITS * (RECOVERY_OCCURRENCES - r.occurrences) - r.run_bits
+        self.recover_at_ns[node] = r.counted_ns + bittiming.duration_ns(max(0, left_bits), self.bitrate_bps)
 
     def _restart_recovered(self, t_ns: int) -> list[Delivery]:
         out = []
         for node, at_ns in list(self.recover_at_ns.items()):
             if at_ns <= t_ns:
                 del self.recover_at_ns[node]
-                self.restart_ns.pop(node, None)
+                recovery = self._recovery.pop(node)
                 self.counters[node].restart()
+                self.stats.bus_off_recovered[node] += 1
+                self.stats.bus_off_time_ns[node] += at_ns - recovery.bus_off_ns
+                self.stats.bus_off_longest_ns[node] = max(self.stats.bus_off_longest_ns[node], at_ns - recovery.bus_off_ns)
+                for episode in self.stats.bus_off_episodes:
+                    if episode[0] == node and episode[1] == recovery.bus_off_ns:
+                        episode[2] = at_ns
                 report = errors.error_frame(errors.ErrorState.ACTIVE, 0, restarted=True,
                                             timestamp_s=self.to_wall_s(at_ns))
                 self.bus_free_ns = max(self.bus_free_ns, at_ns)
@@ -385,6 +523,15 @@ class BusModel:
             "dropped": dict(self.stats.dropped),
             "error_frames": self.stats.error_frames,
             "bus_off": dict(self.stats.bus_off),
+            # Each bus-off and its recovery (128 x 11 recessive bits): counts and times per node,
+            # and the first episodes (bus time; recovered_ns None: still bus-off at the end).
+            "bus_off_recovered": dict(self.stats.bus_off_recovered),
+            "bus_off_time_ns": dict(self.stats.bus_off_time_ns),
+            "bus_off_longest_ns": dict(self.stats.bus_off_longest_ns),
+            "bus_off_recovery_bits": bittiming.BUS_OFF_RECOVERY_BITS,
+            "bus_off_episodes": [{"node": n, "bus_off_ns": off, "recovered_ns": back}
+                                 for n, off, back in self.stats.bus_off_episodes],
+            "bus_off_episodes_left_off": self.stats.bus_off_episodes_left_off,
             "tec_max": dict(self.stats.tec_max),
             "command_latency_us": latency,
             "faults_t0_ns": self.injector.t0_ns,
@@ -425,8 +572,9 @@ class RealTimeBridge:
     the sender's clock over Zenoh, the kernel's on SocketCAN), not when this process got round
     to reading it: a stall here must delay deliveries, never bunch frames 20 ms apart into a burst
     that overflows a transmit queue in the model. Frames are submitted in that time order, the
-    model advanced to each first. Deliveries leave at most `granularity_s` after the model says
-    their last bit passed.
+    model advanced to just before each first: frames sent at one time (both ends at once) start
+    together if they reach this process before the model has run past that time. Deliveries
+    leave at most `granularity_s` after the model says their last bit passed.
     """
 
     # A timestamp further from the arrival than this is another host's clock: use the arrival.
@@ -466,7 +614,9 @@ class RealTimeBridge:
                 if not arrivals:
                     self._count_late((time.monotonic_ns() - now_ns) / 1e9 - wait_s)
                 for t_ns, side, msg in sorted(arrivals, key=lambda a: a[0]):
-                    self._deliver(self.model.run_until(t_ns))
+                    # To just before it: frames sent at the same time (by both ends at once) are
+                    # all queued before any starts, so they arbitrate (equal identifiers collide).
+                    self._deliver(self.model.run_until(t_ns - 1))
                     self.model.submit(side, msg, t_ns)
                 self._deliver(self.model.run_until(time.monotonic_ns()))
         finally:
