@@ -8,7 +8,10 @@ parsed and its nesting by the parser itself (tomllib's recursion, then a depth c
 returned); values are converted strictly (a string is never a number; an integer is a float);
 every number must be finite, and every number has an upper bound (times, counts, rates, sizes,
 list lengths) so no value makes a process allocate, loop or overflow without limit. The ranges
-are listed in docs/run_safety.md.
+are listed in docs/run_safety.md. A key given twice is refused (JSON would keep the last one
+silently), and so is an integer longer than Python converts, naming the field. A field that names
+a device or an endpoint names only that: channels are devices, never URLs or files
+(bench/bus/can/config.py, channel_problem).
 """
 from __future__ import annotations
 
@@ -23,6 +26,7 @@ from typing import Annotated, Literal, get_args
 
 import msgspec
 
+from bench.bus import toml_input
 from bench.bus.can.config import CanConfig
 from bench.controller.config import ATTITUDE_LAWS, PLANNED_LAWS, AttitudeControlConfig, ControllerConfig
 from bench.criteria import Criteria
@@ -341,6 +345,9 @@ def _msgspec_message(exc: msgspec.ValidationError) -> str:
     missing = re.fullmatch(r"Object missing required field `(.*)`", problem, re.DOTALL)
     if missing:
         return f"{where + '.' if where else ''}{_key(missing.group(1))}: required field missing"
+    if where and re.match(r"[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*: ", problem):
+        # a section's own check naming one of its fields ("flight_channel: ..." at `$.can`)
+        return f"{where}.{problem}"
     return f"{where}: {problem}" if where else f"<root>: {problem}"
 
 
@@ -379,25 +386,9 @@ def _deeper_than(value, limit: int) -> str | None:
     return None
 
 
-def _toml_field_of_recursion(exc: RecursionError, text: str) -> str:
-    """Which key tomllib was parsing when it ran out of recursion: the header and key of its
-    outermost key/value frame (tomllib's own locals), else the line; a best effort for the message."""
-    header = key = pos = None
-    tb = exc.__traceback__
-    while tb is not None and key is None:
-        frame = tb.tb_frame
-        if frame.f_globals.get("__name__", "").startswith("tomllib"):
-            local = frame.f_locals
-            if frame.f_code.co_name == "key_value_rule" and isinstance(local.get("header"), tuple):
-                header = local["header"]
-            elif frame.f_code.co_name == "parse_key_value_pair" and isinstance(local.get("key"), tuple):
-                key, pos = local["key"], local.get("pos")
-        tb = tb.tb_next
-    if key is not None and all(isinstance(part, str) for part in (header or ()) + key):
-        return ".".join(_key(part) for part in (header or ()) + key)
-    if isinstance(pos, int):
-        return f"line {text.count(chr(10), 0, pos) + 1}"
-    return "<root>"
+def _toml_field(exc: BaseException, text: str) -> str:
+    """Which key tomllib was parsing when it raised `exc`, else the line (bench/bus/toml_input.py)."""
+    return toml_input.field(exc, text, quote=_key)
 
 
 def _check_nesting(data, source: str) -> None:
@@ -414,8 +405,10 @@ def _stack_depth() -> int:
 
 
 def parse_toml_text(text: str, source: str) -> dict:
-    """tomllib's parse of a scenario's text, its limits turned into one-line ScenarioErrors: a
-    syntax error, a nesting deep enough to exhaust the parser's recursion, or deeper than MAX_NESTING.
+    """tomllib's parse of a scenario's text, its limits turned into one-line ScenarioErrors naming
+    the key: a syntax error or a key given twice, an integer of more digits than Python converts
+    (sys.get_int_max_str_digits), a nesting deep enough to exhaust the parser's recursion, or
+    deeper than MAX_NESTING.
 
     tomllib recurses two to four frames per level of nesting. It runs with TOML_STACK_FRAMES frames
     above this one (never more than the interpreter's limit), so a file nested beyond ~100 levels
@@ -426,15 +419,74 @@ def parse_toml_text(text: str, source: str) -> dict:
     try:
         sys.setrecursionlimit(min(limit, _stack_depth() + TOML_STACK_FRAMES))
         data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise ScenarioError(f"{source}: not valid TOML: {exc}") from None
+    except ValueError as exc:     # TOMLDecodeError, or an integer too long to convert
+        raise ScenarioError(f"{source}: {_toml_field(exc, text)}: {toml_input.problem(exc)}") from None
     except RecursionError as exc:
-        where = _toml_field_of_recursion(exc, text)
+        where = _toml_field(exc, text)
         raise ScenarioError(f"{source}: {where}: nested deeper than {MAX_NESTING} levels of tables and arrays "
                             "(too deep for the TOML parser)") from None
     finally:
         sys.setrecursionlimit(limit)
     _check_nesting(data, source)
+    return data
+
+
+class _Refused:
+    """What the JSON parser's hooks put in place of what they refuse (an object with a key given
+    twice, an integer too long to convert); the hooks see no path, so _first_refused finds it
+    after parsing and names its field."""
+
+    def __init__(self, problem: str, key: str | None = None):
+        self.problem, self.key = problem, key
+
+
+def _json_object(pairs: list) -> dict | _Refused:
+    # json keeps the last of a key given twice, silently: a reviewer reads `"profile": "secoc"`
+    # while the run uses the `"e2e"` further down.
+    seen: dict = {}
+    for key, value in pairs:
+        if key in seen:
+            return _Refused("key given twice", key)
+        seen[key] = value
+    return seen
+
+
+def _json_int(text: str) -> int | _Refused:
+    # What tomllib and int() refuse too (sys.get_int_max_str_digits), refused naming the field.
+    limit, digits = sys.get_int_max_str_digits(), len(text.lstrip("-"))
+    if limit and digits > limit:
+        return _Refused(f"an integer of {digits} digits; at most {limit} digits are read")
+    return int(text)
+
+
+def _first_refused(value) -> str | None:
+    """"FIELD: problem" of the first value the JSON hooks refused in plain data, else None."""
+    stack = [("", value)]
+    while stack:
+        where, item = stack.pop()
+        if isinstance(item, _Refused):
+            where = f"{where}.{_key(item.key)}" if item.key is not None else where
+            return f"{where.lstrip('.') or '<root>'}: {item.problem}"
+        if isinstance(item, dict):
+            stack.extend((f"{where}.{_key(k)}", v) for k, v in reversed(list(item.items())))
+        elif isinstance(item, list):
+            stack.extend((f"{where}[{i}]", v) for i, v in reversed(list(enumerate(item))))
+    return None
+
+
+def parse_json_text(text: str, source: str) -> dict:
+    """json's parse of a scenario's text (the scenario.json a launcher wrote into a run directory),
+    its refusals one-line ScenarioErrors naming the field: a syntax error (its line), a key given
+    twice, an integer of more digits than Python converts, a nesting too deep for the parser."""
+    try:
+        data = json.loads(text, object_pairs_hook=_json_object, parse_int=_json_int)
+    except json.JSONDecodeError as exc:
+        raise ScenarioError(f"{source}: line {exc.lineno}: not valid JSON: {exc}") from None
+    except RecursionError:
+        raise ScenarioError(f"{source}: <root>: nested deeper than {MAX_NESTING} levels (too deep for the JSON parser)") from None
+    problem = _first_refused(data)
+    if problem:
+        raise ScenarioError(f"{source}: {problem}")
     return data
 
 
@@ -486,13 +538,7 @@ def load_scenario(name_or_path: str | Path | None = None) -> Scenario:
         # The scenario a launcher wrote into a run directory, exactly as it ran.
         if not path.is_file():
             raise ScenarioError(f"scenario file {name_or_path!r} does not exist")
-        try:
-            data = json.loads(_read_bounded(path))
-        except json.JSONDecodeError as exc:
-            raise ScenarioError(f"{path}: not valid JSON: {exc}") from None
-        except RecursionError:
-            raise ScenarioError(f"{path}: <root>: nested deeper than {MAX_NESTING} levels (too deep for the JSON parser)") from None
-        return parse_scenario(data, str(path))
+        return parse_scenario(parse_json_text(_read_bounded(path), str(path)), str(path))
     if path.suffix == ".toml" or exists:
         if not path.is_file():
             raise ScenarioError(f"scenario file {name_or_path!r} does not exist")

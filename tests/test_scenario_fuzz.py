@@ -1,7 +1,9 @@
 """Strict scenario input (issue 26): scenario files generated from the schema and mutated (wrong
-types, non-finite, huge and negative numbers, unknown keys, deep nesting, unicode) are either
-accepted, and then usable by the nodes' objects, or refused with one ScenarioError line naming a
-field; never another exception. The one-by-one checks are in test_scenario_strict.py.
+types, non-finite, huge and negative numbers, unknown keys, deep nesting, unicode; issue 44: keys
+given twice, integers of thousands of digits, URL-like channels) are either accepted, and then
+usable by the nodes' objects, or refused with one ScenarioError line naming a field; never another
+exception. Written as TOML and as JSON (the scenario.json of a run directory). The one-by-one checks
+are in test_scenario_strict.py and test_input_refusals.py.
 
 Needs hypothesis (the `test` extra); skipped without it.
 """
@@ -18,7 +20,10 @@ import msgspec
 import msgspec.inspect as mi
 import pytest
 
-from bench.scenario import BUILTIN_PACKAGE, MAX_NESTING, Scenario, ScenarioError, parse_scenario, parse_toml_text
+from bench.bus.can.config import SERIAL_INTERFACES
+from bench.scenario import (
+    BUILTIN_PACKAGE, MAX_NESTING, Scenario, ScenarioError, parse_json_text, parse_scenario, parse_toml_text,
+)
 from test_scenario_strict import QUOTES_THEN_DEEP
 
 hypothesis = pytest.importorskip("hypothesis")
@@ -61,6 +66,49 @@ class Deep:
         self.depth = depth
 
 
+class Duplicated:
+    """A key written twice, with `first` then `last` (json would keep the last, silently)."""
+
+    def __init__(self, first, last):
+        self.first, self.last = first, last
+
+
+class Digits:
+    """An integer of `count` digits, written as text: more than Python converts (4300)."""
+
+    def __init__(self, count: int, negative: bool):
+        self.count, self.negative = count, negative
+
+    def text(self) -> str:
+        return "-" * self.negative + "9" * self.count
+
+
+def pairs(table: dict):
+    """The table's key/value pairs as written: a Duplicated value is its key twice."""
+    for key, value in table.items():
+        if isinstance(value, Duplicated):
+            yield key, value.first
+            yield key, value.last
+        else:
+            yield key, value
+
+
+def holds(value, kind) -> bool:
+    """Whether plain data holds an instance of `kind` (Duplicated, Digits) anywhere."""
+    stack = [value]
+    while stack:
+        item = stack.pop()
+        if isinstance(item, kind):
+            return True
+        if isinstance(item, Duplicated):
+            stack.extend([item.first, item.last])
+        elif isinstance(item, dict):
+            stack.extend(item.values())
+        elif isinstance(item, list):
+            stack.extend(item)
+    return False
+
+
 def toml_string(text: str) -> str:
     out = []
     for c in text:
@@ -76,6 +124,10 @@ def toml_string(text: str) -> str:
 def toml_value(value) -> str:
     if isinstance(value, Deep):
         return "[" * value.depth + "]" * value.depth
+    if isinstance(value, Digits):
+        return value.text()
+    if isinstance(value, Duplicated):     # in a list: no key to give twice
+        return toml_value(value.last)
     if isinstance(value, bool):
         return "true" if value else "false"
     if isinstance(value, int):
@@ -91,12 +143,40 @@ def toml_value(value) -> str:
     if isinstance(value, list):
         return "[" + ", ".join(toml_value(v) for v in value) + "]"
     if isinstance(value, dict):
-        return "{" + ", ".join(f"{toml_string(str(k))} = {toml_value(v)}" for k, v in value.items()) + "}"
+        return "{" + ", ".join(f"{toml_string(str(k))} = {toml_value(v)}" for k, v in pairs(value)) + "}"
     raise TypeError(type(value))
 
 
 def toml_text(data: dict) -> str:
-    return "".join(f"{toml_string(str(k))} = {toml_value(v)}\n" for k, v in data.items())
+    return "".join(f"{toml_string(str(k))} = {toml_value(v)}\n" for k, v in pairs(data))
+
+
+def json_value(value) -> str:
+    """JSON text as a launcher's scenario.json, or a hostile one: NaN and Infinity as Python's json
+    reads them, keys given twice, integers of any length."""
+    if isinstance(value, Deep):
+        return "[" * value.depth + "]" * value.depth
+    if isinstance(value, Digits):
+        return value.text()
+    if isinstance(value, Duplicated):
+        return json_value(value.last)
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        if math.isnan(value):
+            return "NaN"
+        if math.isinf(value):
+            return "Infinity" if value > 0 else "-Infinity"
+        return repr(value)
+    if isinstance(value, str):
+        return json.dumps(value)
+    if isinstance(value, list):
+        return "[" + ", ".join(json_value(v) for v in value) + "]"
+    if isinstance(value, dict):
+        return "{" + ", ".join(f"{json.dumps(str(k))}: {json_value(v)}" for k, v in pairs(value)) + "}"
+    raise TypeError(type(value))
 
 
 # --- values and mutations --------------------------------------------------------------------
@@ -171,10 +251,37 @@ def remove_nones(value):
     return value
 
 
+# Channels that are no device: pyserial's URL handlers (spy:// wrote a file, socket:// connected
+# out), any scheme, relative and climbing paths; and interfaces of every kind of channel.
+URL_LIKE = st.one_of(
+    st.sampled_from(["spy:///dev/ttyACM0?file=victim.txt", "loop://", "socket://127.0.0.1:7", "rfc2217://127.0.0.1:7",
+                     "alt:///dev/ttyACM0?class=Serial", "hwgrep://.*", "cp2110://0001:0002:00", "victim.txt",
+                     "../victim.txt", "/dev/../victim.txt", "**", "a/b", "tcp/127.0.0.1:7447", "http://x/"]),
+    st.from_regex(r"[a-z][a-z0-9+.-]{0,10}://[ -~]{0,30}", fullmatch=True),
+)
+INTERFACES = ["slcan", "serial", "robotell", "seeedstudio", "socketcan", "socketcand", "udp_multicast", "zenoh", "pcan",
+              "kvaser", "virtual"]
+STR_FIELDS = [(path, info) for path, info in FIELDS if isinstance(path[-1], str)]
+
+
 @st.composite
 def mutation(draw):
     path, info = draw(st.sampled_from(FIELDS))
-    kind = draw(st.sampled_from(["valid", "valid", "valid", "hostile", "unknown_key", "nesting", "unicode_key"]))
+    kind = draw(st.sampled_from(["valid", "valid", "valid", "hostile", "unknown_key", "nesting", "unicode_key",
+                                 "duplicate_key", "huge_integer", "url_channel"]))
+    if kind == "duplicate_key":
+        path, info = draw(st.sampled_from(STR_FIELDS))
+        return path, Duplicated(draw(st.one_of(in_range(info), HOSTILE).filter(lambda v: v is not None)), draw(HOSTILE))
+    if kind == "huge_integer":
+        return path, Digits(draw(st.integers(4301, 6000)), draw(st.booleans()))
+    if kind == "url_channel":
+        where = draw(st.sampled_from(["flight_channel", "board_channel", "driver_bus", "board_bus"]))
+        if where.endswith("_channel"):
+            return ("can", where), draw(URL_LIKE)
+        bus = {"interface": draw(st.sampled_from(INTERFACES)), "channel": draw(URL_LIKE)}
+        if draw(st.booleans()):
+            bus["options"] = {draw(st.sampled_from(["host", "connect", "state", "dll"])): draw(URL_LIKE)}
+        return ("can", where), bus
     if kind == "valid":
         return path, draw(in_range(info))
     if kind == "hostile":
@@ -186,13 +293,25 @@ def mutation(draw):
     return path, Deep(draw(st.sampled_from([2, MAX_NESTING - 3, MAX_NESTING + 1, 200, 600])))
 
 
-@st.composite
-def scenario_files(draw):
+def mutated(draw) -> dict:
     data = json.loads(json.dumps(BASE_DATA[draw(st.sampled_from(BASES))]))   # a deep copy
     for path, value in draw(st.lists(mutation(), min_size=1, max_size=3)):
         set_path(data, path, value)
-    data = remove_nones(data)
-    return toml_text(data), {str(k) for k in data}
+    return remove_nones(data)
+
+
+@st.composite
+def scenario_files(draw):
+    """(TOML text, its top-level keys, whether it must be refused)."""
+    data = mutated(draw)
+    return toml_text(data), {str(k) for k in data}, holds(data, (Duplicated, Digits))
+
+
+@st.composite
+def json_scenario_files(draw):
+    """(JSON text, its top-level keys, whether it must be refused)."""
+    data = mutated(draw)
+    return json_value(data), {str(k) for k in data}, holds(data, (Duplicated, Digits))
 
 
 # --- what an accepted scenario must allow ----------------------------------------------------------
@@ -206,6 +325,7 @@ def use_in_process(scenario: Scenario) -> None:
     # controller process's business; this check starts no process.
     few = msgspec.structs.replace(scenario, run=msgspec.structs.replace(scenario.run, steps=2, mode="lock-step"))
     if scenario.can is not None:
+        assert_channels_are_devices(scenario.can)
         from bench.bus.can.injector import FaultInjector
 
         injector = FaultInjector(scenario.can.faults, scenario.can.protocol(), seed=scenario.run.seed)
@@ -230,15 +350,30 @@ def use_in_process(scenario: Scenario) -> None:
     assert multiprocessing.active_children() == []
 
 
+def assert_channels_are_devices(can) -> None:
+    """No accepted scenario makes a node open a URL or a file: a serial interface's channel is
+    empty or an absolute path without '.' or '..', no channel has a scheme, no option is a path."""
+    for role in ("driver", "board", "busmodel_flight", "busmodel_board"):
+        spec = can.bus_spec(role)
+        assert "://" not in spec.channel, spec
+        if spec.interface in SERIAL_INTERFACES and spec.channel:
+            assert spec.channel.startswith("/") and not {".", ".."} & set(spec.channel.split("/")), spec
+        assert not {"dll", "connect", "listen", "override_library_name"} & set(spec.options), spec
+        assert all("/" not in v for v in spec.options.values() if isinstance(v, str)), spec
+
+
 # "fuzz.toml: FIELD: problem", FIELD a path of bare or quoted ("a b") keys and [i] indices.
 QUOTED = r'"(?:[^"\\]|\\.)*"'
-FIELD_AT_START = re.compile(rf"^{re.escape(SOURCE)}: (?P<field>(?:{QUOTED}|[^ :\"])+|line \d+): \S")
 
 
-def assert_names_a_field(message: str, top_keys: set[str]) -> None:
+def field_at_start(source: str) -> re.Pattern:
+    return re.compile(rf"^{re.escape(source)}: (?P<field>(?:{QUOTED}|[^ :\"])+|line \d+): \S")
+
+
+def assert_names_a_field(message: str, top_keys: set[str], source: str = SOURCE) -> None:
     """One printable line whose field's first key is in the file or in the schema."""
     assert "\n" not in message and message.isprintable(), repr(message)
-    match = FIELD_AT_START.match(message)
+    match = field_at_start(source).match(message)
     assert match, message
     field = match.group("field")
     if field.startswith("line "):
@@ -263,10 +398,33 @@ def shown_key(key: str) -> str:
 @example(('name = "x"\n[can]\n[[can.faults]]\nname = "drop"\ncount = 100000000000000000000\n', {"name", "can"}))
 @example((QUOTES_THEN_DEEP, {"name", "z"}))
 def test_fuzzed_scenarios_are_accepted_and_usable_or_refused_naming_a_field(case):
-    text, top_keys = case
+    text, top_keys, *must_refuse = case
     try:
         scenario = parse_scenario(parse_toml_text(text, SOURCE), SOURCE)
     except ScenarioError as exc:
         assert_names_a_field(str(exc), top_keys)
         return
+    assert not any(must_refuse), text
     use_in_process(scenario)
+
+
+JSON_SOURCE = "fuzz.json"
+
+
+@settings(max_examples=300, deadline=None, derandomize=True, database=None,
+          suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+@given(json_scenario_files())
+@example(('{"name": "x", "can": {"security": {"profile": "secoc", "profile": "e2e"}}}', {"name", "can"}, True))
+@example(('{"name": "x", "run": {"steps": ' + "9" * 5001 + "}}", {"name", "run"}, True))
+def test_fuzzed_json_scenarios_are_accepted_or_refused_naming_a_field(case):
+    """The scenario.json a run directory holds, the way the nodes load it; what an accepted one
+    makes the nodes do is the TOML fuzz's (the same data)."""
+    text, top_keys, must_refuse = case
+    try:
+        scenario = parse_scenario(parse_json_text(text, JSON_SOURCE), JSON_SOURCE)
+    except ScenarioError as exc:
+        assert_names_a_field(str(exc), top_keys, JSON_SOURCE)
+        return
+    assert not must_refuse, text
+    if scenario.can is not None:
+        assert_channels_are_devices(scenario.can)

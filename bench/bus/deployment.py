@@ -34,7 +34,7 @@ from typing import Annotated
 
 import msgspec
 
-from bench.bus import acl
+from bench.bus import acl, toml_input
 from bench.bus.certs import CertificateError, Identity, check_identity, identity_files
 from bench.bus.session import SessionOptions
 
@@ -214,8 +214,9 @@ def _deeper_than(value, limit: int) -> str | None:
 
 
 def _read(path: Path) -> dict:
-    """The file parsed by tomllib, whose limits (a syntax error, a nesting that exhausts its
-    recursion) and ours (size, depth) become one-line DeploymentErrors."""
+    """The file parsed by tomllib, whose limits (a syntax error, a key given twice, an integer too
+    long to convert, a nesting that exhausts its recursion) and ours (size, depth) become one-line
+    DeploymentErrors, naming the key where tomllib's frames tell it (bench/bus/toml_input.py)."""
     where = f"deployment file {str(path)!r}"
     try:
         if not path.is_file():
@@ -223,11 +224,15 @@ def _read(path: Path) -> dict:
         size = path.stat().st_size
         if size > MAX_DEPLOYMENT_BYTES:
             raise DeploymentError(f"{where}: {size} bytes; a deployment file may hold at most {MAX_DEPLOYMENT_BYTES}")
-        raw = tomllib.loads(path.read_text(errors="replace"))
-    except (OSError, ValueError) as exc:   # unreadable, a NUL in the name, TOMLDecodeError
+        text = path.read_text(errors="replace")
+    except (OSError, ValueError) as exc:   # unreadable, a NUL in the name
         if isinstance(exc, DeploymentError):
             raise
         raise DeploymentError(f"{where}: {exc}") from None
+    try:
+        raw = tomllib.loads(text)
+    except ValueError as exc:     # TOMLDecodeError, or an integer too long to convert
+        raise DeploymentError(f"{where}: {toml_input.field(exc, text)}: {toml_input.problem(exc)}") from None
     except RecursionError:
         raise DeploymentError(f"{where}: nested deeper than {MAX_DEPLOYMENT_NESTING} levels (too deep for the "
                               "TOML parser)") from None

@@ -54,6 +54,7 @@ from typing import Annotated, Callable, Iterable
 import msgspec
 import numpy as np
 
+from bench.bus import toml_input
 from bench.scenario import ScenarioError, load_scenario, parse_scenario, scenario_to_toml_dict
 
 AXES = ("controllers", "dynamics", "knowledge", "initial_conditions", "faults")
@@ -128,8 +129,8 @@ def load_spec(name_or_path: str | Path) -> CampaignSpec:
         raise CampaignError(f"no campaign spec file or built-in named {text_name!r} (built-ins: {', '.join(builtin_specs())})")
     try:
         data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise CampaignError(f"{source}: not valid TOML: {exc}") from None
+    except ValueError as exc:     # TOMLDecodeError (a key given twice too), or an integer too long to convert
+        raise CampaignError(f"{source}: {toml_input.field(exc, text)}: {toml_input.problem(exc)}") from None
     if "kind" in data:
         if data["kind"] not in SPEC_KINDS:
             raise CampaignError(f"{source}: kind: {data['kind']!r} is not one of {', '.join(SPEC_KINDS)}")

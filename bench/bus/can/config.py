@@ -5,6 +5,8 @@ time constant); the seeds give no board numbers, so these are assumptions a scen
 """
 from __future__ import annotations
 
+import ipaddress
+import re
 from typing import Annotated, Literal
 
 import msgspec
@@ -135,10 +137,103 @@ def _default_profile() -> list[DipoleStep]:
             DipoleStep(0.9, [-0.1, 0.0, 0.0]), DipoleStep(1.2, [0.0, -0.1, 0.0]), DipoleStep(1.5, [0.0, 0.0, -0.1])]
 
 
-# An interface option: a scalar, bounded like every scenario field (a tty path, a baud rate, a
-# host name, a flag).
+# An interface option: a scalar, bounded like every scenario field (a baud rate, a host name, a
+# flag; never a path or a URL: option_problem below).
 OptionValue = (Annotated[str, msgspec.Meta(max_length=256)] | Annotated[int, msgspec.Meta(ge=-2**31, le=2**32)]
                | Annotated[float, msgspec.Meta(ge=-1e9, le=1e9)] | bool)
+
+
+# --- Channels are devices, never URLs (issue 44) -------------------------------------------------
+# A scenario names the device a node opens and nothing else. python-can's serial interfaces hand
+# their channel to pyserial's serial_for_url, which reads "scheme://..." as a protocol handler:
+# `spy:///x?file=victim.txt` truncated a file the user could write (the launcher's preflight opened
+# the channel before it refused the run), `socket://` and `rfc2217://` connect out, `loop://`,
+# `alt://` and `hwgrep://` open something other than the device named. So every field that names a
+# channel is checked here, by its text, when the scenario is validated: before the launcher opens
+# anything, and in every process that loads the scenario. A network endpoint only where the
+# interface defines its field as one (udp_multicast's group, socketcand's `host` option).
+
+# Interfaces whose channel is a tty opened with pyserial; slcan and robotell also take the tty's
+# baud rate after '@' ("/dev/ttyACM0@115200").
+SERIAL_INTERFACES = frozenset({"slcan", "robotell", "serial", "seeedstudio"})
+BAUD_SUFFIX_INTERFACES = frozenset({"slcan", "robotell"})
+# Interfaces whose channel is a network interface: the kernel's (socketcan) or the socketcand server's.
+NETDEV_INTERFACES = frozenset({"socketcan", "socketcand"})
+# The bench's zenoh interface (and python-can's in-process virtual bus): one key-expression chunk,
+# bench/<run_id>/can/<channel> (zenoh_interface.check_channel).
+ZENOH_CHANNEL = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
+_DEVICE_PATH = re.compile(r"^(/[A-Za-z0-9_.+,:=-]+)+$")
+_NETDEV = re.compile(r"^[A-Za-z0-9_.-]{1,15}$")          # Linux: IFNAMSIZ - 1, no '/', ':' or space
+# Any other interface's channel names one of the adapter's channels ("PCAN_USBBUS1", "0", "CAN1"):
+# a name or a number.
+_ADAPTER_CHANNEL = re.compile(r"^[A-Za-z0-9_.,: -]{0,64}$")
+_HOST_NAME = re.compile(r"^(?=.{1,253}$)[A-Za-z0-9]([A-Za-z0-9-]*[A-Za-z0-9])?(\.[A-Za-z0-9]([A-Za-z0-9-]*[A-Za-z0-9])?)*$")
+# Options that name a file or an endpoint, which a scenario does not give: a library to load
+# (neovi's override_library_name, usb2can's dll) or the zenoh interface's own session (the bench's
+# nodes open their buses on theirs).
+FILE_OR_ENDPOINT_OPTIONS = frozenset({"dll", "override_library_name", "listen", "connect"})
+
+
+def device_path_problem(path: str) -> str | None:
+    """Why `path` is not a device path, else None: the one check of every field naming a device.
+
+    A device is named by an absolute, normalised path of plain characters (/dev/ttyACM0,
+    /dev/serial/by-id/usb-...-if00, /dev/pts/3): so never a URL (no "scheme://": pyserial would
+    open it with a protocol handler), never relative (the launcher and the nodes have other working
+    directories), no '.' or '..' component. Whether it is a device is the preflight's to check."""
+    if not _DEVICE_PATH.match(path):
+        return (f"{path!r} is not a device path (channels are devices, never URLs: an absolute path such as "
+                f"/dev/ttyACM0, of letters, digits and _.+,:=-)")
+    if any(part in (".", "..") for part in path.split("/")):
+        return f"{path!r} is not a device path: no '.' or '..' component"
+    return None
+
+
+def channel_problem(interface: str, channel: str) -> str | None:
+    """Why `channel` is not a channel of the python-can `interface`, else None (its text only;
+    whether it opens is the launcher's preflight, bench/bus/can/preflight.py)."""
+    if interface in SERIAL_INTERFACES:
+        if not channel:
+            return None    # python-can refuses an empty tty before it opens anything
+        path = channel
+        if interface in BAUD_SUFFIX_INTERFACES and "@" in channel:
+            path, _, baud = channel.partition("@")
+            if not (baud.isascii() and baud.isdigit() and len(baud) <= 8):
+                return f"{channel!r}: after '@' comes the tty's baud rate, in digits"
+        return device_path_problem(path)
+    if interface in NETDEV_INTERFACES:
+        if _NETDEV.match(channel) and channel not in (".", ".."):
+            return None
+        return f"{channel!r} is not a network interface name (1-15 letters, digits, _.-, e.g. can0)"
+    if interface in ("zenoh", "virtual"):
+        return None if ZENOH_CHANNEL.match(channel) else f"{channel!r} is not a {interface} CAN channel (1-64 letters, digits, _.-)"
+    if interface == "udp_multicast":
+        try:
+            multicast = ipaddress.ip_address(channel).is_multicast
+        except ValueError:
+            multicast = False
+        return None if multicast else f"{channel!r} is not a multicast group address (224.0.0.0/4, ff00::/8)"
+    if _ADAPTER_CHANNEL.match(channel):
+        return None
+    return f"{channel!r} is not a {interface} channel name (letters, digits, _.,: -): never a path or a URL"
+
+
+def option_problem(interface: str, key: str, value) -> str | None:
+    """Why an interface option cannot be given by a scenario, else None: options are names and
+    numbers, never a file or an endpoint, except socketcand's server (`host`), which is one."""
+    if key in FILE_OR_ENDPOINT_OPTIONS:
+        return f"{key} names a file or an endpoint, which a scenario does not give"
+    if not isinstance(value, str):
+        return None
+    if interface == "socketcand" and key == "host":
+        try:
+            ipaddress.ip_address(value)
+            return None
+        except ValueError:
+            return None if _HOST_NAME.match(value) else f"{value!r} is not a host name or an IP address"
+    if "/" in value or "\\" in value:
+        return f"{value!r}: an option is a name or a number, never a path or a URL"
+    return None
 
 
 class BusSpec(msgspec.Struct, forbid_unknown_fields=True):
@@ -162,6 +257,13 @@ class BusSpec(msgspec.Struct, forbid_unknown_fields=True):
         if reserved:
             raise ValueError(f"options: {', '.join(sorted(reserved))} is set by the bench or is a field of its own, "
                              f"not an option")
+        problem = channel_problem(self.interface, self.channel)
+        if problem:
+            raise ValueError(f"channel: {problem}")
+        for key, value in self.options.items():
+            problem = option_problem(self.interface, key, value)
+            if problem:
+                raise ValueError(f"options.{key}: {problem}")
 
 
 class CanConfig(msgspec.Struct, forbid_unknown_fields=True):
@@ -205,6 +307,10 @@ class CanConfig(msgspec.Struct, forbid_unknown_fields=True):
         times = [s.t_s for s in self.dipole_profile]
         if times != sorted(times):
             raise ValueError("dipole_profile steps must be in increasing t_s")
+        for name in ("flight_channel", "board_channel"):
+            problem = channel_problem(self.transport, getattr(self, name))
+            if problem:
+                raise ValueError(f"{name}: {problem}")
         for role in ROLES:
             spec = getattr(self, f"{role}_bus")
             if spec is not None and self.security.authenticated and not spec.fd:
@@ -223,6 +329,12 @@ class CanConfig(msgspec.Struct, forbid_unknown_fields=True):
     def bus_field(self, role: str) -> str:
         """The scenario field a role's bus comes from, for error messages."""
         return f"can.{role}_bus" if role in ROLES and getattr(self, f"{role}_bus") is not None else "can.transport"
+
+    def channel_field(self, role: str) -> str:
+        """The scenario field a role's channel comes from, for error messages."""
+        if role in ROLES and getattr(self, f"{role}_bus") is not None:
+            return f"can.{role}_bus.channel"
+        return "can.flight_channel" if role in ("driver", "busmodel_flight") else "can.board_channel"
 
     def protocol(self):
         """The protocol of this bus: node id, command profile and key (None if not handed over:

@@ -7,6 +7,8 @@ checked the way it will be opened (CanConfig.bus_spec):
 - `socketcan` needs kernel CAN (AF_CAN) and the named interface;
 - `virtual` is refused: python-can's virtual bus lives in one process's memory, and the bench's
   nodes are separate processes, so it would carry nothing (a run would end "fine" with 0 frames);
+- a serial interface's channel must be a character device, checked before it is opened (its text,
+  a device path and never a URL, was checked when the scenario was loaded: config.channel_problem);
 - any other interface's channel is opened and shut at once (a missing tty, adapter or server fails
   here, not 15 s into the run in a node's traceback).
 The `zenoh` interface needs the run's hub, which is not up yet: only its channel name is checked.
@@ -15,9 +17,12 @@ A problem is a CanBusError naming the scenario field, one line; `bench run` exit
 """
 from __future__ import annotations
 
+import os
+import stat
+
 import can
 
-from bench.bus.can.config import BusSpec, CanConfig
+from bench.bus.can.config import BAUD_SUFFIX_INTERFACES, SERIAL_INTERFACES, BusSpec, CanConfig
 from bench.bus.can.transport import interface_exists, kernel_has_can, open_bus
 
 
@@ -48,13 +53,14 @@ def check_run_buses(config: CanConfig, roles: list[str] | None = None) -> None:
         if key in checked:
             continue
         checked.add(key)
-        check_bus(spec, config.bus_field(role))
+        check_bus(spec, config.bus_field(role), config.channel_field(role))
 
 
-def check_bus(spec: BusSpec, field: str) -> None:
-    """Raise CanBusError (naming `field`, e.g. "can.driver_bus") if `spec` cannot carry frames
-    between the run's processes on this host."""
+def check_bus(spec: BusSpec, field: str, channel_field: str | None = None) -> None:
+    """Raise CanBusError (naming `field`, e.g. "can.driver_bus", or `channel_field`, by default
+    `field`.channel) if `spec` cannot carry frames between the run's processes on this host."""
     name = spec.interface
+    channel_field = channel_field or f"{field}.channel"
     where = "interface" if field.endswith("_bus") else ""
     label = f"{field}.{where}" if where else field
     if name not in can.interfaces.BACKENDS:
@@ -70,7 +76,7 @@ def check_bus(spec: BusSpec, field: str) -> None:
             raise CanBusError(f"{label}: \"socketcan\" needs kernel CAN and this host has none (AF_CAN sockets "
                               f"fail); use \"zenoh\", or run in user-mode Linux (docs/can-bus.md)")
         if not interface_exists(spec.channel):
-            raise CanBusError(f"{field}.channel: CAN interface {spec.channel!r} does not exist on this host "
+            raise CanBusError(f"{channel_field}: CAN interface {spec.channel!r} does not exist on this host "
                               f"(`bench vcan up` creates vcan0/vcan1, as root)")
         return
     if name == "zenoh":
@@ -79,14 +85,31 @@ def check_bus(spec: BusSpec, field: str) -> None:
         try:
             check_channel(spec.channel)
         except ValueError as exc:
-            raise CanBusError(f"{field}.channel: {exc}") from None
+            raise CanBusError(f"{channel_field}: {exc}") from None
         return
+    if name in SERIAL_INTERFACES:
+        problem = _not_a_tty(spec)
+        if problem:
+            raise CanBusError(f"{channel_field}: {name} channel {spec.channel!r} cannot be opened: {problem}")
     try:
         bus = open_bus(spec, run_id="preflight")
     except Exception as exc:  # noqa: BLE001 - any interface's failure to open is the user's to read
         detail = " ".join(str(exc).split()) or type(exc).__name__
-        raise CanBusError(f"{field}.channel: {name} channel {spec.channel!r} cannot be opened: {detail}") from None
+        raise CanBusError(f"{channel_field}: {name} channel {spec.channel!r} cannot be opened: {detail}") from None
     try:
         bus.shutdown()
     except Exception:  # noqa: BLE001 - it opened; a failing close is not this check's finding
         pass
+
+
+def _not_a_tty(spec: BusSpec) -> str | None:
+    """Why a serial interface's channel is not a character device, else None; nothing is opened
+    (pyserial opens its tty read-write: a regular file or a FIFO is not for it to open)."""
+    path = spec.channel.partition("@")[0] if spec.interface in BAUD_SUFFIX_INTERFACES else spec.channel
+    if not path:
+        return "no tty given (e.g. /dev/ttyACM0)"
+    try:
+        mode = os.stat(path).st_mode
+    except OSError as exc:
+        return exc.strerror or type(exc).__name__
+    return None if stat.S_ISCHR(mode) else "not a character device (a tty)"

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import logging
 import queue
-import re
 import secrets
 import threading
 import time
@@ -33,6 +32,7 @@ from can.bus import BusABC, CanProtocol
 
 from bench.bus import keys
 from bench.bus.can import zenoh_wire
+from bench.bus.can.config import ZENOH_CHANNEL
 from bench.bus.session import SessionConfigError, SessionOptions, open_session
 
 log = logging.getLogger(__name__)
@@ -41,7 +41,7 @@ CAN_TOPIC = "can"
 # Frames waiting to be read. A full queue drops the newest frame and counts it, as a SocketCAN
 # socket does when its receive buffer is full: a slow reader must not grow memory without bound.
 DEFAULT_RX_QUEUE_FRAMES = 10_000
-_CHANNEL = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
+_CHANNEL = ZENOH_CHANNEL     # one key-expression chunk: the rule a scenario's channel is checked by
 _SHUTDOWN = object()
 
 
