@@ -331,9 +331,13 @@ class Recording:
         self.malformed: Counter = Counter()
         self.dropped: dict[str, dict[str, int]] = {}    # filled from the budget at the end
         self.published_by: dict[str, dict[str, int]] = {}
+        # sender -> topic -> messages recorded with that sender's valid tag: what each process put on
+        # which key, whatever it says of itself (an outside node publishes no stats).
+        self.signed_by: dict[str, Counter] = {}
         self.unauthentic: dict[str, Counter] = {}      # reason (forged, replayed) -> topic -> count
 
-    def write(self, topic: str, payload: bytes, received_ns: int, unauthentic: str | None = None) -> Message | None:
+    def write(self, topic: str, payload: bytes, received_ns: int, unauthentic: str | None = None,
+              sender: str | None = None) -> Message | None:
         """Record one sample received at received_ns (wall clock): its log time is its simulated
         time, its publish time received_ns. Returns the decoded message, None if it was malformed,
         unauthentic (the reason its MAC failed, data_auth.FORGED or REPLAYED) or a CAN frame."""
@@ -343,6 +347,8 @@ class Recording:
             return None
         if topic.startswith(CAN_TOPIC + "/"):
             return self._write_can_frame(topic, payload, received_ns)
+        if sender is not None:
+            self.signed_by.setdefault(sender, Counter())[topic] += 1
         message = classify(payload, self.run_id)
         if message is None:
             self.malformed[topic] += 1
@@ -432,7 +438,8 @@ class Recording:
             if topic in unauthentic_topics:
                 topics[topic]["unauthentic"] = {reason: counts[topic] for reason, counts in sorted(self.unauthentic.items())
                                                 if counts[topic]}
-        return {"run_id": self.run_id, "topics": topics, "publishers": self.published_by}
+        return {"run_id": self.run_id, "topics": topics, "publishers": self.published_by,
+                "signed_by": {sender: dict(sorted(counts.items())) for sender, counts in sorted(self.signed_by.items())}}
 
 
 class ClockSyncThread(threading.Thread):
@@ -483,10 +490,12 @@ class Recorder:
         topic = topic_of(key_expr, self.ctx.run_id)
         if self.budget.admit(topic, len(payload), time.monotonic()) is None:
             data = payload.to_bytes()
-            unauthentic = None
+            unauthentic = sender = None
             if self.verifier is not None and not topic.startswith(CAN_TOPIC + "/"):
-                unauthentic = self.verifier.check(key_expr, data, data_auth.attachment_bytes(sample))
-            self.samples.put((key_expr, data, time.time_ns(), unauthentic))
+                attachment = data_auth.attachment_bytes(sample)
+                unauthentic = self.verifier.check(key_expr, data, attachment)
+                sender = data_auth.sender_of(attachment) if unauthentic is None else None
+            self.samples.put((key_expr, data, time.time_ns(), unauthentic, sender))
         self.arrived += 1
 
     def drain(self, timeout_s: float) -> None:
@@ -496,8 +505,8 @@ class Recorder:
         except queue.Empty:
             return
         while True:
-            key_expr, payload, received_ns, unauthentic = item
-            self.recording.write(topic_of(key_expr, self.ctx.run_id), payload, received_ns, unauthentic)
+            key_expr, payload, received_ns, unauthentic, sender = item
+            self.recording.write(topic_of(key_expr, self.ctx.run_id), payload, received_ns, unauthentic, sender)
             try:
                 item = self.samples.get_nowait()
             except queue.Empty:

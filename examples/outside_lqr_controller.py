@@ -33,6 +33,11 @@ flight side believes (seed 003: V scales metres to Mm and m/s to km/s; Q and R f
 (tests/test_contract.py): the command of step STEP goes to a wrong key (wrong-key), carries a field
 the schema does not have (bad-field), carries the next step's sequence number (skip-seq), or a MAC
 that is not the run's (bad-mac); modes given for the same step all apply to its command.
+`--misbehave MODE` (repeatable) breaks it for the whole run: twice the gain and no thrust limit
+(no-saturation), no
+own stamps (no-stamps), a signed copy of each command on `command/applied`, the plant's key
+(foreign-key), estimates taken without checking their tag or counter (trust-all), or no stop
+when the launcher leaves (ignore-stop).
 """
 from __future__ import annotations
 
@@ -56,6 +61,7 @@ NAME = "controller"
 SEED_SCALING = (1e-6, 1e-6, 1e-6, 1e-3, 1e-3, 1e-3)
 SEED_MAX_ABS_THRUST_N = 1.0
 BREAKS = ("wrong-key", "bad-field", "skip-seq", "bad-mac")
+MISBEHAVIOURS = ("no-saturation", "no-stamps", "foreign-key", "trust-all", "ignore-stop")
 MAC_VERSION = 1
 
 
@@ -159,7 +165,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--wait-s", type=float, default=60.0, help="how long to wait for the scenario and the hub")
     parser.add_argument("--break", dest="breaks", action="append", default=[], metavar="MODE:STEP",
                         help=f"break the contract at a step, MODE one of {', '.join(BREAKS)} (for the check's tests)")
+    parser.add_argument("--misbehave", action="append", default=[], choices=MISBEHAVIOURS,
+                        help="break the contract for the whole run (for the check's tests)")
     args = parser.parse_args(argv)
+    misbehave = set(args.misbehave)
     breaks: dict[int, set[str]] = {}
     for item in args.breaks:
         mode, _, step = item.partition(":")
@@ -202,6 +211,9 @@ def main(argv: list[str] | None = None) -> int:
             payload = sample.payload.to_bytes()
             attachment = None if sample.attachment is None else sample.attachment.to_bytes()
             opened = mac_sender_counter(bus_key, str(sample.key_expr), payload, attachment)
+            if "trust-all" in misbehave:
+                estimates.put(payload)
+                return
             if opened is None or opened[1] <= last_counter.get(opened[0], -1):
                 print(f"dropped an estimate without a valid, fresh MAC: {payload[:80]!r}", file=sys.stderr)
                 return
@@ -218,6 +230,7 @@ def main(argv: list[str] | None = None) -> int:
                                              reliability=zenoh.Reliability.RELIABLE)
 
         commands = publisher("command/thrust")
+        foreign = publisher("command/applied")            # used by --misbehave foreign-key only
         wrong = publisher("command/thrust_cmd")          # used by --break wrong-key only
         while not commands.matching_status.matching:     # the plant's subscriber
             if time.monotonic() > deadline or launcher_gone.is_set():
@@ -226,7 +239,7 @@ def main(argv: list[str] | None = None) -> int:
         ready.set()
 
         counter = time.time_ns()     # goes up by one per message, and on from a restart
-        while not launcher_gone.is_set():
+        while not launcher_gone.is_set() or "ignore-stop" in misbehave:
             try:
                 payload = estimates.get(timeout=0.2)
             except queue.Empty:
@@ -238,8 +251,11 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"ignored a message that is not this run's estimate: {payload[:80]!r}", file=sys.stderr)
                 continue
             start = time.perf_counter()
-            thrust_n = np.clip(gain @ (scaling * np.asarray(estimate["state_m_mps"], dtype=float)),
-                               -SEED_MAX_ABS_THRUST_N, SEED_MAX_ABS_THRUST_N)
+            thrust_n = gain @ (scaling * np.asarray(estimate["state_m_mps"], dtype=float))
+            if "no-saturation" in misbehave:
+                thrust_n = 2.0 * thrust_n     # a hotter law, and no limit: over 1 N in the first steps
+            else:
+                thrust_n = np.clip(thrust_n, -SEED_MAX_ABS_THRUST_N, SEED_MAX_ABS_THRUST_N)
             solve_time_s = time.perf_counter() - start
             stamps = dict(header.get("stamps_ns", {}), controller_received=received_ns)
             seq = header["seq"]
@@ -255,6 +271,8 @@ def main(argv: list[str] | None = None) -> int:
             if "bad-field" in broken:
                 command["thrust_vec"] = command["thrust_n"]
             stamps["commanded"] = time.monotonic_ns()
+            if "no-stamps" in misbehave:
+                stamps.pop("commanded"), stamps.pop("controller_received")
             publisher_used = wrong if "wrong-key" in broken else commands
             payload = json.dumps(command).encode()
             counter += 1
@@ -262,6 +280,9 @@ def main(argv: list[str] | None = None) -> int:
             if "bad-mac" in broken:
                 attachment = attachment[:-32] + bytes(32)
             publisher_used.put(payload, attachment=attachment)
+            if "foreign-key" in misbehave:
+                counter += 1
+                foreign.put(payload, attachment=mac_attachment(bus_key, str(foreign.key_expr), payload, counter))
     finally:
         session.close()
     return 0

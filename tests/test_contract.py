@@ -117,3 +117,54 @@ def test_a_broken_controller_fails_the_check_naming_each_problem(runs_dir):
     assert "schema-invalid" in out and "unknown field `thrust_vec`" in out
     assert "no command with header.seq 1, 3 (skipped" in out
     assert "the run did not finish" in out
+
+
+# --- what the bench did with the outsider's messages, and what it did with the bench's ----------
+def _check(runs_dir, run_id: str, *misbehave: str, mode: str = "lock-step", steps: int = 6):
+    command = example_command(*(f"--misbehave {m}" for m in misbehave))
+    return run_bench_cli("contract", "check", "controller", "--steps", str(steps), "--mode", mode,
+                         "--command-timeout", "2", "--runs-dir", str(runs_dir), "--run-id", run_id,
+                         "--command", command, timeout_s=240)
+
+
+@pytest.mark.parametrize("mode", ["lock-step", "real-time"])
+def test_a_controller_without_saturation_fails_naming_the_plant_refusals(runs_dir, mode):
+    """No thrust limit: the plant refuses the commands over 1 N as out_of_envelope. Both modes fail
+    naming the reason and the count, and a refused command is not called a deadline miss."""
+    result = _check(runs_dir, f"nosat-{mode}", "no-saturation", mode=mode)
+    assert result.returncode == 1, result.stdout + result.stderr
+    acceptance = json.loads((runs_dir / f"nosat-{mode}" / "command_acceptance.json").read_text())["thrust"]
+    n = acceptance["rejected"]["out_of_envelope"]
+    assert n > 0
+    assert f"refused by the plant: out_of_envelope {n} command(s)" in result.stdout
+    assert "at most 1 N" in result.stdout
+    assert "deadline" not in result.stdout
+
+
+@pytest.mark.parametrize("misbehaviour, named", [
+    ("foreign-key", "foreign key: 6 message(s) signed by the controller on bench/bad-foreign-key/command/applied"),
+    ("no-stamps", "stamps: 6 command(s) without the stamps controller_received and commanded"),
+    ("trust-all", "acted on forged estimates: 3 command(s)"),
+    ("ignore-stop", "stop not obeyed"),
+])
+def test_a_misbehaving_controller_fails_the_check_naming_the_problem(runs_dir, misbehaviour, named):
+    result = _check(runs_dir, f"bad-{misbehaviour}", misbehaviour)
+    assert result.returncode == 1, result.stdout + result.stderr
+    assert named in result.stdout, result.stdout
+    if misbehaviour == "trust-all":
+        assert "acted on replayed estimates" in result.stdout
+
+
+def test_the_check_sends_forged_and_replayed_estimates_and_a_careful_controller_ignores_them(runs_dir):
+    result = _check(runs_dir, "probed")
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "3 forged and 2 replayed estimates sent by the check" in result.stdout
+    assert_rendezvous_lqr_run_equals_in_process(runs_dir / "probed", 6)
+
+
+def test_a_controller_that_never_connects_is_named_with_the_launcher_reason(runs_dir):
+    result = run_bench_cli("contract", "check", "controller", "--steps", "3", "--runs-dir", str(runs_dir),
+                           "--run-id", "never", "--command", f"{sys.executable} -c pass", "--startup-timeout", "5",
+                           timeout_s=240)
+    assert result.returncode == 1
+    assert "not alive after" in result.stdout and "controller" in result.stdout, result.stdout

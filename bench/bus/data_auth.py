@@ -169,6 +169,13 @@ class Verifier:
         return None
 
 
+def sender_of(attachment: bytes | None) -> str | None:
+    """The sender named in a tag (not checked: call it on a sample whose tag was verified)."""
+    if not attachment or len(attachment) < 2:
+        return None
+    return attachment[2:2 + attachment[1]].decode("ascii", "replace")
+
+
 def attachment_bytes(sample) -> bytes | None:
     """A Zenoh sample's attachment as bytes (None when it has none)."""
     attachment = sample.attachment

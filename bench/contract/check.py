@@ -17,7 +17,18 @@ clock, so the check needs nothing from the outside node but what it put on the b
   repeated, in order; the header carried (same sim_time_s, upstream stamps unchanged);
 - deadlines, on the recorder's clock (the outside node's own stamps are its claims): lock-step, a
   command later than the plant's command timeout broke the loop; the budget is reported. Real
-  time, a step the plant integrated on a held command is a miss.
+  time, a step the plant integrated on a held command is a miss, unless the plant refused that
+  step's command (a refusal is named as such, never as a deadline miss).
+
+And what the bench did with them, and what the node did with the bench's:
+- the plant's refusals (out of envelope, stale, future, non-finite: command_acceptance.json) fail
+  the check, by reason and count;
+- a key the controller signed outside its role's row of the key table (recorder_counts.json's
+  publishers: the sender in each tag) fails, whatever the key;
+- a command without its own stages' stamps (`controller_received`, `commanded`) fails;
+- a node that does not stop within STOP_GRACE_S of the launcher's leaving fails;
+- the check sends forged and replayed estimates itself (bench/contract/probe.py) and fails a
+  controller whose commands answer them.
 """
 from __future__ import annotations
 
@@ -38,12 +49,15 @@ from mcap.reader import NonSeekingReader
 from bench.bus import keys
 from bench.bus.schemas import SCHEMA_VERSION, MalformedMessage, ThrustCommand, TranslationEstimate, decode
 from bench.bus.session import free_loopback_port, loopback_endpoint
+from bench.contract.probe import FORGED_SEQ_BASE, EstimateProbe
 from bench.contract.table import RENDEZVOUS, publications_of, topic_of
 from bench.launcher import run_bench
 from bench.recorder import MALFORMED_PREFIX, RECORDING_FILE, UNAUTHENTIC_PREFIX
 from bench.scenario import Scenario, ScenarioError, load_scenario, parse_scenario
 
 UPSTREAM_STAGES = ("sensed", "estimator_received", "estimated")   # the stamps a command carries on
+OWN_STAGES = ("controller_received", "commanded")                  # ... and the ones it adds
+STOP_GRACE_S = 5.0        # how long an outside node has to stop once the launcher has left
 MAX_LISTED = 5            # per kind of problem, the first few are named
 OUTSIDE_LOG = "outside.log"
 
@@ -64,13 +78,17 @@ class Verdict:
         return "\n".join(lines + [f"  - {p}" for p in self.problems])
 
 
-def check_scenario(scenario: Scenario, steps: int, mode: str | None, command_timeout_s: float) -> Scenario:
+def check_scenario(scenario: Scenario, steps: int, mode: str | None, command_timeout_s: float,
+                   startup_timeout_s: float | None = None) -> Scenario:
     """The scenario the check runs: the controller external, short, a short command timeout."""
     if scenario.kind != "rendezvous" or scenario.can is not None:
         raise ScenarioError(f"contract check controller: scenario {scenario.name!r} is not the rendezvous loop "
                             f"without [can]")
     run = msgspec.structs.replace(scenario.run, steps=steps, external=["controller"],
                                   command_timeout_s=command_timeout_s, mode=mode or scenario.run.mode)
+    if startup_timeout_s is not None:
+        run = msgspec.structs.replace(run, liveliness=msgspec.structs.replace(
+            run.liveliness, startup_timeout_s=startup_timeout_s))
     return parse_scenario(msgspec.to_builtins(msgspec.structs.replace(scenario, run=run)), "contract check")
 
 
@@ -100,7 +118,8 @@ class Outside:
         except OSError as exc:
             self.error = f"could not start the outside node ({' '.join(self.argv)}): {exc}"
 
-    def stop(self, grace_s: float = 5.0) -> int | None:
+    def stop(self, grace_s: float = STOP_GRACE_S) -> int | None:
+        """Its exit code; None if it never started; KILLED if it did not stop within grace_s."""
         self._stop.set()
         self._thread.join(timeout=1.0)
         if self.process is None:
@@ -110,7 +129,34 @@ class Outside:
         except subprocess.TimeoutExpired:
             self.process.kill()            # only the process this check started, by its handle
             self.process.wait(timeout=5.0)
-            return None
+            return KILLED
+
+
+KILLED = "killed"
+
+
+class ProbeStarter:
+    """The estimate probe, started once the hub listens (scenario.json is written after it)."""
+
+    def __init__(self, hub: str, run_id: str, run_dir: Path):
+        self.probe: EstimateProbe | None = None
+        self._stop = threading.Event()
+
+        def start() -> None:
+            while not (run_dir / "scenario.json").is_file():
+                if self._stop.wait(0.02):
+                    return
+            self.probe = EstimateProbe(hub, run_id)
+
+        self._thread = threading.Thread(target=start, name="probe-start", daemon=True)
+        self._thread.start()
+
+    def close(self) -> EstimateProbe | None:
+        self._stop.set()
+        self._thread.join(timeout=5.0)
+        if self.probe is not None:
+            self.probe.close()
+        return self.probe
 
 
 def run_check(scenario: Scenario, run_id: str, runs_dir: Path, command: str | None, port: int | None = None,
@@ -118,19 +164,30 @@ def run_check(scenario: Scenario, run_id: str, runs_dir: Path, command: str | No
     port = port or free_loopback_port()
     run_dir = Path(runs_dir) / run_id
     outside = Outside(command, loopback_endpoint(port), run_id, run_dir) if command else None
+    starter = ProbeStarter(loopback_endpoint(port), run_id, run_dir)
     try:
-        with contextlib.redirect_stdout(io.StringIO()):        # the run's summary table
+        with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()) as launcher_err:
             code, run_dir = run_bench(scenario, run_id, Path(runs_dir), port, show_progress=command is None,
                                       write_report=False)
     finally:
+        probe = starter.close()
         outside_code = outside.stop() if outside else None
-    verdict = judge(run_dir, scenario, code, allowed_misses)
+    verdict = judge(run_dir, scenario, code, allowed_misses, probe, _launcher_error(launcher_err.getvalue()))
     if outside is not None and outside.error:
         verdict.problems.insert(0, outside.error)
+    elif outside_code == KILLED:
+        verdict.problems.append(f"stop not obeyed: the outside node was still running {STOP_GRACE_S:g} s after the "
+                                f"launcher left (it must stop when `presence/launcher` no longer answers; it was killed)")
     elif outside is not None and outside_code not in (0, None):
         verdict.problems.append(f"the outside node exited with code {outside_code} "
                                 f"(its output: {run_dir / 'logs' / OUTSIDE_LOG})")
     return verdict
+
+
+def _launcher_error(stderr: str) -> str:
+    """The launcher's own reason for ending the run early (its `bench: error:` line), if any."""
+    lines = [line.removeprefix("bench: error: ") for line in stderr.splitlines() if line.startswith("bench: error: ")]
+    return lines[-1] if lines else ""
 
 
 # --- the verdict ------------------------------------------------------------------------------
@@ -160,12 +217,14 @@ def read_samples(path: Path, unauthentic: dict[str, int] | None = None) -> list[
     return samples
 
 
-def judge(run_dir: Path, scenario: Scenario, exit_code: int, allowed_misses: int = 0) -> Verdict:
+def judge(run_dir: Path, scenario: Scenario, exit_code: int, allowed_misses: int = 0,
+          probe: EstimateProbe | None = None, launcher_error: str = "") -> Verdict:
     verdict = Verdict()
     problems = verdict.problems
     run_id = run_dir.name
     if exit_code != 0:
-        problems.append(f"the run did not finish: exit code {exit_code}{_plant_error(run_dir)}")
+        why = f" ({launcher_error})" if launcher_error else _plant_error(run_dir)
+        problems.append(f"the run did not finish: exit code {exit_code}{why}")
     recording = run_dir / RECORDING_FILE
     if not recording.is_file():
         problems.append(f"no recording ({recording}): nothing to judge")
@@ -173,6 +232,12 @@ def judge(run_dir: Path, scenario: Scenario, exit_code: int, allowed_misses: int
         return verdict
     unauthentic: dict[str, int] = {}
     samples = read_samples(recording, unauthentic)
+    if probe is not None:    # what the check sent itself is no fault of the node's
+        sent = probe.sent_forged + probe.sent_replayed
+        left = unauthentic.get(keys.ESTIMATE_TRANSLATION, 0) - sent
+        unauthentic.pop(keys.ESTIMATE_TRANSLATION, None)
+        if left > 0:
+            unauthentic[keys.ESTIMATE_TRANSLATION] = left
     for topic, n in sorted(unauthentic.items()):
         problems.append(f"not authenticated: {n} message(s) on {topic} without a valid, fresh MAC under the run's key "
                         f"(runs/<id>/bus.key; docs/contract.md, \"Signing\"); the bench's nodes dropped them")
@@ -182,10 +247,14 @@ def judge(run_dir: Path, scenario: Scenario, exit_code: int, allowed_misses: int
     for s in samples:
         if topic_of(s.topic) is None:
             unknown[s.topic] = unknown.get(s.topic, 0) + 1
+    own_keys = [t.topic.replace('<process>', 'controller') for t in publications_of('controller', RENDEZVOUS)]
     for topic, n in sorted(unknown.items()):
         problems.append(f"wrong key: {n} message(s) on {keys.key(run_id, topic)}, which is not a key of the contract "
-                        f"(the controller publishes on "
-                        f"{', '.join(t.topic.replace('<process>', 'controller') for t in publications_of('controller', RENDEZVOUS))})")
+                        f"(the controller publishes on {', '.join(own_keys)})")
+    for topic, n in sorted(_signed_by(run_dir, "controller").items()):
+        if topic not in own_keys and topic not in unknown:
+            problems.append(f"foreign key: {n} message(s) signed by the controller on {keys.key(run_id, topic)}, a key "
+                            f"outside its role (it publishes on {', '.join(own_keys)} only)")
 
     # Schemas of what the controller publishes.
     commands: list[tuple[ThrustCommand, int]] = []
@@ -220,6 +289,19 @@ def judge(run_dir: Path, scenario: Scenario, exit_code: int, allowed_misses: int
                 continue
             estimates.setdefault(e.header.seq, (e, s.received_ns))
     seqs = [c.header.seq for c, _ in commands]
+    # What the node did with the bench's inputs: the probe's forged and replayed estimates (judged
+    # here, not as sequence problems).
+    if probe is not None:
+        forged = [k for k in seqs if k >= FORGED_SEQ_BASE]
+        if forged:
+            problems.append(f"acted on forged estimates: {len(forged)} command(s) answer estimates the check sent with "
+                            f"a wrong tag (seq {forged[0]}...): check every estimate's tag under the run's key")
+        seqs = [k for k in seqs if k < FORGED_SEQ_BASE]
+        extra = seqs.count(probe.replayed_seq) - 1 if probe.replayed_seq is not None else 0
+        if extra > 0:
+            problems.append(f"acted on replayed estimates: {extra} extra command(s) for seq {probe.replayed_seq}, whose "
+                            f"estimate the check replayed with its old counter: take a sender's counter only upwards")
+            seqs = [k for i, k in enumerate(seqs) if k != probe.replayed_seq or i == seqs.index(k)]
     _sequence_problems(seqs, sorted(estimates), problems)
     carried = []
     for command, _ in commands:
@@ -235,6 +317,19 @@ def judge(run_dir: Path, scenario: Scenario, exit_code: int, allowed_misses: int
     if carried:
         problems.append(f"header not carried from the estimate in {len(carried)} command(s): "
                         + "; ".join(carried[:MAX_LISTED]))
+    unstamped = [c.header.seq for c, _ in commands if any(st not in c.header.stamps_ns for st in OWN_STAGES)]
+    if unstamped:
+        problems.append(f"stamps: {len(unstamped)} command(s) without the stamps {' and '.join(OWN_STAGES)} "
+                        f"(CLOCK_MONOTONIC ns; first seq {unstamped[0]})")
+
+    # What the bench did with the commands: the plant's output stage.
+    acceptance = _thrust_acceptance(run_dir)
+    refused = acceptance.get("rejected") or {}
+    if refused:
+        envelope = (f"; each |thrust_n[i]| at most {acceptance['max_abs']:g} {acceptance.get('unit', 'N')}"
+                    if "out_of_envelope" in refused and "max_abs" in acceptance else "")
+        problems.append("refused by the plant: " + ", ".join(f"{reason} {n}" for reason, n in sorted(refused.items()))
+                        + f" command(s) (command_acceptance.json{envelope})")
 
     # Deadlines, on the recorder's clock.
     first_arrival: dict[int, int] = {}
@@ -250,14 +345,20 @@ def judge(run_dir: Path, scenario: Scenario, exit_code: int, allowed_misses: int
         problems.append(f"deadline: {late} command(s) came after the plant's command timeout of {run.command_timeout_s:g} s")
     if run.mode == "real-time":
         missed = _plant_missed_steps(run_dir)
+        if missed is not None:
+            # A step whose command the plant refused ran on the held command too: named above as a
+            # refusal, not here as lateness.
+            missed = max(0, missed - sum(refused.values()))
         if missed is not None and missed > allowed_misses:
             problems.append(f"deadline: {missed} real-time step(s) integrated on a held command (the command for step k "
                             f"must arrive before step k+1 starts; {allowed_misses} allowed)")
     over = int(np.sum(response_s > budget_s)) if response_s.size else 0
     timing = (f"response at the recorder p50 {np.median(response_s) * 1e3:.2f} ms, worst {response_s.max() * 1e3:.2f} ms, "
               f"{over} over the {budget_s * 1e3:g} ms budget" if response_s.size else "no responses")
+    probed = (f"; {probe.sent_forged} forged and {probe.sent_replayed} replayed estimates sent by the check"
+              if probe is not None else "")
     verdict.summary = (f"{scenario.name}, {run.mode}, {len(estimates)} estimates, {len(commands)} valid commands"
-                       f"{f' seq {min(seqs)}-{max(seqs)}' if seqs else ''} on {keys.COMMAND_THRUST}; {timing}")
+                       f"{f' seq {min(seqs)}-{max(seqs)}' if seqs else ''} on {keys.COMMAND_THRUST}; {timing}{probed}")
     return verdict
 
 
@@ -303,6 +404,22 @@ def _plant_error(run_dir: Path) -> str:
     return f" (plant: {errors[-1]})" if errors else ""
 
 
+def _thrust_acceptance(run_dir: Path) -> dict:
+    """The plant's output stage's counts for thrust commands (accepted, rejected by reason, max_abs)."""
+    try:
+        return json.loads((run_dir / "command_acceptance.json").read_text()).get("thrust") or {}
+    except (OSError, ValueError, AttributeError):
+        return {}
+
+
+def _signed_by(run_dir: Path, sender: str) -> dict[str, int]:
+    """Topic -> messages the recorder took with `sender` in their valid tag (recorder_counts.json)."""
+    try:
+        return json.loads((run_dir / "recorder_counts.json").read_text()).get("signed_by", {}).get(sender, {})
+    except (OSError, ValueError, AttributeError):
+        return {}
+
+
 def _plant_missed_steps(run_dir: Path) -> int | None:
     try:
         with np.load(run_dir / "trajectory.npz") as data:
@@ -311,8 +428,9 @@ def _plant_missed_steps(run_dir: Path) -> int | None:
         return None
 
 
-def load_check_scenario(name: str, steps: int, mode: str | None, command_timeout_s: float) -> Scenario:
-    return check_scenario(load_scenario(name), steps, mode, command_timeout_s)
+def load_check_scenario(name: str, steps: int, mode: str | None, command_timeout_s: float,
+                        startup_timeout_s: float | None = None) -> Scenario:
+    return check_scenario(load_scenario(name), steps, mode, command_timeout_s, startup_timeout_s)
 
 
 def write_verdict(run_dir: Path, verdict: Verdict) -> None:

@@ -34,7 +34,7 @@ def cmd_check(args) -> int:
             raise ScenarioError(f"--steps must be 1-{MAX_STEPS}, got {args.steps}")
         if not 0 < args.command_timeout <= 3600:
             raise ScenarioError(f"--command-timeout must be in (0, 3600] s, got {args.command_timeout}")
-        scenario = load_check_scenario(args.scenario, args.steps, args.mode, args.command_timeout)
+        scenario = load_check_scenario(args.scenario, args.steps, args.mode, args.command_timeout, args.startup_timeout)
         stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S")
         run_id = keys.check_run_id(args.run_id or f"contract-{args.node}-{stamp}")
         verdict = run_check(scenario, run_id, Path(args.runs_dir), args.command, args.port, args.allowed_misses)
@@ -63,6 +63,9 @@ def add_commands(subparsers) -> None:
                        help="lock-step: seconds the plant waits for a command (default: 5)")
     check.add_argument("--command", help="start the outside node with this command line; {connect}, {run_id}, "
                                          "{scenario} and {run_dir} are filled in (default: start it yourself)")
+    check.add_argument("--startup-timeout", type=float,
+                       help="how long the launcher waits for the outside node to answer (5-3600 s; default: the "
+                            "scenario's [run.liveliness] startup_timeout_s, 120 s)")
     check.add_argument("--port", type=int, help="loopback TCP port of the hub (default: a free one)")
     check.add_argument("--run-id", help="name of the check's run (default: contract-NODE-time)")
     check.add_argument("--runs-dir", default="runs", help="where the check's run goes (default: runs)")
