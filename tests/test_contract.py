@@ -76,7 +76,7 @@ def test_sequence_rules_name_skipped_repeated_unknown_and_disordered():
     _sequence_problems([0, 2, 2, 1, 7], [0, 1, 2, 3], problems)
     text = "\n".join(problems)
     assert "header.seq 3 (skipped" in text and "header.seq 2 repeated" in text
-    assert "7 answers no estimate" in text and "went back" in text
+    assert "7 answers none of the estimates" in text and "went back" in text
     clean: list[str] = []
     _sequence_problems([0, 1, 2, 3], [0, 1, 2, 3], clean)
     assert clean == []
@@ -168,3 +168,28 @@ def test_a_controller_that_never_connects_is_named_with_the_launcher_reason(runs
                            timeout_s=240)
     assert result.returncode == 1
     assert "not alive after" in result.stdout and "controller" in result.stdout, result.stdout
+
+
+# --- bench contract check estimator -----------------------------------------------------------------
+def _bench_node_command(node: str, *extra: str) -> str:
+    return " ".join([sys.executable, "-m", "bench.cli", "node", node, "--run-id {run_id} --scenario {scenario}",
+                     "--connect {connect} --run-dir {run_dir}", *extra])
+
+
+def test_the_bench_estimator_from_outside_passes_the_estimator_check(runs_dir):
+    result = run_bench_cli("contract", "check", "estimator", "--steps", "8", "--runs-dir", str(runs_dir),
+                           "--run-id", "est-pass", "--command", _bench_node_command("estimator"), timeout_s=240)
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert result.stdout.startswith("contract check estimator: pass (rendezvous_smoother, lock-step, 8 samples, "
+                                    "8 valid estimates seq 0-7 on estimate/translation")
+    assert "3 forged and 2 replayed samples sent by the check" in result.stdout
+
+
+def test_an_estimator_that_trusts_its_inputs_fails_the_estimator_check(runs_dir):
+    """The bench's own estimator broken on purpose (`bench node --break trust-inputs`): it takes
+    the check's forged sensor samples, and the check names it."""
+    result = run_bench_cli("contract", "check", "estimator", "--steps", "8", "--command-timeout", "2",
+                           "--runs-dir", str(runs_dir), "--run-id", "est-trust",
+                           "--command", _bench_node_command("estimator", "--break trust-inputs"), timeout_s=240)
+    assert result.returncode == 1, result.stdout + result.stderr
+    assert "acted on forged samples: 3 estimate(s) answer samples the check sent with a wrong tag" in result.stdout

@@ -1,8 +1,8 @@
-"""`bench contract check controller`: run the bench's plant and estimator against an outside
-controller and judge what it published.
+"""`bench contract check controller|estimator`: run the bench's other nodes against an outside
+controller or estimator and judge what it published.
 
-The run is an ordinary `bench run` with `[run] external = ["controller"]` (the launcher starts no
-controller and waits for one to join under that name). The outside controller is started by the
+The run is an ordinary `bench run` with `[run] external = [NODE]` (the launcher starts no such
+node and waits for one to join under that name). The outside node is started by the
 check from `--command` (with {connect}, {run_id}, {scenario}, {run_dir} filled in) or by the user,
 who is told where to connect. The verdict comes afterwards from the run's recording: the recorder
 keeps every sample under `bench/<run_id>/**`, valid or not, with its arrival time on the recorder's
@@ -37,6 +37,7 @@ import io
 import json
 import shlex
 import subprocess
+import sys
 import threading
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -47,16 +48,15 @@ from mcap.exceptions import McapError
 from mcap.reader import NonSeekingReader
 
 from bench.bus import keys
-from bench.bus.schemas import SCHEMA_VERSION, MalformedMessage, ThrustCommand, TranslationEstimate, decode
+from bench.bus.schemas import (SCHEMA_VERSION, MalformedMessage, Message, RangeBearing, RelativePosition,
+                                ThrustCommand, TranslationEstimate, TruthState, decode)
 from bench.bus.session import free_loopback_port, loopback_endpoint
-from bench.contract.probe import FORGED_SEQ_BASE, EstimateProbe
+from bench.contract.probe import FORGED_SEQ_BASE, InputProbe
 from bench.contract.table import RENDEZVOUS, publications_of, topic_of
 from bench.launcher import run_bench
 from bench.recorder import MALFORMED_PREFIX, RECORDING_FILE, UNAUTHENTIC_PREFIX
 from bench.scenario import Scenario, ScenarioError, load_scenario, parse_scenario
 
-UPSTREAM_STAGES = ("sensed", "estimator_received", "estimated")   # the stamps a command carries on
-OWN_STAGES = ("controller_received", "commanded")                  # ... and the ones it adds
 STOP_GRACE_S = 5.0        # how long an outside node has to stop once the launcher has left
 MAX_LISTED = 5            # per kind of problem, the first few are named
 OUTSIDE_LOG = "outside.log"
@@ -78,13 +78,51 @@ class Verdict:
         return "\n".join(lines + [f"  - {p}" for p in self.problems])
 
 
+@dataclass(frozen=True)
+class CheckedRole:
+    """A node the check can judge: what it reads and answers, what it answers with, the stamps it
+    carries on and adds. One output per input sample, with the input's seq."""
+
+    node: str
+    input_topic: str
+    input_type: type
+    output_topic: str
+    output_type: type
+    upstream_stages: tuple[str, ...]
+    own_stages: tuple[str, ...]
+    inputs: str           # the inputs and the output in words, for the verdict
+    output: str
+
+
+CHECKED_NODES = ("controller", "estimator")
+DEFAULT_SCENARIO = {"controller": "rendezvous_lqr", "estimator": "rendezvous_smoother"}
+
+
+def role_for(node: str, scenario: Scenario) -> CheckedRole:
+    if node == "controller":
+        return CheckedRole("controller", keys.ESTIMATE_TRANSLATION, TranslationEstimate, keys.COMMAND_THRUST,
+                           ThrustCommand, ("sensed", "estimator_received", "estimated"),
+                           ("controller_received", "commanded"), "estimates", "command")
+    if node == "estimator":
+        # What the scenario's estimator reads: the truth in truth mode, else its sensor.
+        if scenario.estimator.mode == "truth":
+            topic, kind = keys.TRUTH, TruthState
+        elif scenario.estimator.translation.sensor == "range_bearing":
+            topic, kind = keys.SENSE_RANGE_BEARING, RangeBearing
+        else:
+            topic, kind = keys.SENSE_RELPOS, RelativePosition
+        return CheckedRole("estimator", topic, kind, keys.ESTIMATE_TRANSLATION, TranslationEstimate, ("sensed",),
+                           ("estimator_received", "estimated"), "samples", "estimate")
+    raise ValueError(f"contract check: no check for {node!r} (one of {', '.join(CHECKED_NODES)})")
+
+
 def check_scenario(scenario: Scenario, steps: int, mode: str | None, command_timeout_s: float,
-                   startup_timeout_s: float | None = None) -> Scenario:
-    """The scenario the check runs: the controller external, short, a short command timeout."""
+                   startup_timeout_s: float | None = None, node: str = "controller") -> Scenario:
+    """The scenario the check runs: the node external, short, a short command timeout."""
     if scenario.kind != "rendezvous" or scenario.can is not None:
-        raise ScenarioError(f"contract check controller: scenario {scenario.name!r} is not the rendezvous loop "
+        raise ScenarioError(f"contract check {node}: scenario {scenario.name!r} is not the rendezvous loop "
                             f"without [can]")
-    run = msgspec.structs.replace(scenario.run, steps=steps, external=["controller"],
+    run = msgspec.structs.replace(scenario.run, steps=steps, external=[node],
                                   command_timeout_s=command_timeout_s, mode=mode or scenario.run.mode)
     if startup_timeout_s is not None:
         run = msgspec.structs.replace(run, liveliness=msgspec.structs.replace(
@@ -136,22 +174,22 @@ KILLED = "killed"
 
 
 class ProbeStarter:
-    """The estimate probe, started once the hub listens (scenario.json is written after it)."""
+    """The input probe, started once the hub listens (scenario.json is written after it)."""
 
-    def __init__(self, hub: str, run_id: str, run_dir: Path):
-        self.probe: EstimateProbe | None = None
+    def __init__(self, hub: str, run_id: str, run_dir: Path, topic: str):
+        self.probe: InputProbe | None = None
         self._stop = threading.Event()
 
         def start() -> None:
             while not (run_dir / "scenario.json").is_file():
                 if self._stop.wait(0.02):
                     return
-            self.probe = EstimateProbe(hub, run_id)
+            self.probe = InputProbe(hub, run_id, topic)
 
         self._thread = threading.Thread(target=start, name="probe-start", daemon=True)
         self._thread.start()
 
-    def close(self) -> EstimateProbe | None:
+    def close(self) -> InputProbe | None:
         self._stop.set()
         self._thread.join(timeout=5.0)
         if self.probe is not None:
@@ -160,19 +198,21 @@ class ProbeStarter:
 
 
 def run_check(scenario: Scenario, run_id: str, runs_dir: Path, command: str | None, port: int | None = None,
-              allowed_misses: int = 0) -> Verdict:
+              allowed_misses: int = 0, node: str = "controller") -> Verdict:
+    role = role_for(node, scenario)
     port = port or free_loopback_port()
     run_dir = Path(runs_dir) / run_id
     outside = Outside(command, loopback_endpoint(port), run_id, run_dir) if command else None
-    starter = ProbeStarter(loopback_endpoint(port), run_id, run_dir)
+    starter = ProbeStarter(loopback_endpoint(port), run_id, run_dir, role.input_topic)
+    launcher_err = _Tee(sys.stderr)     # the user still sees where to connect; the check reads the reason
     try:
-        with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()) as launcher_err:
+        with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(launcher_err):
             code, run_dir = run_bench(scenario, run_id, Path(runs_dir), port, show_progress=command is None,
                                       write_report=False)
     finally:
         probe = starter.close()
         outside_code = outside.stop() if outside else None
-    verdict = judge(run_dir, scenario, code, allowed_misses, probe, _launcher_error(launcher_err.getvalue()))
+    verdict = judge(run_dir, scenario, code, allowed_misses, probe, _launcher_error(launcher_err.getvalue()), role)
     if outside is not None and outside.error:
         verdict.problems.insert(0, outside.error)
     elif outside_code == KILLED:
@@ -182,6 +222,18 @@ def run_check(scenario: Scenario, run_id: str, runs_dir: Path, command: str | No
         verdict.problems.append(f"the outside node exited with code {outside_code} "
                                 f"(its output: {run_dir / 'logs' / OUTSIDE_LOG})")
     return verdict
+
+
+class _Tee(io.StringIO):
+    """Kept, and passed on to the terminal."""
+
+    def __init__(self, terminal):
+        super().__init__()
+        self.terminal = terminal
+
+    def write(self, text: str) -> int:
+        self.terminal.write(text)
+        return super().write(text)
 
 
 def _launcher_error(stderr: str) -> str:
@@ -218,7 +270,8 @@ def read_samples(path: Path, unauthentic: dict[str, int] | None = None) -> list[
 
 
 def judge(run_dir: Path, scenario: Scenario, exit_code: int, allowed_misses: int = 0,
-          probe: EstimateProbe | None = None, launcher_error: str = "") -> Verdict:
+          probe: InputProbe | None = None, launcher_error: str = "", role: "CheckedRole | None" = None) -> Verdict:
+    role = role or role_for("controller", scenario)
     verdict = Verdict()
     problems = verdict.problems
     run_id = run_dir.name
@@ -233,38 +286,36 @@ def judge(run_dir: Path, scenario: Scenario, exit_code: int, allowed_misses: int
     unauthentic: dict[str, int] = {}
     samples = read_samples(recording, unauthentic)
     if probe is not None:    # what the check sent itself is no fault of the node's
-        sent = probe.sent_forged + probe.sent_replayed
-        left = unauthentic.get(keys.ESTIMATE_TRANSLATION, 0) - sent
-        unauthentic.pop(keys.ESTIMATE_TRANSLATION, None)
+        left = unauthentic.pop(probe.topic, 0) - probe.sent_forged - probe.sent_replayed
         if left > 0:
-            unauthentic[keys.ESTIMATE_TRANSLATION] = left
+            unauthentic[probe.topic] = left
     for topic, n in sorted(unauthentic.items()):
         problems.append(f"not authenticated: {n} message(s) on {topic} without a valid, fresh MAC under the run's key "
                         f"(runs/<id>/bus.key; docs/contract.md, \"Signing\"); the bench's nodes dropped them")
 
-    # Keys.
+    # Keys: the contract's, and the node's own row of the key table.
     unknown: dict[str, int] = {}
     for s in samples:
         if topic_of(s.topic) is None:
             unknown[s.topic] = unknown.get(s.topic, 0) + 1
-    own_keys = [t.topic.replace('<process>', 'controller') for t in publications_of('controller', RENDEZVOUS)]
+    own_keys = [t.topic.replace("<process>", role.node) for t in publications_of(role.node, RENDEZVOUS)]
     for topic, n in sorted(unknown.items()):
         problems.append(f"wrong key: {n} message(s) on {keys.key(run_id, topic)}, which is not a key of the contract "
-                        f"(the controller publishes on {', '.join(own_keys)})")
-    for topic, n in sorted(_signed_by(run_dir, "controller").items()):
+                        f"(the {role.node} publishes on {', '.join(own_keys)})")
+    for topic, n in sorted(_signed_by(run_dir, role.node).items()):
         if topic not in own_keys and topic not in unknown:
-            problems.append(f"foreign key: {n} message(s) signed by the controller on {keys.key(run_id, topic)}, a key "
+            problems.append(f"foreign key: {n} message(s) signed by the {role.node} on {keys.key(run_id, topic)}, a key "
                             f"outside its role (it publishes on {', '.join(own_keys)} only)")
 
-    # Schemas of what the controller publishes.
-    commands: list[tuple[ThrustCommand, int]] = []
-    own = {t.topic: t.messages[0] for t in publications_of("controller", RENDEZVOUS)}
+    # Schemas of what the node publishes.
+    outputs: list[tuple[Message, int]] = []
+    own = {t.topic: t.messages[0] for t in publications_of(role.node, RENDEZVOUS)}
     invalid: dict[str, list[str]] = {}
     for s in samples:
         entry = topic_of(s.topic)
         kind = own.get(entry.topic) if entry is not None else _claimed_type(s.payload, own)
         if kind is None or (entry is not None and entry.topic.endswith("<process>")
-                            and s.topic != f"{keys.STATUS_STATS}/controller"):
+                            and s.topic != f"{keys.STATUS_STATS}/{role.node}"):
             continue
         try:
             message = decode(s.payload, kind)
@@ -274,58 +325,58 @@ def judge(run_dir: Path, scenario: Scenario, exit_code: int, allowed_misses: int
         if message.header.run_id != run_id:
             invalid.setdefault(s.topic, []).append(f"{kind.__name__}: header.run_id {message.header.run_id!r}, "
                                                    f"expected {run_id!r}")
-        elif isinstance(message, ThrustCommand) and s.topic == keys.COMMAND_THRUST:
-            commands.append((message, s.received_ns))
+        elif isinstance(message, role.output_type) and s.topic == role.output_topic:
+            outputs.append((message, s.received_ns))
     for topic, errors in sorted(invalid.items()):
         problems.append(f"schema-invalid: {len(errors)} message(s) on {topic}; first: {errors[0]}")
 
-    # Sequence numbers and headers, against the estimates the controller was given.
-    estimates: dict[int, tuple[TranslationEstimate, int]] = {}
+    # Sequence numbers and headers, against the inputs the node was given.
+    inputs: dict[int, tuple[Message, int]] = {}
     for s in samples:
-        if s.topic == keys.ESTIMATE_TRANSLATION:
+        if s.topic == role.input_topic:
             try:
-                e = decode(s.payload, TranslationEstimate)
+                m = decode(s.payload, role.input_type)
             except MalformedMessage:
                 continue
-            estimates.setdefault(e.header.seq, (e, s.received_ns))
-    seqs = [c.header.seq for c, _ in commands]
-    # What the node did with the bench's inputs: the probe's forged and replayed estimates (judged
-    # here, not as sequence problems).
+            inputs.setdefault(m.header.seq, (m, s.received_ns))
+    seqs = [m.header.seq for m, _ in outputs]
+    # What the node did with the bench's inputs: the probe's forged and replayed ones (judged here,
+    # not as sequence problems).
     if probe is not None:
         forged = [k for k in seqs if k >= FORGED_SEQ_BASE]
         if forged:
-            problems.append(f"acted on forged estimates: {len(forged)} command(s) answer estimates the check sent with "
-                            f"a wrong tag (seq {forged[0]}...): check every estimate's tag under the run's key")
+            problems.append(f"acted on forged {role.inputs}: {len(forged)} {role.output}(s) answer {role.inputs} the check "
+                            f"sent with a wrong tag (seq {forged[0]}...): check every input's tag under the run's key")
         seqs = [k for k in seqs if k < FORGED_SEQ_BASE]
         extra = seqs.count(probe.replayed_seq) - 1 if probe.replayed_seq is not None else 0
         if extra > 0:
-            problems.append(f"acted on replayed estimates: {extra} extra command(s) for seq {probe.replayed_seq}, whose "
-                            f"estimate the check replayed with its old counter: take a sender's counter only upwards")
+            problems.append(f"acted on replayed {role.inputs}: {extra} extra {role.output}(s) for seq {probe.replayed_seq}, "
+                            f"whose input the check replayed with its old counter: take a sender's counter only upwards")
             seqs = [k for i, k in enumerate(seqs) if k != probe.replayed_seq or i == seqs.index(k)]
-    _sequence_problems(seqs, sorted(estimates), problems)
+    _sequence_problems(seqs, sorted(inputs), problems, role)
     carried = []
-    for command, _ in commands:
-        e = estimates.get(command.header.seq)
-        if e is None:
+    for output, _ in outputs:
+        given = inputs.get(output.header.seq)
+        if given is None:
             continue
-        h, eh = command.header, e[0].header
-        if h.sim_time_s != eh.sim_time_s:
-            carried.append(f"seq {h.seq}: sim_time_s {h.sim_time_s!r}, the estimate's is {eh.sim_time_s!r}")
-        lost = [st for st in UPSTREAM_STAGES if st in eh.stamps_ns and h.stamps_ns.get(st) != eh.stamps_ns[st]]
+        h, ih = output.header, given[0].header
+        if h.sim_time_s != ih.sim_time_s:
+            carried.append(f"seq {h.seq}: sim_time_s {h.sim_time_s!r}, the input's is {ih.sim_time_s!r}")
+        lost = [st for st in role.upstream_stages if st in ih.stamps_ns and h.stamps_ns.get(st) != ih.stamps_ns[st]]
         if lost:
-            carried.append(f"seq {h.seq}: stamps {', '.join(lost)} not carried from the estimate")
+            carried.append(f"seq {h.seq}: stamps {', '.join(lost)} not carried from the input")
     if carried:
-        problems.append(f"header not carried from the estimate in {len(carried)} command(s): "
+        problems.append(f"header not carried from the input in {len(carried)} {role.output}(s): "
                         + "; ".join(carried[:MAX_LISTED]))
-    unstamped = [c.header.seq for c, _ in commands if any(st not in c.header.stamps_ns for st in OWN_STAGES)]
+    unstamped = [m.header.seq for m, _ in outputs if any(st not in m.header.stamps_ns for st in role.own_stages)]
     if unstamped:
-        problems.append(f"stamps: {len(unstamped)} command(s) without the stamps {' and '.join(OWN_STAGES)} "
+        problems.append(f"stamps: {len(unstamped)} {role.output}(s) without the stamps {' and '.join(role.own_stages)} "
                         f"(CLOCK_MONOTONIC ns; first seq {unstamped[0]})")
 
     # What the bench did with the commands: the plant's output stage.
-    acceptance = _thrust_acceptance(run_dir)
-    refused = acceptance.get("rejected") or {}
+    refused = _thrust_acceptance(run_dir).get("rejected") or {} if role.node == "controller" else {}
     if refused:
+        acceptance = _thrust_acceptance(run_dir)
         envelope = (f"; each |thrust_n[i]| at most {acceptance['max_abs']:g} {acceptance.get('unit', 'N')}"
                     if "out_of_envelope" in refused and "max_abs" in acceptance else "")
         problems.append("refused by the plant: " + ", ".join(f"{reason} {n}" for reason, n in sorted(refused.items()))
@@ -333,16 +384,17 @@ def judge(run_dir: Path, scenario: Scenario, exit_code: int, allowed_misses: int
 
     # Deadlines, on the recorder's clock.
     first_arrival: dict[int, int] = {}
-    for command, received_ns in commands:
-        k = command.header.seq
-        if k in estimates and received_ns >= estimates[k][1]:     # an answer to estimate k, not a guess ahead
+    for output, received_ns in outputs:
+        k = output.header.seq
+        if k in inputs and received_ns >= inputs[k][1]:     # an answer to input k, not a guess ahead
             first_arrival.setdefault(k, received_ns)
-    response_s = np.array([(first_arrival[k] - estimates[k][1]) / 1e9 for k in sorted(first_arrival) if k in estimates])
+    response_s = np.array([(first_arrival[k] - inputs[k][1]) / 1e9 for k in sorted(first_arrival) if k in inputs])
     run = scenario.run
     budget_s = scenario.controller.deadline.budget_s
     late = int(np.sum(response_s > run.command_timeout_s)) if response_s.size else 0
     if run.mode == "lock-step" and late:
-        problems.append(f"deadline: {late} command(s) came after the plant's command timeout of {run.command_timeout_s:g} s")
+        problems.append(f"deadline: {late} {role.output}(s) came after the plant's command timeout of "
+                        f"{run.command_timeout_s:g} s")
     if run.mode == "real-time":
         missed = _plant_missed_steps(run_dir)
         if missed is not None:
@@ -353,12 +405,13 @@ def judge(run_dir: Path, scenario: Scenario, exit_code: int, allowed_misses: int
             problems.append(f"deadline: {missed} real-time step(s) integrated on a held command (the command for step k "
                             f"must arrive before step k+1 starts; {allowed_misses} allowed)")
     over = int(np.sum(response_s > budget_s)) if response_s.size else 0
-    timing = (f"response at the recorder p50 {np.median(response_s) * 1e3:.2f} ms, worst {response_s.max() * 1e3:.2f} ms, "
-              f"{over} over the {budget_s * 1e3:g} ms budget" if response_s.size else "no responses")
-    probed = (f"; {probe.sent_forged} forged and {probe.sent_replayed} replayed estimates sent by the check"
+    timing = (f"response at the recorder p50 {np.median(response_s) * 1e3:.2f} ms, worst {response_s.max() * 1e3:.2f} ms"
+              + (f", {over} over the {budget_s * 1e3:g} ms budget" if role.node == "controller" else "")
+              if response_s.size else "no responses")
+    probed = (f"; {probe.sent_forged} forged and {probe.sent_replayed} replayed {role.inputs} sent by the check"
               if probe is not None else "")
-    verdict.summary = (f"{scenario.name}, {run.mode}, {len(estimates)} estimates, {len(commands)} valid commands"
-                       f"{f' seq {min(seqs)}-{max(seqs)}' if seqs else ''} on {keys.COMMAND_THRUST}; {timing}{probed}")
+    verdict.summary = (f"{scenario.name}, {run.mode}, {len(inputs)} {role.inputs}, {len(outputs)} valid {role.output}s"
+                       f"{f' seq {min(seqs)}-{max(seqs)}' if seqs else ''} on {role.output_topic}; {timing}{probed}")
     return verdict
 
 
@@ -372,24 +425,26 @@ def _claimed_type(payload: bytes, own: dict) -> type | None:
     return next((kind for kind in own.values() if kind.__struct_config__.tag == tag), None)
 
 
-def _sequence_problems(seqs: list[int], estimate_seqs: list[int], problems: list[str]) -> None:
+def _sequence_problems(seqs: list[int], input_seqs: list[int], problems: list[str],
+                       role: "CheckedRole | None" = None) -> None:
+    output, inputs = (role.output, role.inputs) if role is not None else ("command", "estimates")
     counts: dict[int, int] = {}
     for k in seqs:
         counts[k] = counts.get(k, 0) + 1
     repeated = sorted(k for k, n in counts.items() if n > 1)
-    skipped = [k for k in estimate_seqs if k not in counts]
-    unknown = sorted(k for k in counts if k not in set(estimate_seqs))
+    skipped = [k for k in input_seqs if k not in counts]
+    unknown = sorted(k for k in counts if k not in set(input_seqs))
     disordered = [b for a, b in zip(seqs, seqs[1:]) if b < a]
 
     def listed(values) -> str:
         return ", ".join(map(str, values[:MAX_LISTED])) + (" ..." if len(values) > MAX_LISTED else "")
 
     if skipped:
-        problems.append(f"sequence: no command with header.seq {listed(skipped)} (skipped: step k's command must carry seq k)")
+        problems.append(f"sequence: no {output} with header.seq {listed(skipped)} (skipped: step k's {output} must carry seq k)")
     if repeated:
-        problems.append(f"sequence: header.seq {listed(repeated)} repeated (one command per step)")
+        problems.append(f"sequence: header.seq {listed(repeated)} repeated (one {output} per step)")
     if unknown:
-        problems.append(f"sequence: header.seq {listed(unknown)} answers no estimate (a step the plant had not sampled)")
+        problems.append(f"sequence: header.seq {listed(unknown)} answers none of the {inputs} (a step the plant had not sampled)")
     if disordered:
         problems.append(f"sequence: seq went back in {len(disordered)} place(s), first to {disordered[0]}")
 
@@ -428,9 +483,10 @@ def _plant_missed_steps(run_dir: Path) -> int | None:
         return None
 
 
-def load_check_scenario(name: str, steps: int, mode: str | None, command_timeout_s: float,
-                        startup_timeout_s: float | None = None) -> Scenario:
-    return check_scenario(load_scenario(name), steps, mode, command_timeout_s, startup_timeout_s)
+def load_check_scenario(name: str | None, steps: int, mode: str | None, command_timeout_s: float,
+                        startup_timeout_s: float | None = None, node: str = "controller") -> Scenario:
+    return check_scenario(load_scenario(name or DEFAULT_SCENARIO[node]), steps, mode, command_timeout_s,
+                          startup_timeout_s, node)
 
 
 def write_verdict(run_dir: Path, verdict: Verdict) -> None:

@@ -34,10 +34,12 @@ def cmd_check(args) -> int:
             raise ScenarioError(f"--steps must be 1-{MAX_STEPS}, got {args.steps}")
         if not 0 < args.command_timeout <= 3600:
             raise ScenarioError(f"--command-timeout must be in (0, 3600] s, got {args.command_timeout}")
-        scenario = load_check_scenario(args.scenario, args.steps, args.mode, args.command_timeout, args.startup_timeout)
+        scenario = load_check_scenario(args.scenario, args.steps, args.mode, args.command_timeout, args.startup_timeout,
+                                       args.node)
         stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S")
         run_id = keys.check_run_id(args.run_id or f"contract-{args.node}-{stamp}")
-        verdict = run_check(scenario, run_id, Path(args.runs_dir), args.command, args.port, args.allowed_misses)
+        verdict = run_check(scenario, run_id, Path(args.runs_dir), args.command, args.port, args.allowed_misses,
+                            args.node)
     except (ScenarioError, SessionConfigError, ValueError) as exc:
         print(f"bench contract check: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
@@ -55,8 +57,9 @@ def add_commands(subparsers) -> None:
     export.add_argument("directory", metavar="DIR")
     export.set_defaults(func=cmd_export)
     check = sub.add_parser("check", help="run plant and estimator against an outside node and judge it")
-    check.add_argument("node", choices=["controller"], help="the part provided from outside")
-    check.add_argument("--scenario", default="rendezvous_lqr", help="built-in name or TOML (default: rendezvous_lqr)")
+    check.add_argument("node", choices=["controller", "estimator"], help="the part provided from outside")
+    check.add_argument("--scenario", help="built-in name or TOML (default: rendezvous_lqr for the controller, "
+                                          "rendezvous_smoother for the estimator)")
     check.add_argument("--steps", type=int, default=10, help="plant steps (default: 10)")
     check.add_argument("--mode", choices=["lock-step", "real-time"], help="override the scenario's run.mode")
     check.add_argument("--command-timeout", type=float, default=5.0,

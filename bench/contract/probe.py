@@ -1,14 +1,14 @@
-"""What `bench contract check controller` puts on the bus itself: estimates an outside controller
-must refuse.
+"""What `bench contract check` puts on the bus itself: inputs an outside node must refuse.
 
-A controller that never checks the tag on what it receives passes every check of what it
-publishes, and would follow anyone on the bus. So while the run goes on, the probe takes the first
-genuine estimate it sees and sends, on `estimate/translation`:
-- forged copies: the same estimate with `seq` set far past the run (FORGED_SEQ_BASE + i) and a tag
-  under a key that is not the run's (sender `estimator`), so any command carrying such a seq
-  answered a forged estimate;
+A node that never checks the tag on what it receives passes every check of what it publishes,
+and would follow anyone on the bus. So while the run goes on, the probe takes the first genuine
+sample it sees on the checked node's input (the controller's estimates, the estimator's sensor
+samples) and sends on that key:
+- forged copies: the same message with `seq` set far past the run (FORGED_SEQ_BASE + i) and a tag
+  under a key that is not the run's (the genuine sender's name), so any output carrying such a seq
+  answered a forged input;
 - replays: the genuine sample itself, payload and tag unchanged (its counter already passed), so a
-  second command for that seq answered a replay.
+  second output for that seq answered a replay.
 The bench's own nodes and the recorder drop them too (counted as forged and replayed); the check
 discounts what it sent itself.
 """
@@ -28,12 +28,13 @@ N_FORGED = 3
 N_REPLAYED = 2
 
 
-class EstimateProbe:
-    """Connects to the run's hub, captures the first estimate, and sends the forged and replayed ones."""
+class InputProbe:
+    """Connects to the run's hub, captures the first sample on `topic`, and sends the forged and
+    replayed ones."""
 
-    def __init__(self, hub: str, run_id: str):
-        self.run_id = run_id
-        self.key_expr = keys.key(run_id, keys.ESTIMATE_TRANSLATION)
+    def __init__(self, hub: str, run_id: str, topic: str):
+        self.run_id, self.topic = run_id, topic
+        self.key_expr = keys.key(run_id, topic)
         self.sent_forged = 0
         self.sent_replayed = 0
         self.replayed_seq: int | None = None
@@ -49,7 +50,9 @@ class EstimateProbe:
 
     def _on_estimate(self, sample: zenoh.Sample) -> None:
         if self._sample is None:
-            self._sample = (sample.payload.to_bytes(), data_auth.attachment_bytes(sample))
+            attachment = data_auth.attachment_bytes(sample)
+            self._sender = (data_auth.sender_of(attachment) or "bench").encode()
+            self._sample = (sample.payload.to_bytes(), attachment)
             self._captured.set()
 
     def _send(self) -> None:
@@ -66,7 +69,7 @@ class EstimateProbe:
         for i in range(N_FORGED):
             estimate["header"]["seq"] = FORGED_SEQ_BASE + i
             forged = json.dumps(estimate).encode()
-            self._publisher.put(forged, attachment=data_auth.tag(wrong_key, self.key_expr, forged, b"estimator", i + 1))
+            self._publisher.put(forged, attachment=data_auth.tag(wrong_key, self.key_expr, forged, self._sender, i + 1))
             self.sent_forged += 1
         for _ in range(N_REPLAYED):
             self._publisher.put(payload, attachment=attachment)

@@ -88,6 +88,9 @@ class NodeContext:
     _presence: PresenceResponder | None = None       # this node's answer (declare_alive)
     _presence_query: PresenceQuery | None = None     # its questions (wait_for_ready, recorder's clocks)
     _watcher: PresenceWatcher | None = None          # its peers (watch_peers)
+    # `bench node --break trust-inputs`: take every input without checking its tag or counter. Only
+    # to show that `bench contract check` fails such a node (it sends forged inputs); never in a run.
+    trust_inputs: bool = False
 
     # --- publishing -----------------------------------------------------------------------
     def publish(self, topic: str, message: Message) -> None:
@@ -145,7 +148,7 @@ class NodeContext:
         subscribers do not (benchmarks/bench_sensor_order.py: up to a quarter of the earlier topics'
         samples came after the last topic's sample of the same tick)."""
         prefix = keys.key(self.run_id, "")
-        verifier = data_auth.Verifier(self.data_key) if self.data_key is not None else None
+        verifier = data_auth.Verifier(self.data_key) if self.data_key is not None and not self.trust_inputs else None
 
         def handle(sample: zenoh.Sample) -> None:
             topic = str(sample.key_expr)[len(prefix):]
@@ -352,7 +355,8 @@ def stop_when_gone(ctx: NodeContext, process: str) -> None:
 
 
 def run_node(name: str, run_id: str, scenario: Scenario, options: SessionOptions, run_dir: Path,
-             peers: list[str] | None = None, stop_with: str | None = None, host: str | None = None) -> int:
+             peers: list[str] | None = None, stop_with: str | None = None, host: str | None = None,
+             trust_inputs: bool = False) -> int:
     """Open the session, install signal handlers, run the node, always close cleanly.
 
     stop_with: also stop when that process's alive token vanishes (nodes on other hosts than the
@@ -377,7 +381,11 @@ def run_node(name: str, run_id: str, scenario: Scenario, options: SessionOptions
         priority = 0
     session = open_session(dataclasses.replace(options, lease_ms=lease_ms))
     ctx = NodeContext(name=name, run_id=run_id, scenario=scenario, session=session, run_dir=run_dir, log=log,
-                      peers=list(peers or []), report_key=report_key, data_key=data_key, realtime_priority=priority)
+                      peers=list(peers or []), report_key=report_key, data_key=data_key, realtime_priority=priority,
+                      trust_inputs=trust_inputs)
+    if trust_inputs:
+        log.warning("--break trust-inputs: this node takes every input without checking its tag (a broken node, "
+                    "for bench contract check's self-test)")
     if data_key is None:
         log.warning("no data key (%s): this node signs and checks nothing, and the run's nodes drop what it "
                     "publishes", run_dir / data_auth.KEY_FILE)

@@ -36,7 +36,8 @@ def cmd_node(args) -> int:
             host = args.host
             if load_deployment(args.deployment).launcher_host != host:
                 stop_with = LAUNCHER   # the launcher cannot signal another host: its leaving ends the run
-        return run_node(args.name, run_id, scenario, options, run_dir, peers, stop_with=stop_with, host=host)
+        return run_node(args.name, run_id, scenario, options, run_dir, peers, stop_with=stop_with, host=host,
+                        trust_inputs="trust-inputs" in (args.breaks or ()))
     except (ScenarioError, SessionConfigError, DeploymentError, CertificateError, ValueError) as exc:
         print(f"bench node: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
@@ -55,4 +56,7 @@ def add_commands(subparsers) -> None:
     node.add_argument("--cert-dir", help="certificate directory: mutual TLS as this node, access control on")
     node.add_argument("--deployment", help="deployment TOML (endpoints, certificates) ...")
     node.add_argument("--host", help="... and which of its hosts this is")
+    node.add_argument("--break", dest="breaks", action="append", choices=["trust-inputs"],
+                      help="break this node on purpose, to see `bench contract check` fail it: trust-inputs takes "
+                           "every input without checking its tag or counter")
     node.set_defaults(func=cmd_node)
