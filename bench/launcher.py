@@ -593,7 +593,10 @@ def _wait_alive(presence: PresenceQuery, children: list[Child], timeout_s: float
             # A remote node (no local process to watch) never counts as still working.
             still_working = all(idle_s.get(n, float("inf")) < STARTUP_IDLE_S for n in missing)
             if not still_working or now - started > 3 * timeout_s:
-                raise NodeFailed(f"processes not alive after {now - started:.0f} s: {', '.join(missing)}")
+                refused = {n: presence.refused_by_name[n] for n in missing if presence.refused_by_name.get(n)}
+                why = "".join(f"; {n}: {k} presence answer(s) refused, not signed under the run's key (bus.key)"
+                              for n, k in refused.items())
+                raise NodeFailed(f"processes not alive after {now - started:.0f} s: {', '.join(missing)}{why}")
         interrupted()
         time.sleep(0.05)
 
@@ -896,9 +899,28 @@ def _finish(run_dir: Path, scenario: Scenario, children: list[Child], stats: dic
     if ending.reason is None:
         summary.print_summary(metrics, run_dir, summary.command_wall_time_s())
     else:
+        for line in unauthentic_drops(stats, run_dir):     # often why a loop with an outside node stalls
+            print(f"bench: {line}", file=sys.stderr)
         print(f"bench: partial run ({ending.reason}); metrics: {run_dir / 'metrics.json'}", file=sys.stderr)
     if html is not None:
         print(f"report: {html}")
+
+
+def unauthentic_drops(stats: dict, run_dir: Path) -> list[str]:
+    """What each process dropped for its tag, named by the topic's publishers: "estimate/translation
+    from 'estimator' dropped as forged by 'controller': 40 ..." (a node from outside that does not
+    sign, or signs with another key, leaves a loop waiting for messages it did send)."""
+    from bench.contract.table import topic_of
+
+    lines = []
+    for process, entry in sorted(stats.items()):
+        for reason, by_topic in sorted((entry.get("unauthentic") or {}).items()):
+            for topic, n in sorted(by_topic.items()):
+                table = topic_of(topic)
+                source = f" from {', '.join(repr(p) for p in table.publishers)}" if table is not None else ""
+                lines.append(f"{topic}{source} dropped as {reason} by '{process}': {n} (no valid tag under the run's key, "
+                             f"{run_dir / data_auth.KEY_FILE}, or a counter already seen)")
+    return lines
 
 
 def campaign_case(scenario: Scenario) -> dict:

@@ -208,3 +208,53 @@ def test_a_stopped_controller_is_named_while_a_rogue_answers_for_it(runs_dir):
     while bench_processes(str(runs_dir / run_id)) and time.monotonic() < deadline:
         time.sleep(0.1)
     assert bench_processes(str(runs_dir / run_id)) == []
+
+
+def test_an_outside_node_without_the_key_is_named_with_its_refused_answers(runs_dir, tmp_path):
+    """An outside estimator that cannot read the run's key answers presence unsigned: the run never
+    starts, and the launcher says why instead of only "not alive"."""
+    import msgspec
+
+    from bench.scenario import load_scenario
+
+    scenario = msgspec.to_builtins(load_scenario("rendezvous_smoother"))
+    scenario["run"]["liveliness"]["startup_timeout_s"] = 5.0
+    scenario["run"]["steps"] = 5
+    scenario_path = tmp_path / "short_start.json"
+    scenario_path.write_text(json.dumps(scenario))
+    port = free_loopback_port()
+    run_id = "unsigned-outside"
+    run_dir = runs_dir / run_id
+    launcher = subprocess.Popen([sys.executable, "-m", "bench.cli", "run", str(scenario_path), "--run-id", run_id,
+                                 "--port", str(port), "--runs-dir", str(runs_dir), "--no-progress", "--no-report",
+                                 "--external", "estimator"],
+                                cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    outside = None
+    try:
+        deadline = time.monotonic() + 60
+        while not (run_dir / "scenario.json").is_file():
+            assert time.monotonic() < deadline and launcher.poll() is None
+            time.sleep(0.05)
+        elsewhere = tmp_path / "elsewhere"          # no bus.key there: the node signs nothing
+        elsewhere.mkdir()
+        outside = subprocess.Popen([sys.executable, "-m", "bench.cli", "node", "estimator", "--run-id", run_id,
+                                    "--scenario", str(scenario_path), "--connect", loopback_endpoint(port),
+                                    "--run-dir", str(elsewhere)], cwd=REPO, stdout=subprocess.DEVNULL,
+                                   stderr=subprocess.DEVNULL)
+        _, stderr = launcher.communicate(timeout=120)
+    finally:
+        for process in (launcher, outside):
+            if process is not None and process.poll() is None:
+                process.kill()
+    assert launcher.returncode == 1, stderr
+    assert "processes not alive after" in stderr and "estimator: " in stderr, stderr
+    assert "presence answer(s) refused, not signed under the run's key" in stderr, stderr
+    assert "peers ready" not in (run_dir / "logs" / "plant.log").read_text()
+
+
+def test_messages_dropped_for_their_tag_are_named_with_their_publisher(tmp_path):
+    from bench.launcher import unauthentic_drops
+
+    stats = {"controller": {"unauthentic": {"forged": {"estimate/translation": 40}}}, "plant": {"published": {}}}
+    [line] = unauthentic_drops(stats, tmp_path)
+    assert line.startswith("estimate/translation from 'estimator' dropped as forged by 'controller': 40")

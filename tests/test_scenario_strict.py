@@ -159,6 +159,8 @@ class NoTokensYet:
     """A presence query that no node has answered yet (as through a router, where the answers can
     come after a 20-step run has ended)."""
 
+    refused_by_name: dict = {}
+
     def ask(self, names="*", timeout_s=0.5):
         return {}
 

@@ -32,6 +32,7 @@ import secrets
 import socket
 import threading
 import time
+from collections import Counter
 from dataclasses import dataclass
 
 import zenoh
@@ -120,6 +121,7 @@ class PresenceQuery:
         self.session, self.run_id, self.key = session, run_id, key
         self._prefix = keys.key(run_id, f"{PRESENCE}/")
         self.refused = 0
+        self.refused_by_name: Counter = Counter()   # the name in the refused answer's key
 
     def ask(self, names: str = "*", timeout_s: float = 0.5) -> dict[str, PresenceReply]:
         """Every authentic answer to one query on `presence/<names>`, by process. Returns when every
@@ -135,6 +137,7 @@ class PresenceQuery:
             if answer is None:
                 if reply.ok is not None:
                     self.refused += 1
+                    self.refused_by_name[str(reply.ok.key_expr)[len(self._prefix):]] += 1
                     if self.refused <= 5 or self.refused % 100 == 0:
                         log.warning("presence reply #%d on %s refused (no valid tag under the run's key, "
                                     "or not this query's)", self.refused, reply.ok.key_expr)
