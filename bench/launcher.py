@@ -36,6 +36,7 @@ from bench.bus.schemas import ProcessStats, StepDone, decode, MalformedMessage
 from bench.bus.certs import CertificateError, identity_files, read_secoc_key, write_deployment_certs
 from bench.bus.deployment import LAUNCHER, Deployment, DeploymentError, load_deployment
 from bench.bus.session import SessionConfigError, SessionOptions, free_loopback_port, loopback_endpoint, open_session
+from bench.contract.document import CONTRACT_FILE, write_contract
 from bench.controller.config import PLANNED_LAWS
 from bench.plant.divergence import EXIT_DIVERGED, read_divergence
 from bench.runtime.node import NODES
@@ -776,6 +777,9 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
     identity = placement.hub.identity
     scenario = run_key.with_run_key(scenario, identity.ca_path.parent if identity else None)
     run_key.write_private(scenario_path, msgspec.json.format(msgspec.json.encode(scenario)))
+    # This run's numbers and meanings for an outside node (hub, lease, step period, envelopes, frames;
+    # bench/contract/document.py), before bus.key: a node that has the key finds it there. No secret in it.
+    write_contract(run_dir / CONTRACT_FILE, scenario, run_id, hub)
     # The data topics' key (bench/bus/data_auth.py): the deployment's, else new per run; bus.key
     # (0600) beside scenario.json is where this run's nodes, by hand or outside ones too, read it.
     data_key = _data_key(identity)

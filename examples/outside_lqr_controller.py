@@ -3,16 +3,19 @@
 It imports nothing from `bench`: only Zenoh, json, numpy and scipy (scipy for the discrete
 algebraic Riccati equation and the matrix exponential, the same routines the built-in LQR uses, so
 the two trajectories agree to rounding). Everything it knows comes from the published contract
-(`bench contract export DIR`, docs/contract.md) and from the scenario.json and bus.key the launcher
-writes into the run directory.
+(`bench contract export DIR`, docs/contract.md) and from the scenario.json, contract.json and
+bus.key the launcher writes into the run directory: the Zenoh settings, the schema version, the
+thrusters' limit and seed 003's state scaling are read from the run's contract.json, the orbit, mass,
+step and weights from its scenario.json. What stays written here is the vocabulary of the contract:
+the key and tag names, and the tag format it implements (version 1, which it checks).
 
     bench run rendezvous_lqr --external controller --run-id demo --port 7447
     python examples/outside_lqr_controller.py --connect tcp/127.0.0.1:7447 --run-id demo \
         --scenario runs/demo/scenario.json
 
 What it does, per the contract:
-- opens its Zenoh session with multicast scouting off and the launcher's hub as its only connect
-  endpoint (never Zenoh's default configuration);
+- opens its Zenoh session from contract.json's `zenoh.settings` (peer, multicast scouting off, the
+  launcher's hub as its only connect endpoint, the run's lease; never Zenoh's default configuration);
 - answers presence queries on `bench/<run>/presence/controller` (the launcher waits for an answer,
   the plant for one that says ready, which it does once its command publisher is matched by the
   plant's subscriber): each answer carries the query's nonce and is signed like a message;
@@ -26,8 +29,9 @@ What it does, per the contract:
   launcher's presence, `presence/launcher`, since a token is no proof).
 
 The law is the bench's LQR: u = K V x with K from the DARE on the scaled CWH model of the orbit the
-flight side believes (seed 003: V scales metres to Mm and m/s to km/s; Q and R from the scenario's
-[controller] weights, on that scaled state), saturated at the thrusters' limit per axis.
+flight side believes (seed 003: V scales metres to Mm and m/s to km/s, contract.json
+`rendezvous_model.state_scaling`; Q and R from the scenario's [controller] weights, on that scaled
+state), saturated at the thrusters' limit per axis (contract.json `envelopes.thrust.max_abs_n`).
 
 `--break MODE:STEP` (repeatable) makes a deliberately broken variant for `bench contract check`
 (tests/test_contract.py): the command of step STEP goes to a wrong key (wrong-key), carries a field
@@ -55,14 +59,10 @@ import numpy as np
 import zenoh
 from scipy.linalg import expm, solve_discrete_are
 
-SCHEMA_VERSION = 1
 NAME = "controller"
-# Seed 003's state scaling V (metres -> Mm, m/s -> km/s) and the thrusters' limit per axis.
-SEED_SCALING = (1e-6, 1e-6, 1e-6, 1e-3, 1e-3, 1e-3)
-SEED_MAX_ABS_THRUST_N = 1.0
 BREAKS = ("wrong-key", "bad-field", "skip-seq", "bad-mac")
 MISBEHAVIOURS = ("no-saturation", "no-stamps", "foreign-key", "trust-all", "ignore-stop")
-MAC_VERSION = 1
+MAC_VERSION = 1          # the tag format this example implements; contract.json `signing.version` must say so
 
 
 # --- signing (docs/contract.md, "Signing") ----------------------------------------------------
@@ -129,28 +129,35 @@ def lqr_gain(scenario: dict, scaling) -> np.ndarray:
 
 
 # --- Zenoh ------------------------------------------------------------------------------------
-def session_config(connect: str, lease_s: float) -> zenoh.Config:
-    """Built explicitly: no multicast scouting, listen on loopback, the hub as the connect endpoint."""
+def session_settings(contract: dict, connect: str) -> dict:
+    """The contract's Zenoh settings (key -> JSON value), with the hub we were told to connect to."""
+    return {**contract["zenoh"]["settings"], "connect/endpoints": [connect]}
+
+
+def session_config(contract: dict, connect: str) -> zenoh.Config:
+    """Built explicitly from the contract's settings (peer, no multicast scouting, gossip on, listen on
+    loopback, the hub as the only connect endpoint, the run's lease); never Zenoh's defaults."""
     config = zenoh.Config()
-    for key, value in {
-        "mode": '"peer"',
-        "scouting/multicast/enabled": "false",
-        "scouting/gossip/enabled": "true",     # meet the run's other peers through the hub
-        "listen/endpoints": json.dumps(["tcp/127.0.0.1:0"]),
-        "connect/endpoints": json.dumps([connect]),
-        "transport/link/tx/lease": str(int(round(lease_s * 1000))),
-        "transport/shared_memory/enabled": "false",
-        "adminspace/enabled": "false",
-    }.items():
-        config.insert_json5(key, value)
+    for key, value in session_settings(contract, connect).items():
+        config.insert_json5(key, json.dumps(value))
     return config
+
+
+def contract_numbers(contract: dict) -> tuple[int, np.ndarray, float]:
+    """(schema version, seed 003's state scaling V, the thrusters' limit per axis in N) from contract.json;
+    refuses a contract whose tag format is not the one implemented here."""
+    if contract["signing"]["version"] != MAC_VERSION:
+        raise SystemExit(f"contract.json: tag version {contract['signing']['version']}, "
+                         f"this example speaks {MAC_VERSION}")
+    return (int(contract["schema_version"]), np.asarray(contract["rendezvous_model"]["state_scaling"], dtype=float),
+            float(contract["envelopes"]["thrust"]["max_abs_n"]))
 
 
 def wait_for_file(path: Path, timeout_s: float) -> dict:
     deadline = time.monotonic() + timeout_s
     while not path.is_file():
         if time.monotonic() > deadline:
-            raise SystemExit(f"no scenario file {path} after {timeout_s} s (is `bench run` started?)")
+            raise SystemExit(f"no file {path} after {timeout_s} s (is `bench run` started?)")
         time.sleep(0.05)
     time.sleep(0.05)    # the launcher writes it in one go; let the write finish
     return json.loads(path.read_text())
@@ -162,6 +169,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--run-id", required=True)
     parser.add_argument("--scenario", required=True, type=Path, help="the run directory's scenario.json")
     parser.add_argument("--bus-key", type=Path, help="the run's data key (default: bus.key beside --scenario)")
+    parser.add_argument("--contract", type=Path, help="the run's contract.json (default: beside --scenario)")
     parser.add_argument("--wait-s", type=float, default=60.0, help="how long to wait for the scenario and the hub")
     parser.add_argument("--break", dest="breaks", action="append", default=[], metavar="MODE:STEP",
                         help=f"break the contract at a step, MODE one of {', '.join(BREAKS)} (for the check's tests)")
@@ -177,16 +185,16 @@ def main(argv: list[str] | None = None) -> int:
         breaks.setdefault(int(step), set()).add(mode)
 
     scenario = wait_for_file(args.scenario, args.wait_s)
+    contract = wait_for_file(args.contract or args.scenario.parent / "contract.json", args.wait_s)
     bus_key = read_bus_key(args.bus_key or args.scenario.parent / "bus.key", args.wait_s)
-    gain = lqr_gain(scenario, SEED_SCALING)
-    scaling = np.asarray(SEED_SCALING)
-    lease_s = scenario["run"]["liveliness"]["lease_s"]
+    schema_version, scaling, max_abs_thrust_n = contract_numbers(contract)
+    gain = lqr_gain(scenario, scaling)
     prefix = f"bench/{args.run_id}/"
 
     deadline = time.monotonic() + args.wait_s
     while True:      # the hub may not listen yet
         try:
-            session = zenoh.open(session_config(args.connect, lease_s))
+            session = zenoh.open(session_config(contract, args.connect))
             break
         except Exception as exc:   # noqa: BLE001 - zenoh raises its own error type
             if time.monotonic() > deadline:
@@ -253,16 +261,16 @@ def main(argv: list[str] | None = None) -> int:
             start = time.perf_counter()
             thrust_n = gain @ (scaling * np.asarray(estimate["state_m_mps"], dtype=float))
             if "no-saturation" in misbehave:
-                thrust_n = 2.0 * thrust_n     # a hotter law, and no limit: over 1 N in the first steps
+                thrust_n = 2.0 * thrust_n     # a hotter law, and no limit: over the limit in the first steps
             else:
-                thrust_n = np.clip(thrust_n, -SEED_MAX_ABS_THRUST_N, SEED_MAX_ABS_THRUST_N)
+                thrust_n = np.clip(thrust_n, -max_abs_thrust_n, max_abs_thrust_n)
             solve_time_s = time.perf_counter() - start
             stamps = dict(header.get("stamps_ns", {}), controller_received=received_ns)
             seq = header["seq"]
             broken = breaks.get(seq, set())
             command = {
                 "type": "thrust",
-                "header": {"schema_version": SCHEMA_VERSION, "run_id": args.run_id,
+                "header": {"schema_version": schema_version, "run_id": args.run_id,
                            "seq": seq + 1 if "skip-seq" in broken else seq,
                            "sim_time_s": header["sim_time_s"], "stamps_ns": stamps},
                 "thrust_n": [float(u) for u in thrust_n],

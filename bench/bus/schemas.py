@@ -3,6 +3,8 @@
 Every payload is a msgspec Struct encoded as JSON (so Foxglove and any JSON tool can read a
 recording), with the common `Header`. Decoding validates types, lengths and unknown fields; a bad
 payload raises `MalformedMessage`, which the receiving process counts and logs, never dies on.
+What each field means for an outside node (description, unit, frame, allowed values) is in
+bench/contract/fields.py, which the exported JSON Schemas carry; a test fails on a field it misses.
 """
 from __future__ import annotations
 

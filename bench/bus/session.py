@@ -117,6 +117,23 @@ def _validate_endpoint(endpoint: str) -> str:
     return endpoint
 
 
+def plain_settings(mode: str, listen: list[str], connect: list[str], lease_ms: int) -> dict[str, str]:
+    """The settings every bench session gets (JSON5 text by Zenoh config key), TLS aside; also what
+    the published contract tells an outside node to use (bench.contract.document)."""
+    return {
+        "mode": json.dumps(mode),
+        "scouting/multicast/enabled": "false",
+        "scouting/gossip/enabled": "true",
+        "listen/endpoints": json.dumps(listen if mode != "client" else []),
+        "connect/endpoints": json.dumps(connect),
+        "transport/link/tx/lease": str(lease_ms),
+        "transport/link/tx/keep_alive": str(KEEP_ALIVE_PER_LEASE),
+        # The bench's own processes must not share memory by accident; keep transport plain.
+        "transport/shared_memory/enabled": "false",
+        "adminspace/enabled": "false",
+    }
+
+
 def build_config(options: SessionOptions) -> zenoh.Config:
     """Zenoh configuration for one bench process; never Zenoh's defaults."""
     if options.config_file is not None:
@@ -137,18 +154,7 @@ def build_config(options: SessionOptions) -> zenoh.Config:
         raise SessionConfigError(f"lease of {options.lease_ms} ms is outside 100-60000 ms")
     if options.mode not in {"peer", "client", "router"}:
         raise SessionConfigError(f"zenoh mode {options.mode!r} must be 'peer', 'client' or 'router'")
-    settings = {
-        "mode": json.dumps(options.mode),
-        "scouting/multicast/enabled": "false",
-        "scouting/gossip/enabled": "true",
-        "listen/endpoints": json.dumps(checked.listen if options.mode != "client" else []),
-        "connect/endpoints": json.dumps(checked.connect),
-        "transport/link/tx/lease": str(options.lease_ms),
-        "transport/link/tx/keep_alive": str(KEEP_ALIVE_PER_LEASE),
-        # The bench's own processes must not share memory by accident; keep transport plain.
-        "transport/shared_memory/enabled": "false",
-        "adminspace/enabled": "false",
-    }
+    settings = plain_settings(options.mode, checked.listen, checked.connect, options.lease_ms)
     if options.secure:
         settings.update(_tls_settings(options, checked))
     for key, value in settings.items():

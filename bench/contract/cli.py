@@ -22,7 +22,7 @@ def cmd_export(args) -> int:
         print(f"bench contract export: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
     print(f"bench contract export: {len(written)} files in {args.directory} "
-          f"({sum(p.parent.name == 'schemas' for p in written)} schemas, keys.json, keys.md, protocol.md)")
+          f"({sum(p.parent.name == 'schemas' for p in written)} schemas, keys.json, keys.md, protocol.md, contract.json)")
     return 0
 
 
@@ -53,7 +53,7 @@ def cmd_check(args) -> int:
 def add_commands(subparsers) -> None:
     contract = subparsers.add_parser("contract", help="the message contract: export it, check an outside node against it")
     sub = contract.add_subparsers(dest="contract_command", required=True, metavar="ACTION")
-    export = sub.add_parser("export", help="JSON Schemas, the key-expression table and the protocol document into DIR")
+    export = sub.add_parser("export", help="JSON Schemas, the key table, the protocol document and contract.json into DIR")
     export.add_argument("directory", metavar="DIR")
     export.set_defaults(func=cmd_export)
     check = sub.add_parser("check", help="run plant and estimator against an outside node and judge it")

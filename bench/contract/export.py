@@ -4,9 +4,14 @@ DIR/schemas/<Message>.schema.json   JSON Schema (draft 2020-12, from msgspec) of
 DIR/keys.json, DIR/keys.md          the key-expression table (bench.contract.table)
 DIR/protocol.md                     lock-step and real time: what releases what, timeouts, staleness,
                                     sequence numbers, the header and its stamps
+DIR/contract.json                   every number and meaning as data (bench.contract.document): Zenoh
+                                    settings, tag and presence formats, timing, envelopes, frames,
+                                    and each message's fields with their units and allowed values
 
-The numbers in protocol.md (timeouts, budgets, lease) are the scenario defaults read from the
-code that applies them, so the document cannot drift from the bench.
+Every field in the schemas carries a `description` (its unit and frame included) and, where it has
+allowed values, an `enum`, from bench.contract.fields. The numbers in protocol.md and contract.json
+(timeouts, budgets, lease, envelopes) are the scenario defaults read from the code that applies
+them, so the documents cannot drift from the bench; a run's own are in runs/<id>/contract.json.
 """
 from __future__ import annotations
 
@@ -15,31 +20,59 @@ from pathlib import Path
 
 from bench.bus import keys
 from bench.bus.schemas import SCHEMA_VERSION, STAGES, Header, Message, json_schema
+from bench.contract import fields
+from bench.contract.document import CONTRACT_FILE, message_types, struct_types, write_contract
 from bench.contract.table import TOKENS, TOPICS
 from bench.controller.config import DeadlineConfig
 from bench.estimator.node import COMMAND_WAIT_S
 from bench.plant.acceptance import REASONS
-from bench.scenario import LivelinessConfig, RunConfig
+from bench.scenario import LivelinessConfig, RunConfig, Scenario
 
 SCHEMA_DIR = "schemas"
 
 
-def message_types() -> list[type]:
-    """Every message of the table, once, in table order."""
-    seen: dict[str, type] = {}
-    for topic in TOPICS:
-        for kind in topic.messages:
-            seen.setdefault(kind.__name__, kind)
-    return list(seen.values())
-
-
 def root_object_schema(kind: type) -> dict:
-    """msgspec's schema with the message's object at the root ($defs kept for nested types)."""
+    """msgspec's schema with the message's object at the root ($defs kept for nested types), every
+    field described."""
     schema = json_schema(kind)
     defs = schema.get("$defs", {})
     root = schema.get("$ref", "").rpartition("/")[2]
     out = {**defs[root], "$defs": defs} if root in defs else dict(schema)
-    return {"$schema": "https://json-schema.org/draft/2020-12/schema", "$id": f"{kind.__name__}.schema.json", **out}
+    return described({"$schema": "https://json-schema.org/draft/2020-12/schema", "$id": f"{kind.__name__}.schema.json",
+                      **out})
+
+
+def described(schema: dict) -> dict:
+    """The schema with each struct's description and each field's `description` (unit, frame and
+    allowed values in words) and `enum` (or `anyOf` of an enum and a pattern) from bench.contract.fields."""
+    structs = struct_types([*message_types(), Header])
+    for node in [schema, *schema.get("$defs", {}).values()]:
+        name = node.get("title")
+        kind = structs.get(name)
+        if kind is None:
+            continue
+        if "description" not in node and name in fields.MESSAGES:
+            node["description"] = fields.MESSAGES[name]
+        items = node.get("properties", {}).items() if "properties" in node else \
+            zip(kind.__struct_fields__, node.get("prefixItems", []))
+        for field_name, prop in items:
+            entry = fields.field(name, field_name)
+            if entry is not None:
+                _describe(prop, entry)
+    return schema
+
+
+def _describe(prop: dict, entry: fields.Field) -> None:
+    prop["description"] = entry.description()
+    if entry.allowed:
+        nullable = {"type": "null"} in prop.get("anyOf", [])
+        values = [*entry.allowed, *([None] if nullable else [])]
+        if entry.pattern:
+            prop["anyOf"] = [{"enum": values}, {"type": "string", "pattern": entry.pattern}]
+        else:
+            prop["enum"] = values
+    if entry.keys:
+        prop["propertyNames"] = {"enum": list(entry.keys)}
 
 
 def keys_markdown() -> str:
@@ -85,8 +118,8 @@ the bench does not run are that part's own claims; the report marks them as such
 
 ## Start
 
-1. Each node opens its Zenoh session (multicast scouting off, the launcher's hub as connect
-   endpoint) and answers presence queries on `presence/<name>` (below). The launcher waits for
+1. Each node opens its Zenoh session (contract.json `zenoh.settings`: peer, multicast scouting
+   off, the launcher's hub as connect endpoint) and answers presence queries on `presence/<name>` (below). The launcher waits for
    an authentic answer from every node, up to `startup_timeout_s` = {live.startup_timeout_s:g} s.
 2. A node's answer says `"ready": true` once every topic it publishes into the loop has a
    subscriber (a sample published before its subscriber matched is lost).
@@ -157,9 +190,9 @@ def export(directory: Path) -> list[Path]:
     written = []
     for kind in [Header, *message_types()]:
         path = directory / SCHEMA_DIR / f"{kind.__name__}.schema.json"
-        schema = root_object_schema(kind) if issubclass(kind, Message) else {
+        schema = root_object_schema(kind) if issubclass(kind, Message) else described({
             "$schema": "https://json-schema.org/draft/2020-12/schema", "$id": "Header.schema.json",
-            **_header_schema()}
+            **_header_schema()})
         path.write_text(json.dumps(schema, indent=2) + "\n")
         written.append(path)
     table = {"prefix": f"{keys.PREFIX}/<run_id>/", "schema_version": SCHEMA_VERSION,
@@ -169,6 +202,7 @@ def export(directory: Path) -> list[Path]:
                        ("protocol.md", protocol_markdown())):
         (directory / name).write_text(text)
         written.append(directory / name)
+    written.append(write_contract(directory / CONTRACT_FILE, Scenario(name="defaults")))
     return written
 
 
