@@ -13,6 +13,7 @@ import hmac
 import importlib.util
 import json
 import re
+import sys
 from pathlib import Path
 
 import jsonschema
@@ -272,6 +273,7 @@ def test_a_run_writes_its_own_contract_json_beside_scenario_json(tmp_path, runs_
     assert c["timing"]["controller_deadline"]["budget_s"] == 0.04
     assert c["envelopes"]["thrust"]["on_reject"] == "zero" and c["frames"]["navigation_frame"] == "curvilinear"
     assert c["written_for"] == {**c["written_for"], "run_id": "numbers", "scenario": "contract_numbers"}
+    assert all(t["key"] == f"bench/numbers/{t['topic']}" for t in c["keys"]["topics"])
     assert c != json.loads((exported / "contract.json").read_text())
     assert (run_dir / "bus.key").read_text().strip() not in text
     schemas = {json.loads(p.read_text())["properties"]["type"]["enum"][0]: json.loads(p.read_text())
@@ -306,3 +308,24 @@ def test_the_outsiders_page_opens_in_order_with_the_codes_numbers():
         if key != "connect/endpoints":
             assert f"`{key}`" in connect and json.dumps(value) in connect, key
     assert "shlex" in text[positions[6]:] and "without a shell" in text[positions[6]:]
+
+
+# --- a controller written from contract.json alone passes the check ----------------------------
+CONTRACT_ONLY = REPO / "tests" / "contract_only_controller.py"
+
+
+def test_a_controller_from_contract_json_alone_passes_the_check_and_flies_the_built_in_lqr(runs_dir):
+    """tests/contract_only_controller.py reads nothing but the run's contract.json and bus.key (no
+    scenario.json, nothing from bench): its keys, presence key, tag format, Zenoh settings, model,
+    weights, scaling and thrust limit all come from the contract."""
+    from conftest import assert_rendezvous_lqr_run_equals_in_process
+
+    source = CONTRACT_ONLY.read_text()
+    code = source.split('"""', 2)[2]
+    assert "scenario.json" not in code and "import bench" not in code and "from bench" not in code
+    command = f"{sys.executable} {CONTRACT_ONLY} --run-dir {{run_dir}}"
+    result = run_bench_cli("contract", "check", "controller", "--steps", "12", "--runs-dir", str(runs_dir),
+                           "--run-id", "contract-only", "--command", command, timeout_s=240)
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert result.stdout.startswith("contract check controller: pass")
+    assert_rendezvous_lqr_run_equals_in_process(runs_dir / "contract-only", 12)

@@ -61,7 +61,7 @@ def contract_document(scenario: Scenario, run_id: str | None = None, hub: str | 
         },
         "start": _start(rid, hub),
         "zenoh": _zenoh(hub, lease_ms),
-        "keys": {"prefix": keys.key(rid, ""), "topics": [t.to_json() for t in TOPICS],
+        "keys": {"prefix": keys.key(rid, ""), "topics": [{**t.to_json(), "key": keys.key(rid, t.topic)} for t in TOPICS],
                  "control_plane": [{"key": keys.key(rid, k), "meaning": v} for k, v in TOKENS.items()]},
         "signing": _signing(),
         "presence": _presence(rid, live.lease_s),
