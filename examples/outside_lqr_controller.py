@@ -41,7 +41,7 @@ that is not the run's (bad-mac); modes given for the same step all apply to its 
 (no-saturation), no
 own stamps (no-stamps), a signed copy of each command on `command/applied`, the plant's key
 (foreign-key), estimates taken without checking their tag or counter (trust-all), or no stop
-when the launcher leaves (ignore-stop).
+when the launcher leaves (ignore-stop), or a `status` the contract does not have (free-status).
 """
 from __future__ import annotations
 
@@ -61,7 +61,7 @@ from scipy.linalg import expm, solve_discrete_are
 
 NAME = "controller"
 BREAKS = ("wrong-key", "bad-field", "skip-seq", "bad-mac")
-MISBEHAVIOURS = ("no-saturation", "no-stamps", "foreign-key", "trust-all", "ignore-stop")
+MISBEHAVIOURS = ("no-saturation", "no-stamps", "foreign-key", "trust-all", "ignore-stop", "free-status")
 MAC_VERSION = 1          # the tag format this example implements; contract.json `signing.version` must say so
 
 
@@ -274,7 +274,7 @@ def main(argv: list[str] | None = None) -> int:
                            "seq": seq + 1 if "skip-seq" in broken else seq,
                            "sim_time_s": header["sim_time_s"], "stamps_ns": stamps},
                 "thrust_n": [float(u) for u in thrust_n],
-                "ctrl_feasible": True, "status": "solved", "solve_time_s": solve_time_s, "iterations": 0,
+                "ctrl_feasible": True, "status": "ok" if "free-status" in misbehave else "solved", "solve_time_s": solve_time_s, "iterations": 0,
             }
             if "bad-field" in broken:
                 command["thrust_vec"] = command["thrust_n"]

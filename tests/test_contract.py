@@ -146,6 +146,7 @@ def test_a_controller_without_saturation_fails_naming_the_plant_refusals(runs_di
     ("no-stamps", "stamps: 6 command(s) without the stamps controller_received and commanded"),
     ("trust-all", "acted on forged estimates: 3 command(s)"),
     ("ignore-stop", "stop not obeyed"),
+    ("free-status", "status: 'ok' is not one of the contract's values"),
 ])
 def test_a_misbehaving_controller_fails_the_check_naming_the_problem(runs_dir, misbehaviour, named):
     result = _check(runs_dir, f"bad-{misbehaviour}", misbehaviour)

@@ -35,6 +35,7 @@ from __future__ import annotations
 import contextlib
 import io
 import json
+import re
 import shlex
 import subprocess
 import sys
@@ -51,6 +52,7 @@ from bench.bus import keys
 from bench.bus.schemas import (SCHEMA_VERSION, MalformedMessage, Message, RangeBearing, RelativePosition,
                                 ThrustCommand, TranslationEstimate, TruthState, decode)
 from bench.bus.session import free_loopback_port, loopback_endpoint
+from bench.contract.fields import THRUST_STATUS_PATTERN, THRUST_STATUSES
 from bench.contract.probe import FORGED_SEQ_BASE, InputProbe
 from bench.contract.table import RENDEZVOUS, publications_of, topic_of
 from bench.launcher import run_bench
@@ -368,6 +370,11 @@ def judge(run_dir: Path, scenario: Scenario, exit_code: int, allowed_misses: int
     if carried:
         problems.append(f"header not carried from the input in {len(carried)} {role.output}(s): "
                         + "; ".join(carried[:MAX_LISTED]))
+    if role.output_type is ThrustCommand:
+        odd = sorted({m.status for m, _ in outputs if not _allowed_status(m.status)})
+        if odd:
+            problems.append(f"status: {', '.join(map(repr, odd[:MAX_LISTED]))} is not one of the contract's values "
+                            f"({', '.join(THRUST_STATUSES)}, or the tube MPC's 'in-plane X, out-of-plane Y')")
     unstamped = [m.header.seq for m, _ in outputs if any(st not in m.header.stamps_ns for st in role.own_stages)]
     if unstamped:
         problems.append(f"stamps: {len(unstamped)} {role.output}(s) without the stamps {' and '.join(role.own_stages)} "
@@ -457,6 +464,10 @@ def _plant_error(run_dir: Path) -> str:
         return ""
     errors = [line.split(" ERROR ", 1)[1] for line in lines if " ERROR " in line]
     return f" (plant: {errors[-1]})" if errors else ""
+
+
+def _allowed_status(status: str) -> bool:
+    return status in THRUST_STATUSES or re.match(THRUST_STATUS_PATTERN, status) is not None
 
 
 def _thrust_acceptance(run_dir: Path) -> dict:
