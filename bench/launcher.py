@@ -3,15 +3,17 @@
 The launcher opens the hub session every node connects to, starts each node as its own OS process
 (`bench node NAME ...`), waits until all are alive, follows the plant's progress, and shuts
 everything down on success, on Ctrl-C or SIGTERM, and when a node dies, hangs or the plant's state
-diverges. Then it writes metrics.json and the report, marked partial with the reason when the run
+diverges, or its steps stop advancing (bench/runtime/progress_watchdog.py: the stage that stopped is
+named). Then it writes metrics.json and the report, marked partial with the reason when the run
 did not finish. The nodes die with it even when it is killed (bench/runtime/ownership.py); a second
 Ctrl-C kills them at once and exits within a bounded time.
 
-Exit codes: 0 done, 1 a process failed or hung, 2 bad input (nothing started), 3 the plant's
-state diverged, 130 interrupted (SIGINT), 143 terminated (SIGTERM).
+Exit codes: 0 done, 1 a process failed or hung or the run stalled, 2 bad input (nothing started),
+3 the plant's state diverged, 130 interrupted (SIGINT), 143 terminated (SIGTERM).
 """
 from __future__ import annotations
 
+import collections
 import dataclasses
 import fcntl
 import os
@@ -44,6 +46,7 @@ from bench.runtime.ownership import CpuProgress, child_environment, kill_group, 
 from bench.runtime import zygote as node_zygote
 from bench.runtime.reports import REPORT_KEY_ENV, is_signed_by, new_report_key
 from bench.runtime.process import start_node
+from bench.runtime.progress_watchdog import ProgressWatchdog
 from bench.scenario import EXTERNAL_PARTS, LivelinessConfig, Scenario, ScenarioError, builtin_names, load_scenario, parse_scenario
 
 EXIT_FAILED = 1
@@ -346,7 +349,7 @@ class RunEnding:
 def _follow_run(session, run_id: str, children: list[Child], n_steps: int, show_progress: bool,
                 liveliness: LivelinessConfig, run_dir: Path, reports: "StatsCollector",
                 remote: dict[str, str] | None = None, interrupted=lambda: None,
-                data_key: bytes | None = None) -> None:
+                data_key: bytes | None = None, watchdog: ProgressWatchdog | None = None) -> None:
     """Block until the plant finishes; raise NodeFailed if any process dies or hangs first,
     Diverged if the plant stopped on a diverged state.
 
@@ -356,6 +359,7 @@ def _follow_run(session, run_id: str, children: list[Child], n_steps: int, show_
     remote: node -> host of the nodes on other hosts; their presence answers are all we see of them.
     interrupted: called at every look (SignalGuard.check: a signal whose exception was lost).
     data_key: the run's key, under which every node's presence answers must be signed.
+    watchdog: ends a run whose steps stop advancing, naming the stage (_check_progress).
     """
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
@@ -363,6 +367,7 @@ def _follow_run(session, run_id: str, children: list[Child], n_steps: int, show_
     # thread must not wake once per step (in lock-step it would compete with the loop's processes
     # for the cores, once per cycle, for a progress bar).
     steps_done = [0]
+    waits: collections.deque = collections.deque(maxlen=16)   # the plant's wait reports, for the watchdog
 
     def on_step(sample) -> None:
         try:
@@ -371,6 +376,9 @@ def _follow_run(session, run_id: str, children: list[Child], n_steps: int, show_
             return   # garbage on the status topic must not stop the launcher
         if message.header.run_id != run_id or not reports.genuine_step(message):
             return   # not the plant's: counted as forged by `reports`
+        if message.waiting:
+            waits.append((message.header.seq, message.waiting, message.waited_s, time.monotonic()))
+            return   # a wait, not a step
         steps_done[0] = max(steps_done[0], min(message.header.seq + 1, n_steps))
         if message.finished:
             reports.accept()
@@ -410,6 +418,7 @@ def _follow_run(session, run_id: str, children: list[Child], n_steps: int, show_
                 note_silent()
                 _check_liveliness(children, lost, liveliness)
                 _check_remote(watcher.query, remote or {}, lost)
+                _check_progress(watchdog, steps_done[0], waits, children)
                 interrupted()
                 time.sleep(FOLLOW_PERIOD_S)
                 if steps_done[0] != done:
@@ -423,8 +432,26 @@ def _follow_run(session, run_id: str, children: list[Child], n_steps: int, show_
         divergence = read_divergence(run_dir)
         raise Diverged(f"plant {divergence.describe()}" if divergence else "plant state diverged (no divergence.json)")
     if plant.process.returncode != 0:
+        _check_progress(watchdog, steps_done[0], waits, children, final=True)
         _check_liveliness(children, lost, liveliness, final=True)
         _check_children([plant], allowed_done=set())
+
+
+def _check_progress(watchdog: ProgressWatchdog | None, steps_done: int, waits, children: list[Child],
+                    final: bool = False) -> None:
+    """The progress watchdog's look (bench/runtime/progress_watchdog.py): NodeFailed naming the stage
+    if the run's steps stopped advancing for its bound; `final`: the plant exited with an error,
+    named by the stage it was waiting for if it gave up waiting."""
+    if watchdog is None:
+        return
+    now = time.monotonic()
+    watchdog.step_done(steps_done, now)
+    while waits:
+        watchdog.plant_waits(*waits.popleft())
+    stall = watchdog.gave_up(now) if final else watchdog.look(now)
+    if stall is not None:
+        states = {c.name: process_state(c.process.pid) for c in children if c.process.poll() is None}
+        raise NodeFailed(stall.describe(watchdog.bound, [n for n, s in states.items() if s is not None and s.stopped]))
 
 
 def _check_remote(presence: PresenceQuery, remote: dict[str, str], lost: dict[str, "TokenLoss"]) -> None:
@@ -821,7 +848,8 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
                 if write_report:
                     _import_report_meanwhile()
                 _follow_run(session, run_id, children, scenario.n_steps, show_progress, scenario.run.liveliness, run_dir,
-                            reports=collector, remote=remote, interrupted=guard.check, data_key=data_key)
+                            reports=collector, remote=remote, interrupted=guard.check, data_key=data_key,
+                            watchdog=ProgressWatchdog.for_scenario(scenario, time.monotonic()))
                 guard.check()
                 collector.accept()
                 _stop_remote(presence, launcher_presence, launcher_token, remote)

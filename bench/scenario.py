@@ -103,6 +103,10 @@ class LivelinessConfig(msgspec.Struct, forbid_unknown_fields=True):
     startup_timeout_s: Annotated[float, msgspec.Meta(ge=5.0, le=3600.0)] = 120.0
     stopped_grace_s: Annotated[float, msgspec.Meta(ge=0.0, le=60.0)] = 1.0
     hang_timeout_s: Annotated[float, msgspec.Meta(ge=1.0, le=600.0)] = 15.0
+    # Real time: the launcher's progress watchdog ends a run in which no step is done, or no
+    # command comes, for this many plant periods (at the time factor), at least 5 s; lock-step runs
+    # are bound by command_timeout_s instead (bench/runtime/progress_watchdog.py, docs/run_safety.md).
+    stall_periods: Annotated[int, msgspec.Meta(ge=1, le=100_000)] = 50
 
 
 class RunConfig(msgspec.Struct, forbid_unknown_fields=True):

@@ -123,10 +123,16 @@ class DeadlineEvent(Message, tag="deadline"):
 
 class StepDone(Message, tag="step_done"):
     """Plant's progress beacon: step k is integrated (drives the launcher's progress bar).
-    mac: signed with the key the launcher handed the plant; the launcher ignores one without it."""
+    mac: signed with the key the launcher handed the plant; the launcher ignores one without it.
+    waiting: not a step done but a wait report: the plant has been waiting `waited_s` (wall clock)
+    for a message on this topic, the one it needs for step k (lock-step: the command, the board's
+    report; real time: a command at all). Sent once a wait lasts a second (bench/plant/stepping.py),
+    so that the launcher's progress watchdog names the stage of a run that stalls."""
     n_steps: NonNegInt
     finished: bool = False
     mac: ReportMac = ""
+    waiting: Annotated[str, msgspec.Meta(max_length=64)] = ""
+    waited_s: Annotated[float, msgspec.Meta(ge=0.0)] = 0.0
 
 
 class ProcessStats(Message, tag="process_stats"):

@@ -49,7 +49,7 @@ from bench.plant.attitude_plant import AttitudePlant
 from bench.plant.mtq_acceptance import DipoleAcceptance, board_dipole_without_bus
 from bench.plant.acceptance import ActuatorEnvelope, CommandGate
 from bench.plant.mtq_chain import COUNTER_MODULO, COUNTER_WINDOW, CommandChains
-from bench.plant.stepping import LoopBroken, RealTimeClock, wait_command_lockstep
+from bench.plant.stepping import LoopBroken, RealTimeClock, WaitReport, wait_command_lockstep
 
 # Lock-step on the wall-clock bus: how long the plant waits for the board's report of the frame
 # that carried step k's command. On a bus with faults the frame may be lost: 0.5 s (far longer
@@ -68,6 +68,7 @@ class BoardReports:
         self._cond = threading.Condition()
         self._reports: list[tuple[int, MtqApplied]] = []   # (received_ns, message)
         self.latest: tuple[int, MtqApplied] | None = None
+        self.on_wait = None      # called while a wait goes on (a WaitReport's poll: the launcher hears of a long one)
 
     def add(self, message: MtqApplied) -> None:
         with self._cond:
@@ -111,7 +112,9 @@ class BoardReports:
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
                     return None
-                self._cond.wait(remaining)
+                if self.on_wait is not None:
+                    self.on_wait()
+                self._cond.wait(min(remaining, 0.2))
 
 
 class CoilBlankingGate:
@@ -245,6 +248,7 @@ def run(ctx: NodeContext) -> int:
                 if command is None:   # only refused commands came: the controller's step is lost
                     raise LoopBroken(f"step {k}: every dipole command was refused ({dict(command_gate.rejected)})")
                 last_command = command
+                reports.on_wait = WaitReport(ctx, k, keys.ACTUATOR_MTQ).poll   # the board's report of it, next
                 if simulated_bus:
                     dipole, report = _simulated_bus_dipole(scenario, acceptance, reports, command, log, k)
                 else:

@@ -12,14 +12,46 @@ import time
 
 import numpy as np
 
-from bench.bus.schemas import STAGES
+from bench.bus import keys
+from bench.bus.schemas import STAGES, StepDone, header
 from bench.plant.acceptance import CommandGate
 from bench.runtime.deadline import PlantCommandDeadline
 from bench.runtime.node import NodeContext
 
 
+# A wait of the plant this long is reported to the launcher (a StepDone with `waiting`), once per
+# wait in lock-step, every WAIT_REPORT_S while it lasts in real time: its progress watchdog
+# (bench/runtime/progress_watchdog.py) then knows which stage a stalled run is stuck on. A healthy
+# loop waits milliseconds, so these reports cost nothing until something stalls.
+WAIT_REPORT_S = 1.0
+
+
 class LoopBroken(RuntimeError):
     """Lock-step cannot go on: a command never came."""
+
+
+class WaitReport:
+    """One wait of the plant for step k's message on `topic`; `poll` (at least every 0.2 s while
+    waiting) tells the launcher once it has lasted WAIT_REPORT_S (`repeat`: again every WAIT_REPORT_S)."""
+
+    def __init__(self, ctx: NodeContext, k: int, topic: str, since_s: float | None = None, repeat: bool = False):
+        self.ctx, self.k, self.topic, self.repeat = ctx, k, topic, repeat
+        self.since_s = time.monotonic() if since_s is None else since_s
+        self._next_s = self.since_s + WAIT_REPORT_S
+
+    def poll(self) -> None:
+        now = time.monotonic()
+        if now < self._next_s:
+            return
+        self._next_s = now + WAIT_REPORT_S if self.repeat else float("inf")
+        scenario = self.ctx.scenario
+        self.ctx.publish(keys.STATUS_STEP, StepDone(header(self.ctx.run_id, self.k, self.k * scenario.step_s),
+                                                    scenario.n_steps, waiting=self.topic,
+                                                    waited_s=round(now - self.since_s, 3)))
+
+
+def command_topic(ctx: NodeContext) -> str:
+    return keys.COMMAND_DIPOLE if ctx.scenario.kind == "attitude" else keys.COMMAND_THRUST
 
 
 class StampLog:
@@ -40,7 +72,9 @@ def wait_command_lockstep(ctx: NodeContext, commands: queue.Queue, k: int, timeo
     value: the commanded quantity the gate checks (thrust here; the attitude plant's dipole)."""
     deadline = time.monotonic() + timeout_s
     refused = 0
+    waiting = WaitReport(ctx, k, command_topic(ctx))
     while not ctx.stop.is_set():
+        waiting.poll()
         remaining = deadline - time.monotonic()
         if remaining <= 0:
             if refused:
@@ -78,6 +112,8 @@ class RealTimeClock:
         self.t0 = time.monotonic() + 0.05
         self.deadline = PlantCommandDeadline(period_s)
         self.late_commands = 0     # arrived after their step had been integrated
+        self._last_command_s = self.t0       # when a command last came, on time or late
+        self._without_command: WaitReport | None = None
 
     def tick_s(self, k: int) -> float:
         return self.t0 + k * self.period_s
@@ -92,6 +128,10 @@ class RealTimeClock:
         """The acceptable command for step k if it arrives before step k+1's tick; late ones are counted."""
         deadline = self.tick_s(k + 1)
         refused = False
+        if self._without_command is None:
+            self._without_command = WaitReport(ctx, k, command_topic(ctx), since_s=self._last_command_s, repeat=True)
+        self._without_command.k = k
+        self._without_command.poll()
         while True:
             remaining = deadline - time.monotonic()
             try:
@@ -101,6 +141,8 @@ class RealTimeClock:
                     gate.refuse_step()
                 return None
             verdict = gate.check(value(command), seq=command.header.seq, step=k)
+            if verdict.accepted or command.header.seq < k:
+                self._last_command_s, self._without_command = time.monotonic(), None   # late or not, it is there
             if verdict.accepted:
                 self.deadline.command_arrived(k)
                 return command

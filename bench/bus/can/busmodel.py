@@ -113,6 +113,10 @@ class BusModel:
         self.queues: dict[str, deque[Transmission]] = {}   # controllers' FIFOs
         self.counters: dict[str, errors.ErrorCounters] = {}
         self.tec = self.counters                            # its former name
+        # A node on another node's wire: a process on that end's transport channel that is not its
+        # node (RealTimeBridge). What it sends goes to every node but that one: the channel it
+        # shares with it carried the frame there already.
+        self.wire_of: dict[str, str] = {}
         for node in nodes:
             self.add_node(node)
         self._held: list[Transmission] = []    # the injector's frames and frames it holds back, by time
@@ -134,7 +138,8 @@ class BusModel:
         self.counters[name] = errors.ErrorCounters()
 
     def listeners(self, source: str) -> tuple[str, ...]:
-        return tuple(n for n in self.nodes if n != source)
+        same_wire = self.wire_of.get(source)
+        return tuple(n for n in self.nodes if n != source and n != same_wire)
 
     def _on_bus(self, node: str) -> bool:
         return node not in self.recover_at_ns          # a bus-off node neither sends, hears nor ACKs
@@ -575,7 +580,19 @@ class RealTimeBridge:
     model advanced to just before each first: frames sent at one time (both ends at once) start
     together if they reach this process before the model has run past that time. Deliveries
     leave at most `granularity_s` after the model says their last bit passed.
+
+    Each end's node is the first sender heard on its channel (the Zenoh transport says which bus
+    instance sent a frame). Any other process on a channel (a rogue, a CAN tool) is a node of its
+    own, with its own controller, transmit queue and error counters, as a third device on a real
+    bus is: what it sends arbitrates with the ends' frames and the ends acknowledge it, but it
+    never waits in an end's transmit queue nor counts as that end's transmission. (Taken as the
+    ends' own, one NMT frame put on both channels at once was both ends sending the same frame,
+    which nobody else was there to acknowledge: ACK errors until one end was error-passive, and
+    before suspend transmission without end, the driver's commands dropped behind them and the
+    board in safe state; issue 44.) At most MAX_OTHER_SENDERS such nodes; further senders share one.
     """
+
+    MAX_OTHER_SENDERS = 8
 
     # A timestamp further from the arrival than this is another host's clock: use the arrival.
     MAX_TRANSPORT_DELAY_NS = 1_000_000_000
@@ -594,13 +611,15 @@ class RealTimeBridge:
         # queue.Queue, not SimpleQueue: on CPython 3.11 a SimpleQueue.get(timeout) that a signal
         # interrupts (SIGTERM: stop) was seen never to return, so the node could not stop.
         self._inbox: queue.Queue = queue.Queue()
+        self._end_sender: dict[str, int] = {}                 # side -> the bus instance of its node
+        self.other_senders: dict[tuple[str, int], str] = {}   # (side, sender) -> its node in the model
         # A bus that can hand its frames over on its own receive thread (the Zenoh transport) does;
         # any other python-can bus gets a Notifier thread that reads it.
         self._notifiers = []
         for side, bus in buses.items():
             listener = _Inbox(side, self._inbox)
             if hasattr(bus, "forward_to"):
-                bus.forward_to(listener.on_message_received)
+                bus.forward_to(listener.on_frame, with_sender=True)
             else:
                 self._notifiers.append(can.Notifier(bus, [listener], timeout=0.05))
 
@@ -629,12 +648,28 @@ class RealTimeBridge:
         try:
             item = self._inbox.get(timeout=wait_s)
             while True:
-                side, msg, arrival_ns = item
-                arrivals.append((self._sent_ns(msg, arrival_ns), side, msg))
+                side, msg, arrival_ns, *sender = item
+                arrivals.append((self._sent_ns(msg, arrival_ns), self._node(side, sender[0] if sender else None), msg))
                 item = self._inbox.get_nowait()
         except queue.Empty:
             pass
         return arrivals
+
+    def _node(self, side: str, sender: int | None) -> str:
+        """The model's node that sent a frame heard on `side`'s channel (see the class docstring)."""
+        if sender is None or self._end_sender.setdefault(side, sender) == sender:
+            return side
+        node = self.other_senders.get((side, sender))
+        if node is None:
+            node = f"{side}/{sender:016x}"
+            if len(self.other_senders) >= self.MAX_OTHER_SENDERS:
+                node = f"{side}/others"     # not kept per sender: a rogue drawing new ids costs no memory
+            else:
+                self.other_senders[(side, sender)] = node
+            if node not in self.model.queues:
+                self.model.add_node(node)
+                self.model.wire_of[node] = side
+        return node
 
     def _sent_ns(self, msg: can.Message, arrival_ns: int) -> int:
         if msg.timestamp:
@@ -649,7 +684,8 @@ class RealTimeBridge:
 
     def report(self) -> dict:
         """The bridge's own figures, for the bus model's report beside the model's."""
-        return {"send_failures": self.send_failures, **self.host_lateness.report()}
+        return {"send_failures": self.send_failures, **self.host_lateness.report(),
+                "other_senders": sorted(n for n in self.model.nodes if n in self.model.wire_of)}
 
     def _deliver(self, deliveries: list[Delivery]) -> None:
         if deliveries:
@@ -658,6 +694,8 @@ class RealTimeBridge:
             self._count_late((time.time_ns() - last_bit_wall_ns) / 1e9)
         for delivery in deliveries:
             for side in delivery.destinations:
+                if side not in self.buses:
+                    continue    # another sender on a channel: it hears that channel's frames there
                 try:
                     self.buses[side].send(delivery.msg)
                 except (can.CanError, ValueError):  # counted; the bridge must keep running
@@ -671,3 +709,6 @@ class _Inbox(can.Listener):
 
     def on_message_received(self, msg: can.Message) -> None:
         self.inbox.put((self.side, msg, time.monotonic_ns()))
+
+    def on_frame(self, msg: can.Message, sender: int) -> None:
+        self.inbox.put((self.side, msg, time.monotonic_ns(), sender))

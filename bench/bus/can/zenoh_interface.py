@@ -134,6 +134,7 @@ class ZenohCanBus(BusABC):
         self._peers_changed = threading.Condition()
         self._queue: queue.Queue = queue.Queue(maxsize=rx_queue_size)
         self._listener = None     # forward_to(): frames go to it on Zenoh's thread instead of the queue
+        self._with_sender = False
         self._tx_lock = threading.Lock()
         self._open = False
 
@@ -184,7 +185,10 @@ class ZenohCanBus(BusABC):
             return
         self.stats.received += 1
         try:
-            listener(msg)
+            if self._with_sender:
+                listener(msg, sender)
+            else:
+                listener(msg)
         except Exception as exc:   # nothing may escape into Zenoh's thread
             log.error("listener of %s failed on a frame: %s", self._key, exc)
 
@@ -266,10 +270,15 @@ class ZenohCanBus(BusABC):
             pass
 
     # --- bench extras ----------------------------------------------------------------------
-    def forward_to(self, listener) -> None:
+    def forward_to(self, listener, with_sender: bool = False) -> None:
         """From now on, hand each received frame to `listener(msg)` on Zenoh's thread instead of
         queueing it for `recv`: one thread hand-off less for a reader that has its own queue
-        (the bus model's bridge), as a python-can Notifier would add one more."""
+        (the bus model's bridge), as a python-can Notifier would add one more.
+
+        with_sender: `listener(msg, sender)`, with the id of the bus instance that sent the frame
+        (each draws its own at random): the bus model tells the node at the other end of its
+        channel from any other process on that channel by it."""
+        self._with_sender = with_sender
         self._listener = listener
 
     @property
