@@ -34,10 +34,14 @@ LAYERS: list[dict[str, list[str]]] = [
     {"planner": ["bench.planner", "bench.planner.*"]},
     {"studies": ["bench.studies", "bench.studies.*"]},    # seed 003 studies, campaigns
     {"report": ["bench.report", "bench.report.*"]},
+    # The message contract as text: the key table, the fields' meanings, contract.json and the
+    # export, which the launcher writes beside each run (it describes every part, so it sits above them).
+    {"contract": ["bench.contract", "bench.contract.table", "bench.contract.fields", "bench.contract.document",
+                  "bench.contract.export"]},
     {"sim": ["bench.sim"],                                # the whole loop in one process
      "launcher": ["bench.launcher"]},
-    # The message contract: its check runs the bench (the launcher) against an outside node.
-    {"contract": ["bench.contract", "bench.contract.*"]},
+    # The contract's check: it runs the bench (the launcher) against an outside node.
+    {"contract_check": ["bench.contract.*"]},
     {"cli": ["bench.cli", "bench.__main__"]},
 ]
 
