@@ -233,3 +233,20 @@ def test_buses_sharing_a_node_session(run_id, endpoint):
         assert not session.is_closed()
     finally:
         session.close()
+
+
+def test_a_bus_follows_a_bounded_number_of_senders(run_id, endpoint):
+    """A frame under a new sender id each time (anyone on the channel can) grows nothing without
+    bound: the oldest ids are forgotten past MAX_TRACKED_SENDERS."""
+    from bench.bus.can.zenoh_interface import MAX_TRACKED_SENDERS
+
+    class Sample:
+        def __init__(self, payload):
+            self.payload = type("P", (), {"to_bytes": lambda _self: payload})()
+
+    with zbus(run_id, endpoint, listen=True) as bus:
+        for sender in range(1, 10 * MAX_TRACKED_SENDERS):
+            payload = zenoh_wire.encode(frame(0x10), timestamp_s=1.0, sender_id=sender, sequence=0)
+            bus._on_sample(Sample(payload))
+        assert len(bus._rx_sequence) == MAX_TRACKED_SENDERS
+        assert bus.stats.sequence_gaps == 0

@@ -71,6 +71,10 @@ def _endpoints(value: str | Sequence[str] | None) -> tuple[str, ...]:
     return tuple(value)
 
 
+# Senders whose frame sequence a bus follows (gap counts); more are forgotten oldest first.
+MAX_TRACKED_SENDERS = 64
+
+
 @dataclass
 class ZenohCanStats:
     sent: int = 0
@@ -178,6 +182,10 @@ class ZenohCanBus(BusABC):
         last = self._rx_sequence.get(sender)
         if last is not None:
             self.stats.sequence_gaps += (sequence - last - 1) & 0xFFFFFFFF
+        elif len(self._rx_sequence) >= MAX_TRACKED_SENDERS:
+            # Anyone on the channel can send under a new id each frame: the oldest id goes, so
+            # memory stays bounded (a forgotten sender's next frame counts no gap).
+            self._rx_sequence.pop(next(iter(self._rx_sequence)))
         self._rx_sequence[sender] = sequence
         listener = self._listener
         if listener is None:
