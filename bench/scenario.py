@@ -250,6 +250,15 @@ def _check_attitude(s: Scenario) -> None:
     if s.run.mode == "lock-step" and s.can is not None and s.can.board.mag_window_period_s > 0:
         raise ScenarioError("can.board.mag_window_period_s: the board's magnetometer windows run on the wall "
                             "clock, which a lock-step attitude run does not follow; use run.mode = \"real-time\"")
+    if s.run.mode == "lock-step" and s.can is not None and s.can.faults:
+        # bench.bus.can.sim_window.bus_on_simulated_time: a fault's start_s is simulated time, which
+        # a bus on the wall clock beside a lock-step loop has no measure of.
+        wall = (s.can.lock_step_clock == "wall" or "board" in s.run.external or s.can.transport != "zenoh"
+                or s.can.driver_bus is not None or s.can.board_bus is not None)
+        if wall:
+            raise ScenarioError("can.faults: their times are simulated seconds, and this lock-step run puts the bus "
+                                "on the wall clock (lock_step_clock \"wall\", a kernel bus, a bus of its own or an "
+                                "external board); use lock_step_clock \"auto\" on the zenoh transport, or real time")
     if s.run.mode == "real-time" and s.run.time_factor > MAX_ATTITUDE_TIME_FACTOR:
         raise ScenarioError(f"run.time_factor: the attitude loop runs real-time near 1x (board timeout and "
                             f"bus on the wall clock); got {s.run.time_factor}, at most {MAX_ATTITUDE_TIME_FACTOR}")

@@ -2,7 +2,10 @@
 
 Same plant, estimator and controller-cycle objects as the processes use, called in the same order,
 with the same seeded noise; only the wiring differs. For the attitude loop the CAN bus is replaced
-by what it does to a fault-free command (DBC scaling, the board's quantisation and saturation).
+by what it does to a fault-free command (DBC scaling, the board's quantisation and saturation);
+with faults in [can] (bus or hardware: a board losing power, an open, stuck, reversed or weak
+coil) the bus is the lock-step one itself, driver, bus model, injector and board with its coils on
+simulated time, as the controller and canbus processes run it (bench/bus/can/lockstep_loop.py).
 """
 from __future__ import annotations
 
@@ -86,7 +89,10 @@ def simulate_attitude_in_process(scenario: Scenario, coil_fault=None) -> dict[st
     """Run an attitude scenario without processes; the arrays the plant process writes, and the
     controller's cycle time per step (NaN when no law ran) and the planner's wall time per plan.
     coil_fault(time_s, applied_am2) -> applied_am2: what a bus fault does to the coils (a study's
-    fault model, bench.studies.attitude_comparison); None: a fault-free bus."""
+    fault model, bench.studies.attitude_comparison; the scenario's own faults are then not run);
+    None: the scenario's [can] faults through the lock-step bus, or a fault-free bus without them.
+    With the bus also: `can_driver_events` (the driver's events as (mission s, kind)), the part of
+    each step the coils were off (`att_coils_off_fraction`) and the board's `can_board_power_log`."""
     n_steps = scenario.n_steps
     plant = AttitudePlant(scenario.attitude, n_steps, scenario.run.seed)
     estimator = AttitudeEstimator(scenario)
@@ -100,6 +106,12 @@ def simulate_attitude_in_process(scenario: Scenario, coil_fault=None) -> dict[st
     commanded, estimated_q, valid, cycle_time_s, planning_wall_s, plan_records = [], [], [], [], [], []
     # The board model goes through the DBC encoder (~0.3 ms); a saturating or zero command repeats.
     board_dipoles: dict[bytes, np.ndarray] = {}
+    bus = None
+    if coil_fault is None and scenario.can is not None and scenario.can.faults:
+        from bench.bus.can.lockstep_loop import LockStepLoopBus
+
+        bus = LockStepLoopBus(scenario.can, scenario.step_s, scenario.run.seed)
+    coils_off = []
     for k in range(n_steps):
         estimate = estimate_for(estimator, plant, k)
         if planner is not None:
@@ -109,10 +121,15 @@ def simulate_attitude_in_process(scenario: Scenario, coil_fault=None) -> dict[st
                 planning_wall_s.append(planned[1]["wall_time_s"])
                 plan_records.append((plant.time_s, planned[1]["reason"], planned[0].arrival_time_s))
         outcome = cycle.run(plant.time_s, estimate.valid, estimate.q_wxyz, estimate.omega_radps, estimate.field_body_t)
-        key = np.asarray(outcome.dipole_am2, float).tobytes()
-        if key not in board_dipoles:
-            board_dipoles[key] = board_dipole_without_bus(outcome.dipole_am2, scenario.can)
-        dipole, _ = acceptance.accept(board_dipoles[key].copy(), None)
+        if bus is not None:     # the canbus process's report of the step, as the plant accepts it
+            coils = bus.step(k, outcome.dipole_am2)
+            dipole, _ = acceptance.accept(np.array(coils.dipole_am2.tolist()), None)
+            coils_off.append(coils.off_fraction)
+        else:
+            key = np.asarray(outcome.dipole_am2, float).tobytes()
+            if key not in board_dipoles:
+                board_dipoles[key] = board_dipole_without_bus(outcome.dipole_am2, scenario.can)
+            dipole, _ = acceptance.accept(board_dipoles[key].copy(), None)
         if coil_fault is not None:
             dipole = coil_fault(plant.time_s, dipole)
         cycle_time_s.append(np.nan if outcome.monitored is None else outcome.monitored.cycle_time_s)
@@ -120,7 +137,12 @@ def simulate_attitude_in_process(scenario: Scenario, coil_fault=None) -> dict[st
         estimated_q.append(estimate.q_wxyz)
         valid.append(estimate.valid)
         plant.apply(dipole)
-    return plant.trajectory() | {
+    with_bus = {} if bus is None else {
+        "can_driver_events": [(t, e.kind) for t, e in bus.events],
+        "att_coils_off_fraction": np.array(coils_off, float),
+        "can_board_power_log": [dict(e) for e in bus.bus.board.power_log],
+    }
+    return plant.trajectory() | with_bus | {
         "att_dipole_commanded_am2": np.array(commanded).reshape(-1, 3),
         "att_estimate_q_wxyz": np.array(estimated_q).reshape(-1, 4),
         "att_estimate_valid": np.array(valid, dtype=bool),

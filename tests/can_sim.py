@@ -53,7 +53,8 @@ class SimBench:
         self.board = MagnetorquerBoard(self.buses[BOARD], self.board_config, p.Protocol(profile=profile, key=key),
                                        clock=self.clock, security=self.security,
                                        on_applied=lambda a: self.applied.append((self.clock(), a)),
-                                       on_coils_changed=lambda s: self.coils_off_s.extend([self.clock()] * s.safe_state))
+                                       on_coils_changed=lambda s: self.coils_off_s.extend([self.clock()] * s.safe_state),
+                                       hardware=self.model.injector.hardware)   # its coils under the hardware faults
         self.driver = MagnetorquerDriver(self.buses[FLIGHT], self.driver_config, self.board_config,
                                          p.Protocol(profile=profile, key=key), clock=self.clock, wall_clock=self.clock)
         self.sent: list[Sent] = []

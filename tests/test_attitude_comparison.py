@@ -76,8 +76,8 @@ def test_fault_model_windows_and_refusals():
         CoilsOffWindow(5.1, 5.4)                      # 40 frames of 10 ms
     short = coils_off_window(FaultSpec(name="drop", frames=["MTQ_CMD"], start_s=5.0, count=5), s)
     assert short.off_s == short.on_s                  # 50 ms: shorter than the board's timeout
-    with pytest.raises(ValueError, match="stuck_actuator"):
-        coils_off_window(FaultSpec(name="stuck_actuator", start_s=1.0, duration_s=2.0), s)
+    with pytest.raises(ValueError, match="telemetry_freeze"):
+        coils_off_window(FaultSpec(name="telemetry_freeze", start_s=1.0, duration_s=2.0), s)
     with pytest.raises(ValueError, match="recompute_crc"):
         coils_off_window(FaultSpec(name="corrupt", start_s=1.0, count=3, params={"recompute_crc": True}), s)
     window = coils_off_window(FAULT, s)

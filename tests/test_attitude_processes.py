@@ -251,8 +251,8 @@ def broken_steps_after(part: dict, run, end_s: float, excused: np.ndarray) -> st
 
 
 # What the driver must report for each fault of attitude_fault_all (any one of the kinds).
-DETECTED_AS = {"board_death": {"heartbeat_timeout"}, "drop": {"board_command_timeout"},
-               "corrupt": {"command_rejected"}, "stuck_actuator": {"actuator_mismatch", "telemetry_repeated"},
+DETECTED_AS = {"board_power_loss": {"heartbeat_timeout", "error_warning"}, "drop": {"board_command_timeout"},
+               "corrupt": {"command_rejected"}, "telemetry_freeze": {"actuator_mismatch", "telemetry_repeated"},
                "flood": {"board_command_timeout", "telemetry_timeout", "heartbeat_timeout", "command_rejected"}}
 
 
@@ -311,7 +311,7 @@ def test_a_lock_step_fault_run_detects_what_its_real_time_twin_detects(fault_run
     """The same faults on simulated bus time (lock-step: deterministic, no host in the timing)
     and on the wall clock: the same kind of first detection per fault, at the same simulated time
     to within a fraction of a step (real time adds the host's scheduling) where the detection
-    depends on the bus alone. A stuck actuator is seen when the commanded dipole moves away from
+    depends on the bus alone. Frozen telemetry is seen when the commanded dipole moves away from
     the frozen telemetry, which depends on the trajectory, and the two modes' trajectories differ
     (real time applies a command a step later): for it, the same kind within the window."""
     bus = json.loads((fault_lock_step_run.run_dir / "can" / "busmodel.json").read_text())
@@ -325,13 +325,13 @@ def test_a_lock_step_fault_run_detects_what_its_real_time_twin_detects(fault_run
         # Real time is compared where the host kept up: a window in which it held the CAN nodes
         # up for more than REAL_TIME_HELD_S in all is the host's, not the fault's (a loaded
         # suite run: the driver 0.69 s late in the stuck-actuator window, the board refusing
-        # commands that came 0.4 s late as stale, and no stuck actuator seen).
+        # commands that came 0.4 s late as stale, and no frozen telemetry seen).
         if held_s[name] > REAL_TIME_HELD_S:
             print(f"{name}: real time not compared, the host held the flight side {held_s[name]:.3f} s")
             continue
         rt_kinds, rt_first_s = real_time[name]
         assert rt_kinds & DETECTED_AS[name], (name, kinds, rt_kinds)
-        if name != "stuck_actuator":
+        if name != "telemetry_freeze":
             assert abs(first_s - rt_first_s) < 0.25, (name, first_s, rt_first_s)
         compared.append(name)
     assert compared, f"the host held the flight side in every fault window: {held_s}"

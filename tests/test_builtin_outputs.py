@@ -49,11 +49,13 @@ def short_form(name: str) -> dict:
     else:   # real time: 10 steps a second, 3 s for the faults
         data["run"]["steps"] = RENDEZVOUS_STEPS if data["run"]["mode"] == "lock-step" else 30
     faults = (data.get("can") or {}).get("faults") or []
+    # Fault times are simulated seconds: in real time, the time factor's worth per wall second.
+    scale = data["run"]["time_factor"] if data["run"]["mode"] == "real-time" else 1.0
     for i, fault in enumerate(faults):
         # one after the other from 0.5 s, 0.3 s or 5 frames each: all inside a 3 s run
-        fault["start_s"] = 0.5 + 0.4 * i
+        fault["start_s"] = (0.5 + 0.4 * i) * scale
         if fault.get("duration_s") is not None:
-            fault["duration_s"] = 0.3
+            fault["duration_s"] = 0.3 * scale
         if fault.get("count") is not None:
             fault["count"] = min(int(fault["count"]), 5)
     return data

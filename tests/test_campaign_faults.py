@@ -84,8 +84,56 @@ def test_spec_errors_name_the_field():
 
 
 def test_local_and_ray_engines_give_identical_fault_rows(tmp_path, tests_on_path):  # noqa: F811
-    spec = tiny(load_spec("attitude_faults"), laws=["bdot_rate_damping", "pd"], faults=["drop", "stuck_actuator"],
+    spec = tiny(load_spec("attitude_faults"), laws=["bdot_rate_damping", "pd"], faults=["drop", "board_power_loss"],
                 steps=12, start_s=3.0, duration_s=2.0)
     rows = local_and_ray_rows(spec, tmp_path, cases=4)
     drop = next(r for r in rows if r["fault"] == "drop" and r["mission"] == "detumble")
     assert drop["detected"] and drop["first_detection"] == "board_command_timeout" and drop["coils_off_s"] > 1.5
+    assert drop["detected_by"] == "board"          # its command timeout, reported by EMCY
+    power = next(r for r in rows if r["fault"] == "board_power_loss" and r["mission"] == "detumble")
+    assert power["detected_by"] == "driver" and power["first_detection"] == "error_warning"   # commands unacknowledged
+    assert power["coils_off_in_fault_s"] == pytest.approx(power["fault_duration_s"], abs=1e-6)
+    assert power["board_operational_after"] and 0.0 < power["board_recovery_ms"] < 150.0
+
+
+def test_hardware_faults_act_on_the_co_simulated_coils():
+    """The campaign's bus co-simulation with the board's hardware: an open x coil gives no x dipole
+    and its telemetry says so (actuator_mismatch); a board without power has its coils off for the
+    whole window, boots after it and is operational again at the driver's NMT start."""
+    scenario = load_scenario("attitude_quick")
+    command = np.array([0.05, -0.02, 0.1])
+    hook = BusCoSimulation(scenario.can, [FaultSpec(name="coil_open", start_s=3.0, duration_s=3.0,
+                                                    params={"axis": 0})], step_s=1.0, seed=2)
+    outs = [hook(float(k), command) for k in range(9)]
+    assert all(np.array_equal(o, [0.0, -0.02, 0.1]) for o in outs[3:5])
+    assert np.allclose(outs[7], command, atol=1e-3) and outs[1][0] == pytest.approx(0.05, abs=1e-3)
+    detection = hook.first_detection()
+    assert detection.kind == "actuator_mismatch" and "axis x" in detection.detail and detection.time_s < 3.5
+    hook = BusCoSimulation(scenario.can, [FaultSpec(name="board_power_loss", start_s=3.0, duration_s=2.0)],
+                           step_s=1.0, seed=2)
+    outs = [hook(float(k), command) for k in range(8)]
+    assert np.array_equal(outs[3], np.zeros(3)) and np.array_equal(outs[4], np.zeros(3))
+    assert hook.coils_off_in_fault_ns == 2_000_000_000
+    events = [event for event, _ in hook.power_log()]
+    assert events == ["power_lost", "booted", "operational"]
+    assert np.allclose(outs[6], command, atol=1e-3)
+
+
+def test_the_matrix_names_the_monitor_and_never_greens_an_undetected_fault():
+    from bench.studies.fault_report import matrix_markdown
+
+    def row(i, fault, detected, by="", first="", effect="none"):
+        return {"case_index": i, "fault": fault, "law": "PD", "mission": "hold", "status": "ok", "effect": effect,
+                "fault_kind": fault, "detected": detected, "detection_latency_s": 0.1 if detected else float("nan"),
+                "time_to_recover_s": float("nan"), "first_detection": first, "detected_by": by,
+                "monitors": by, "max_deviation": 0.0, "coils_off_in_fault_s": 0.0, "fault_duration_s": 10.0,
+                "board_recovery_ms": float("nan"), "board_operational_after": True}
+
+    table = matrix_markdown([row(0, "coil_open", True, "driver", "actuator_mismatch"),
+                             row(1, "coil_reversed", True, "FDIR", "fdir_reversed", "degraded"),
+                             row(2, "telemetry_freeze", False)])
+    lines = {line.split(" | ")[0].strip("| "): line for line in table.splitlines()}
+    assert "🟩" in lines["coil_open"] and "by **driver** (actuator_mismatch)" in lines["coil_open"]
+    assert "by **FDIR** (fdir_reversed)" in lines["coil_reversed"]
+    assert "🟪" in lines["telemetry_freeze"] and "🟩" not in lines["telemetry_freeze"]
+    assert "**undetected**" in lines["telemetry_freeze"]

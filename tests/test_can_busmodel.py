@@ -168,11 +168,28 @@ def test_replay_sends_an_old_frame_again():
     assert len(to_driver) == 2 and all(PROTO.decode(m).counter == 0 for m in to_driver)
 
 
-def test_board_death_and_stuck_actuator_act_on_the_board_side():
-    bus, deliveries, _ = run_commands(FaultSpec("board_death", start_s=0.05, duration_s=0.1))
-    assert len(delivered(deliveries, FLIGHT, 0x190)) == 2          # of 4 telemetry frames
+def test_a_board_without_power_leaves_the_bus_and_the_lone_flight_side_goes_error_passive():
+    """board_power_loss: the board is off the bus for its window, so nobody acknowledges the flight
+    side's commands (ACK errors, TEC + 8 each, error-passive at 128 and no further: ISO 11898-1
+    exception 1), its queued frames are gone, and after the window the commands get through."""
+    bus = model(FaultSpec("board_power_loss", start_s=0.05, duration_s=0.1))
+    bus.submit(BOARD, PROTO.encode(p.TLM_DIPOLE, {}, counter=0), T0 + 50 * MS)   # queued as power goes: lost
+    deliveries = commanding(bus, 300 * MS)
+    states = [errors.read_error_frame(d.msg)[0] for d in deliveries if d.msg.is_error_frame]
+    # passive (TEC 128) and back to warning at the first acknowledged frame (127)
+    assert states == [errors.ErrorState.WARNING, errors.ErrorState.PASSIVE, errors.ErrorState.WARNING]
+    heard = [round(d.msg.timestamp * 1e9) - T0 for d in deliveries if not d.msg.is_error_frame and BOARD in d.destinations]
+    assert not [t for t in heard if 50 * MS <= t < 150 * MS]          # nothing reaches a board without power
+    assert len([t for t in heard if t >= 150 * MS]) >= 7               # and after it, the commands again
+    report = bus.report()
+    assert report["tec_max"]["flight"] == 128 and bus.stats.bus_errors["ack"] > 16
+    assert report["dropped"]["power_loss"] == 1
+    assert not delivered(deliveries, FLIGHT, 0x190)
+
+
+def test_frozen_telemetry_acts_on_the_board_side():
     for freeze in (False, True):
-        bus, deliveries, _ = run_commands(FaultSpec("stuck_actuator", start_s=0.0, duration_s=1.0,
+        bus, deliveries, _ = run_commands(FaultSpec("telemetry_freeze", start_s=0.0, duration_s=1.0,
                                                     params={"freeze_counter": freeze}))
         frames = [PROTO.decode(m) for m in delivered(deliveries, FLIGHT, 0x190)]
         assert all(f.crc_ok for f in frames)

@@ -37,20 +37,27 @@ DRIVER_REPORT_NAME = "driver.json"
 
 
 class MagnetorquerLink:
-    def __init__(self, ctx: NodeContext, config: CanConfig, scripted: bool = True):
+    def __init__(self, ctx: NodeContext, config: CanConfig, scripted: bool = True, start_with_loop: bool = False):
         """scripted: command the scenario's dipole profile; False: the dipole a law sets
-        (`self.loop.set_dipole`, zero until then)."""
+        (`self.loop.set_dipole`, zero until then). start_with_loop: the profile's first command
+        only when the owner calls `loop_started` (at the loop's first step), so that the faults,
+        which count from the first command frame, count from the loop's step 0 (simulated time)."""
         self.ctx = ctx
         self.bus = open_node_bus(ctx, config, "driver")
         self.driver = MagnetorquerDriver.from_config(self.bus, config)
         self.loop = CommandLoop(self.driver, config.driver.command_period_s,
                                 dipole_at=config.dipole_at if scripted else None, on_events=self._log_events,
                                 transmission="cyclic" if scripted else config.driver.transmission,
-                                first_command_by_law=not scripted)
+                                first_command_by_law=not scripted or start_with_loop)
         self._thread = threading.Thread(target=self._command_until_stopped, name="mtq-driver", daemon=True)
 
     def _log_events(self, events: list[FaultEvent]) -> None:
         _log_events(self.ctx, events)
+
+    def loop_started(self) -> None:
+        """The loop's first step: a scripted profile held for it (start_with_loop) starts now."""
+        if self.loop._awaiting_first_dipole:
+            self.loop.set_dipole([0.0, 0.0, 0.0])    # releases the loop; the profile gives the dipoles
 
     def start(self) -> None:
         if hasattr(self.bus, "wait_for_peers"):

@@ -29,7 +29,9 @@ def run(ctx: NodeContext) -> int:
         # By name, as NODES finds nodes: the attitude process reuses this module's pieces.
         return importlib.import_module("bench.controller.attitude_node").run(ctx)
     control = ControlCycle(ctx.scenario)
-    mtq = MagnetorquerLink(ctx, ctx.scenario.can) if ctx.scenario.can is not None else None
+    # The scripted dipole starts with the loop's first step: the bus's faults count from its first
+    # command frame, so their start_s is the run's simulated time (bench.bus.can.sim_window.fault_clock_scale).
+    mtq = MagnetorquerLink(ctx, ctx.scenario.can, start_with_loop=True) if ctx.scenario.can is not None else None
     if mtq is not None:
         mtq.start()
     estimates = ctx.subscribe_queue(keys.ESTIMATE_TRANSLATION, TranslationEstimate)
@@ -38,6 +40,8 @@ def run(ctx: NodeContext) -> int:
     ctx.declare_ready([keys.COMMAND_THRUST])
     for estimate in ctx.until_stopped(estimates):
         estimate = newest.take(estimates, estimate)
+        if mtq is not None:
+            mtq.loop_started()
         received_ns = time.monotonic_ns()
         hdr = estimate.header.stamped("controller_received", received_ns)
         state_m_mps = np.array(estimate.state_m_mps) if estimate.valid else None

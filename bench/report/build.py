@@ -207,7 +207,9 @@ def can_section(run: RunData, plot_dir: Path) -> tuple[Section | None, dict | No
              for f in m["faults"]]
     rows += [[f"injected {what}", fmt(n)] for what, n in sorted(m["injections"].items())]
     rows += canbus.bus_off_rows(m.get("bus_off") or {})
-    section = Section("CAN bus", ["From can.log (candump format); bus-off episodes from can/busmodel.json."],
+    rows += canbus.board_power_rows(m.get("board_power") or {})
+    section = Section("CAN bus", ["From can.log (candump format); bus-off episodes from can/busmodel.json, the "
+                                  "board's power losses and reboots from can/board.json."],
                       [Table(["bus", "value"], rows)])
     driver_table = None if driver_rows is None else Table(
         ["driver event", "count", "first latency [ms]", "worst latency [ms]"], driver_rows)

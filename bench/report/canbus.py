@@ -4,9 +4,10 @@ run's simulated time (bench.report.timebase).
 vcan has no bit timing, so the load is computed the way the bus model charges it: each frame's
 bits with stuffing (bench.bus.can.bittiming) at the configured bitrate, summed per 0.1 s of wall
 time (the bus is busy in wall time), each window placed at the simulated time it began. A fault
-window starts at the injector's arming time (the driver's first command frame, busmodel.json
-`faults_t0_ns`) plus the scenario's `start_s`, and ends after its `duration_s` or, for a fault
-limited by a frame count, at the last frame it affected; a window is clipped to the run.
+window is the one the injector armed (busmodel.json `faults`: from the driver's first command
+frame, `faults_t0_ns`, plus the scenario's `start_s`, for its `duration_s`, both simulated
+seconds, on a real-time run's wall clock divided by the time factor: `fault_clock_scale`), or for
+a fault limited by a frame count, up to the last frame it affected; a window is clipped to the run.
 A bus that ran on simulated time (lock-step, busmodel.json `clock` = "simulated") stamped all of
 these in bus time: simulated seconds are `(t_ns - sim_zero_ns) / 1e9`, and can.log's timestamps
 are `t_ns / 1e9`.
@@ -127,21 +128,26 @@ def fault_windows_sim_s(run_dir: Path, can_cfg, clock: RunClock | None) -> list[
     if not faults or t0_ns is None or clock is None:
         return []
     affected = {i: record for i, record in enumerate(model.get("faults", []))}
+    scale = float(model.get("fault_clock_scale", 1.0))    # bus seconds per simulated second
     windows = []
     for i, fault in enumerate(faults):
-        start_ns = t0_ns + float(fault.start_s) * 1e9
+        armed = affected.get(i) or {}
+        start_ns = armed.get("start_ns") or t0_ns + float(fault.start_s) * scale * 1e9
         if fault.duration_s is not None:
-            end_ns = start_ns + float(fault.duration_s) * 1e9
+            end_ns = armed.get("end_ns") or start_ns + float(fault.duration_s) * scale * 1e9
+        elif fault.hardware:   # a hardware fault without an end: to the run's end
+            end_ns = float("inf")
         else:   # limited by a count: it ends with the last frame it affected (or where it began)
-            end_ns = (affected.get(i) or {}).get("last_ns") or start_ns
-        start, end = (min(max(clock.sim_s(t), clock.start_sim_s), clock.end_sim_s) for t in (start_ns, end_ns))
+            end_ns = armed.get("last_ns") or start_ns
+        start, end = (min(max(clock.sim_s(t), clock.start_sim_s), clock.end_sim_s) if t != float("inf")
+                      else clock.end_sim_s for t in (start_ns, end_ns))
         windows.append((str(fault.name), start, end))
     return windows
 
 
 # Faults that hold frames on the bus themselves (a dead board acknowledges nothing, a babbling node
 # takes the bus): in their windows the bus model's lateness is partly the fault's.
-FAULTS_THAT_DELAY_FRAMES = frozenset({"board_death", "flood"})
+FAULTS_THAT_DELAY_FRAMES = frozenset({"board_power_loss", "flood"})
 HOST_HELD_MARGIN_S = 0.5      # a hold this close before a window changes what the fault meets
 
 
@@ -230,6 +236,51 @@ def bus_off_rows(bus_off: dict) -> list[list[str]]:
     return rows
 
 
+def board_power_metrics(run_dir: Path, clock: RunClock | None) -> dict:
+    """The board's power losses and its recovery from each (board.json `power_log`), on simulated
+    time: when power went, when it came back (the board booted, pre-operational), when the driver's
+    NMT start made it operational again, and the recovery (operational minus booted, ms). Empty
+    without a power loss."""
+    path = Path(run_dir) / "can" / "board.json"
+    try:
+        log = (json.loads(path.read_text()).get("power_log") or []) if path.is_file() else []
+    except (OSError, ValueError):
+        return {}
+    if not log:
+        return {}
+    clock = _bus_clock(_bus_model_report(run_dir), clock)
+
+    def when_s(t_ns):
+        return float(clock.sim_s(t_ns)) if clock is not None else t_ns / 1e9
+
+    episodes = []
+    for entry in log:
+        if entry["event"] == "power_lost":
+            episodes.append({"lost_s": when_s(entry["t_ns"]), "booted_s": None, "operational_s": None,
+                             "recovery_ms": None})
+        elif episodes and entry["event"] in ("booted", "operational"):
+            episodes[-1][f"{entry['event']}_s"] = when_s(entry["t_ns"])
+            if entry["event"] == "operational" and episodes[-1]["booted_s"] is not None:
+                episodes[-1]["recovery_ms"] = (episodes[-1]["operational_s"] - episodes[-1]["booted_s"]) * 1e3
+    recoveries = [e["recovery_ms"] for e in episodes if e["recovery_ms"] is not None]
+    return {"losses": len(episodes), "recovered": len(recoveries),
+            "max_recovery_ms": max(recoveries) if recoveries else None, "episodes": episodes,
+            "on_sim_time": clock is not None}
+
+
+def board_power_rows(power: dict) -> list[list[str]]:
+    """The report's rows for the board's power losses: each loss, its reboot and its recovery."""
+    rows = []
+    for e in (power or {}).get("episodes", []):
+        back = "power not back by the end" if e["booted_s"] is None else (
+            f"booted at {fmt(e['booted_s'], 7)} s, " + ("never operational again" if e["operational_s"] is None else
+                                                          f"operational again at {fmt(e['operational_s'], 7)} s "
+                                                          f"(NMT start {fmt(e['recovery_ms'])} ms after the boot, "
+                                                          f"simulated)"))
+        rows.append([f"board power lost at {fmt(e['lost_s'], 7)} s (simulated)", back])
+    return rows
+
+
 def driver_events(path: Path) -> tuple[list[list[str]] | None, dict | None]:
     """What the flight-side driver detected (can/driver.json), per kind: table rows (count, first
     and worst detection latency in ms, the final health) and the metrics."""
@@ -258,6 +309,7 @@ def can_metrics(run: RunData) -> tuple[BusLoad | None, dict | None, list[list[st
     can = getattr(run.scenario, "can", None)
     m["authenticated"] = can.security.authenticated if can is not None else None
     m["bus_off"] = bus_off_metrics(run.run_dir, RunClock.from_run(run.trajectory, run.scenario))
+    m["board_power"] = board_power_metrics(run.run_dir, RunClock.from_run(run.trajectory, run.scenario))
     driver_rows, driver_metrics = driver_events(run.run_dir / "can" / "driver.json")
     if driver_metrics is not None:
         m["driver"] = driver_metrics

@@ -169,6 +169,11 @@ def _bus_rows(bus: dict | None) -> list[tuple[str, str]]:
     if bus_off:
         rows.append(("CAN bus-off episodes (recovered)",
                      ", ".join(f"{node} {n['episodes']} ({n['recovered']})" for node, n in bus_off.items())))
+    power = bus.get("board_power") or {}
+    if power:
+        worst = power.get("max_recovery_ms")
+        rows.append(("board power losses (operational again)", f"{power['losses']} ({power['recovered']}"
+                     + (f", NMT start within {worst / 1e3:.3g} s of the boot, simulated)" if worst is not None else ")")))
     driver = bus.get("driver") or {}
     if driver:
         events = driver.get("events", {})

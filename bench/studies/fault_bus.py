@@ -2,13 +2,14 @@
 run in process on the attitude loop's simulated clock (`bench.sim.simulate_attitude_in_process`'s
 coil-fault hook).
 
-Nothing here models a fault: `MagnetorquerBoard`, `MagnetorquerDriver`, `BusModel` and
-`FaultInjector` (bench.bus.can) are the classes the canbus, mtq and controller processes run,
+Nothing here models a fault: `MagnetorquerBoard` (with its coils and power supply under the
+hardware faults, bench.bus.can.coils), `MagnetorquerDriver`, `BusModel` and `FaultInjector`
+(bench.bus.can) are the classes the canbus, mtq and controller processes run,
 wired as tests/can_sim.py wires them (the bus model delivers each frame after its exact bit time,
 arbitration and faults; no transport). The flight side commands the dipole the law gave for the
 step at once and then every command period (AUTOSAR COM "mixed", the DBC's default), and the
-plant gets, for the step, the time average of what the board's coil drivers were set to
-(`output_dipole_am2`: zero in safe state). Detection is the driver's own `FaultEvent`s, stamped
+plant gets, for the step, the time average of the dipole the board's coils produced
+(`output_dipole_am2`: zero in safe state and without power). Detection is the driver's own `FaultEvent`s, stamped
 with the simulated time at which `poll` returned them: the detection latency is in simulated
 seconds, at the co-simulation's resolution (`max_step_s`, 1 ms by default; frames in a burst reach
 the nodes at most a quarter of it late).
@@ -42,6 +43,17 @@ from bench.bus.can.simbus import SimBus, SimClock
 T0_NS = 10**12
 # Driver events that say the bus is well again, not that something is wrong.
 BENIGN_EVENTS = frozenset({"heartbeat_resumed", "board_error_reset", "error_active", "bus_restarted", "host_overrun"})
+# Who detected an event: the board (its E2E/SecOC checks and timeouts, reported by EMCY), the
+# flight-side driver (heartbeat, telemetry, plausibility, its own controller), or the FDIR actuator
+# monitor (bench.controller.fdir: kinds "fdir_<class>").
+BOARD_EVENTS = frozenset({"command_rejected", "command_lost", "board_command_timeout", "board_error_reset"})
+
+
+def monitor_of(kind: str) -> str:
+    """The monitor that raised an event of this kind: "board", "driver" or "FDIR"."""
+    if kind.startswith("fdir_"):
+        return "FDIR"
+    return "board" if kind in BOARD_EVENTS else "driver"
 # The board needs a heartbeat and the driver's NMT start before it takes commands (CiA 301).
 BOOT_S = 0.05
 
@@ -77,6 +89,7 @@ class BusCoSimulation:
     events: list[DetectedEvent] = field(default_factory=list)
     # Per co-simulated step: (mission time, fraction of the step the coil drivers were off).
     coils_off_fraction: list[tuple[float, float]] = field(default_factory=list)
+    coils_off_in_fault_ns: int = 0      # of it, inside the faults' window [onset, end)
 
     def __post_init__(self):
         if not self.faults:
@@ -114,11 +127,11 @@ class BusCoSimulation:
         # The bus model arms the injector with the first command frame: fault times count from it.
         shifted = [FaultSpec(name=f.name, frames=list(f.frames), start_s=f.start_s - time_s, duration_s=f.duration_s,
                              count=f.count, every=f.every, params=dict(f.params)) for f in self.faults]
-        self.model = BusModel(FaultInjector(shifted, outsider, seed=self.seed), outsider, self.clock.t_ns,
-                              to_wall_s=lambda t_ns: t_ns / 1e9)
+        injector = FaultInjector(shifted, outsider, seed=self.seed, max_dipole_am2=config.board.max_dipole_am2)
+        self.model = BusModel(injector, outsider, self.clock.t_ns, to_wall_s=lambda t_ns: t_ns / 1e9)
         self.buses = {FLIGHT: SimBus(self.model, FLIGHT, self.clock), BOARD: SimBus(self.model, BOARD, self.clock)}
         self.board = MagnetorquerBoard(self.buses[BOARD], config.board, config.protocol(), clock=self.clock,
-                                       security=config.security)
+                                       security=config.security, hardware=injector.hardware)
         self.driver = MagnetorquerDriver.from_config(self.buses[FLIGHT], config, clock=self.clock, wall_clock=self.clock)
         self.period_ns = round(config.driver.command_period_s * 1e9)
         self._dipole = np.zeros(3)
@@ -128,6 +141,7 @@ class BusCoSimulation:
             raise RuntimeError("bus co-simulation: the board did not become operational during boot")
         self.events.clear()
         self.coils_off_fraction.clear()     # the boot is not the mission's
+        self.coils_off_in_fault_ns = 0
         self._started = True
 
     def _command(self) -> None:
@@ -166,6 +180,8 @@ class BusCoSimulation:
             integral += output * (next_ns - now_ns)
             if self.board.state.safe_state or self.board.state.actuation_paused:
                 off_ns += next_ns - now_ns
+                fault_start_ns, fault_end_ns = (T0_NS + round(t * 1e9) for t in (self.onset_s, self.end_s))
+                self.coils_off_in_fault_ns += max(0, min(next_ns, fault_end_ns) - max(now_ns, fault_start_ns))
             self.clock.t_ns = next_ns
         span_ns = until_ns - begin_ns
         if span_ns <= 0:
@@ -184,3 +200,9 @@ class BusCoSimulation:
 
     def coils_off_s(self) -> float:
         return float(sum(fraction for _, fraction in self.coils_off_fraction) * self.step_s)
+
+    def power_log(self) -> list[tuple[str, float]]:
+        """The board's power losses, boots and NMT starts, (event, mission s)."""
+        if not self._started:
+            return []
+        return [(e["event"], e["t_s"] - T0_NS / 1e9) for e in self.board.power_log]

@@ -26,8 +26,11 @@ board, driver, bus model and injector co-simulated on the loop's clock
 (`bench.studies.fault_bus.BusCoSimulation`). The clean run of a (law, seed) is computed once per
 worker process and reused (it is deterministic). The row reports the effect against the clean
 run: detumble time, final pointing error and the worst after the onset, time to recover, dipole
-effort, whether the driver detected the fault, how fast (simulated seconds) and with what, and
-the effect class (`EFFECTS`).
+effort, whether the fault was detected, how fast (simulated seconds), with what and by which
+monitor (the board's checks reported by EMCY, the flight-side driver's own, or the FDIR actuator
+monitor's, which the in-process loop runs when [attitude_control.fdir] is on), how long the coils
+were off inside the fault's window, whether the board was operational again after it and how long
+its NMT start took after a reboot, and the effect class (`EFFECTS`).
 """
 from __future__ import annotations
 
@@ -230,7 +233,8 @@ def effect_metrics(time_s: np.ndarray, faulted: np.ndarray, clean: np.ndarray, t
 
 def fault_case(scenario) -> dict:
     """One row's metrics: the mission with its fault against the same mission without it."""
-    from bench.studies.fault_bus import BusCoSimulation, fault_end_s
+    from bench.bus.can import protocol as p
+    from bench.studies.fault_bus import BENIGN_EVENTS, BusCoSimulation, DetectedEvent, fault_end_s, monitor_of
 
     logging.getLogger("bench.bus.can").setLevel(logging.ERROR)    # the board's safe-state warnings
     quantity, tolerance, goal = _scoring(scenario.description)
@@ -270,8 +274,17 @@ def fault_case(scenario) -> dict:
         effect_class = "lost"
     else:
         effect_class = "degraded"
-    detection = hook.first_detection()
+    # Every monitor's events: the bus's (board and driver, co-simulated) and the FDIR monitor's
+    # from the faulted run, if it ran one (bench.controller.fdir.event_arrays).
+    fdir = [DetectedEvent(f"fdir_{c}", float(t), f"axis {a}") for t, a, c in
+            zip(faulted.get("fdir_event_time_s", ()), faulted.get("fdir_event_axis", ()), faulted.get("fdir_event_class", ()))]
+    events = sorted(hook.events + fdir, key=lambda e: e.time_s)
+    alarms = [e for e in events if e.kind not in BENIGN_EVENTS]
+    detection = next((e for e in alarms if e.time_s >= onset_s), None)
     after = time_s >= onset_s
+    power = hook.power_log()
+    booted = [t for event, t in power if event == "booted"]
+    started = [t for event, t in power if event == "operational" and booted and t >= booted[-1]]
 
     def number(value) -> float:
         return nan if value is None else float(value)
@@ -297,11 +310,17 @@ def fault_case(scenario) -> dict:
         "dipole_integral_am2s": dipole_f,
         "clean_dipole_integral_am2s": dipole_c,
         "coils_off_s": hook.coils_off_s(),
+        "coils_off_in_fault_s": hook.coils_off_in_fault_ns / 1e9,
+        "fault_duration_s": float(end_s - onset_s),
+        "board_recovery_ms": (started[0] - booted[-1]) * 1e3 if started else nan,
+        "board_operational_after": hook.board.nmt_state == p.NMT_OPERATIONAL if hook._started else True,
         "detected": detection is not None,
         "detection_latency_s": detection.time_s - onset_s if detection is not None else nan,
         "first_detection": detection.kind if detection is not None else "",
-        "detection_kinds": ",".join(sorted({e.kind for e in hook.events if e.time_s >= onset_s})),
-        "false_alarms": hook.false_alarms(),
+        "detected_by": monitor_of(detection.kind) if detection is not None else "",
+        "monitors": ",".join(sorted({monitor_of(e.kind) for e in alarms if e.time_s >= onset_s})),
+        "detection_kinds": ",".join(sorted({e.kind for e in events if e.time_s >= onset_s})),
+        "false_alarms": sum(1 for e in alarms if e.time_s < onset_s),
         "steps": int(len(time_s)),
     }
 
@@ -312,8 +331,8 @@ def schema():
 
     fields = [("case_id", pa.string()), ("case_index", pa.int64())] + [(c, pa.string()) for c in CELL_COLUMNS]
     fields += [("seed", pa.int64()), ("status", pa.string()), ("error", pa.string())]
-    strings = {"fault_kind", "effect", "first_detection", "detection_kinds"}
-    booleans = {"goal_met", "clean_goal_met", "detected"}
+    strings = {"fault_kind", "effect", "first_detection", "detected_by", "monitors", "detection_kinds"}
+    booleans = {"goal_met", "clean_goal_met", "detected", "board_operational_after"}
     integers = {"false_alarms", "steps"}
     for column in METRIC_COLUMNS:
         fields.append((column, pa.string() if column in strings else pa.bool_() if column in booleans
@@ -327,5 +346,6 @@ METRIC_COLUMNS = (
     "clean_time_to_detumble_s", "final_pointing_error_deg", "clean_final_pointing_error_deg",
     "max_pointing_error_after_onset_deg", "clean_max_pointing_error_after_onset_deg", "final_rate_dps",
     "clean_final_rate_dps", "max_deviation", "deviation_tolerance", "time_to_recover_s", "dipole_integral_am2s",
-    "clean_dipole_integral_am2s", "coils_off_s", "detected", "detection_latency_s", "first_detection",
+    "clean_dipole_integral_am2s", "coils_off_s", "coils_off_in_fault_s", "fault_duration_s", "board_recovery_ms",
+    "board_operational_after", "detected", "detection_latency_s", "first_detection", "detected_by", "monitors",
     "detection_kinds", "false_alarms", "steps")

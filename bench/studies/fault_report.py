@@ -1,6 +1,10 @@
 """The fault campaign's failure-modes matrix: fault kind (rows) x attitude law (columns), each cell
 coloured by the worst mission effect over the seeds, with how often each effect occurred, the
-share of cases the driver detected and the median detection latency (simulated seconds).
+share of cases detected, by which monitor (board, driver, FDIR) and with what first, and the
+median detection latency (simulated seconds). A cell with an undetected case is a failure whatever
+its effect (purple, never green): a fault nobody saw is one the flight side cannot react to.
+A board power loss's cell also says how long the coils were off inside its window and whether the
+board was operational again after it (the driver's NMT start, ms after the reboot).
 
 Read from the Parquet results `bench campaign attitude_faults` writes; `bench campaign-report`
 re-renders it (markdown table and PNG).
@@ -14,8 +18,9 @@ import numpy as np
 
 from bench.studies.fault_campaign import EFFECTS
 
-COLOURS = {"none": "#4caf50", "recovered": "#ffeb3b", "degraded": "#ff9800", "lost": "#e53935", "failed": "#9e9e9e"}
-MARKS = {"none": "🟩", "recovered": "🟨", "degraded": "🟧", "lost": "🟥", "failed": "⬜"}
+COLOURS = {"none": "#4caf50", "recovered": "#ffeb3b", "degraded": "#ff9800", "lost": "#e53935",
+           "undetected": "#8e24aa", "failed": "#9e9e9e"}
+MARKS = {"none": "🟩", "recovered": "🟨", "degraded": "🟧", "lost": "🟥", "undetected": "🟪", "failed": "⬜"}
 
 
 def is_fault_campaign(rows: list[dict]) -> bool:
@@ -38,6 +43,8 @@ def cells(rows: list[dict]) -> tuple[list[str], list[str], dict]:
             worst = next((e for e in reversed(EFFECTS) if counts[e]), "failed")
             latencies = np.array([r["detection_latency_s"] for r in ok if r["detected"]], float)
             recover = np.array([r["time_to_recover_s"] for r in ok if r["effect"] == "recovered"], float)
+            detected_by = [r.get("detected_by") or "driver" for r in ok if r["detected"]]
+            power = [r for r in ok if r["fault_kind"] == "board_power_loss"]
             out[(fault, law)] = {
                 "runs": len(group), "failed": len(group) - len(ok), "counts": counts, "worst": worst,
                 "detected": sum(bool(r["detected"]) for r in ok),
@@ -48,7 +55,19 @@ def cells(rows: list[dict]) -> tuple[list[str], list[str], dict]:
                 "max_deviation": max((r["max_deviation"] for r in ok), default=float("nan")),
                 "recover_median_s": float(np.median(recover)) if recover.size else float("nan"),
                 "mission": group[0]["mission"],
+                "detected_by": max(dict.fromkeys(detected_by), key=detected_by.count, default=""),
+                "monitors": sorted({m for r in ok for m in (r.get("monitors") or "").split(",") if m}),
+                # power loss: the least share of its window with the coils off, boards operational after
+                "off_share_min": min((r["coils_off_in_fault_s"] / r["fault_duration_s"] for r in power
+                                      if r.get("fault_duration_s")), default=float("nan")),
+                "operational_after": sum(bool(r.get("board_operational_after")) for r in power),
+                "recovery_ms_max": max((r["board_recovery_ms"] for r in power
+                                        if r.get("board_recovery_ms") is not None and not math.isnan(r["board_recovery_ms"])),
+                                       default=float("nan")),
+                "power_runs": len(power),
             }
+            out[(fault, law)]["colour"] = ("undetected" if ok and out[(fault, law)]["detected"] < len(ok)
+                                           else out[(fault, law)]["worst"])
     return faults, laws, out
 
 
@@ -58,12 +77,21 @@ def _cell_text(s: dict) -> str:
         counts += f", failed {s['failed']}"
     ok = s["runs"] - s["failed"]
     if s["detected"]:
-        detection = (f"detected {s['detected']}/{ok} ({s['first_detection']}) in {s['latency_median_s'] * 1e3:.0f} ms"
-                     f" (max {s['latency_max_s'] * 1e3:.0f})")
+        others = [m for m in s["monitors"] if m != s["detected_by"]]
+        detection = (f"detected {s['detected']}/{ok} by **{s['detected_by']}** ({s['first_detection']}) in "
+                     f"{s['latency_median_s'] * 1e3:.0f} ms (max {s['latency_max_s'] * 1e3:.0f})"
+                     + (f", also {', '.join(others)}" if others else ""))
+        if s["detected"] < ok:
+            detection += f"; **undetected {ok - s['detected']}**"
     else:
-        detection = f"undetected ({ok} runs)"
+        detection = f"**undetected** ({ok} runs)"
     recover = "" if math.isnan(s["recover_median_s"]) else f"; recovers {s['recover_median_s']:.0f} s after"
-    return f"{MARKS[s['worst']]} **{s['worst']}** ({counts}); {detection}{recover}"
+    power = ""
+    if s["power_runs"]:
+        power = (f"; coils off {100 * s['off_share_min']:.0f} % of the window (least), operational again "
+                 f"{s['operational_after']}/{s['power_runs']}"
+                 + ("" if math.isnan(s["recovery_ms_max"]) else f" (NMT start {s['recovery_ms_max']:.1f} ms after the boot)"))
+    return f"{MARKS[s['colour']]} **{s['worst']}** ({counts}); {detection}{recover}{power}"
 
 
 def matrix_markdown(rows: list[dict]) -> str:
@@ -77,8 +105,11 @@ def matrix_markdown(rows: list[dict]) -> str:
     legend = ("Worst mission effect over the seeds (counts per effect): none = within tolerance of the clean run "
               "throughout; recovered = back within tolerance for good (median time after the fault's end); "
               "degraded = not back by the end, mission goal still met; lost = goal missed where the clean run met it. "
-              "Detection: cases in which the flight-side driver raised a fault event after the onset, its most "
-              "frequent first event, median (max) latency in simulated milliseconds.")
+              "Detection: cases in which a monitor raised a fault event after the onset: the monitor that was first "
+              "most often (board: its E2E/SecOC checks and command timeout, reported by EMCY; driver: heartbeat, "
+              "telemetry, applied against commanded, its controller's errors; FDIR: the actuator monitor, from the "
+              "dynamics) with its first event, the other monitors that saw it too, median (max) latency in simulated "
+              "milliseconds. 🟪 marks a cell with an undetected case: a failure whatever the effect.")
     return "\n".join(lines) + "\n\n" + legend + "\n"
 
 
@@ -90,18 +121,19 @@ def matrix_plot(rows: list[dict], path: Path) -> Path:
     from matplotlib.colors import ListedColormap
 
     faults, laws, summary = cells(rows)
-    order = list(EFFECTS) + ["failed"]
+    order = list(EFFECTS) + ["undetected", "failed"]
     grid = np.full((len(faults), len(laws)), np.nan)
     for (fault, law), s in summary.items():
-        grid[faults.index(fault), laws.index(law)] = order.index(s["worst"])
+        grid[faults.index(fault), laws.index(law)] = order.index(s["colour"])
     fig, ax = plt.subplots(figsize=(2.4 * len(laws) + 2, 0.55 * len(faults) + 1.5))
     ax.imshow(grid, cmap=ListedColormap([COLOURS[e] for e in order]), vmin=-0.5, vmax=len(order) - 0.5, aspect="auto")
     for (fault, law), s in summary.items():
-        latency = "undetected" if not s["detected"] else f"det {s['latency_median_s'] * 1e3:.0f} ms"
+        latency = "undetected" if not s["detected"] else f"{s['detected_by']} {s['latency_median_s'] * 1e3:.0f} ms"
         ax.text(laws.index(law), faults.index(fault), f"{s['worst']}\n{latency}", ha="center", va="center", fontsize=7)
     ax.set_xticks(range(len(laws)), laws, fontsize=8)
     ax.set_yticks(range(len(faults)), faults, fontsize=8)
-    ax.set_title("bus fault x attitude law: worst mission effect over the seeds, detection latency (median)")
+    ax.set_title("fault x attitude law: worst mission effect over the seeds (purple: undetected), "
+                 "first monitor and detection latency (median)")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -21,10 +21,11 @@ FAULTS = ("attitude_fault_all", "attitude_fault_babble", "attitude_fault_board_d
 # What the driver must report for each fault (tests/test_attitude_processes.py checks the same
 # over the portable transport); the scenario's criteria name the kind its fault shows as.
 EXPECTED_KINDS = {
-    "board_death": {"heartbeat_timeout"},
+    "board_power_loss": {"heartbeat_timeout"},
     "drop": {"board_command_timeout"},
     "corrupt": {"command_rejected"},
-    "stuck_actuator": {"actuator_mismatch", "telemetry_repeated"},
+    "telemetry_freeze": {"actuator_mismatch", "telemetry_repeated"},
+    "coil_stuck": {"actuator_mismatch"},
     "flood": {"board_command_timeout", "telemetry_timeout", "heartbeat_timeout", "command_rejected"},
 }
 

@@ -26,6 +26,13 @@ timeout come from it unless the scenario sets them, and a CANopen tool reads and
 the identity and the error history over SDO (canopen's SDO server, board_sdo.py), except while
 stopped.
 
+Its hardware is bench/bus/can/coils.py's: the scenario's hardware faults act on its coils (the
+physical dipole, `output_dipole_am2`, and the current sensor in series with each coil, which its
+telemetry reports, can then differ) and on its power supply: without power it sends nothing, hears
+nothing and drives no coil, and when power returns it boots as after a reset node (boot-up
+heartbeat, pre-operational: the driver's NMT start makes it operational again). Each loss, boot
+and start is logged with its time (`power_log`, can/board.json).
+
 `step(now_s)` handles what arrived and what is due at `now_s`; `run(stop)` is the process loop.
 Time comes from the caller's clock, so unit tests drive the board deterministically.
 """
@@ -47,6 +54,7 @@ from bench.bus.can import canopen_od
 from bench.bus.can import protocol as p
 from bench.bus.can import secoc
 from bench.bus.can.board_sdo import BoardSdoServer
+from bench.bus.can.coils import CoilHardware
 from bench.bus.can.config import BoardConfig, SecurityConfig
 from bench.bus.can.host_lateness import HostLateLog
 
@@ -93,14 +101,18 @@ class MagnetorquerBoard:
                  clock: Callable[[], float] = time.monotonic,
                  on_applied: Callable[[AppliedCommand], None] | None = None,
                  on_coils_changed: Callable[[BoardState], None] | None = None,
-                 security: SecurityConfig | None = None):
+                 security: SecurityConfig | None = None, hardware: CoilHardware | None = None):
         """on_applied: each accepted command. on_coils_changed: the coil target changed without a
         command (safe state entered, magnetometer window began or ended), so that whoever
         publishes the applied dipole never leaves a stale one standing.
 
         The CANopen parameters (heartbeat time, EMCY inhibit time, command timeout) are mtq.eds's
         where `config` keeps BoardConfig's defaults; a CANopen tool may change them over SDO
-        (board_sdo.py), and NMT reset communication / reset node restores them."""
+        (board_sdo.py), and NMT reset communication / reset node restores them.
+
+        hardware: the coils and power supply under the scenario's hardware faults (coils.py); the
+        injector's where the board shares the bus model's process (armed with the first command
+        frame), else the board's own, armed with the first command it accepts."""
         od = canopen_od.object_dictionary(protocol.node_id)
         canopen_od.check_cob_ids(od, protocol)
         self.bus = bus
@@ -110,6 +122,11 @@ class MagnetorquerBoard:
         self.on_applied = on_applied
         self.on_coils_changed = on_coils_changed
         self.state = BoardState()
+        self.hardware = hardware if hardware is not None else CoilHardware([])
+        self._powered = True
+        self._hardware_state: tuple = ()
+        self._hw_now_s = 0.0                   # the time the coils' outputs are for (update)
+        self.power_log: list[dict] = []        # {"event": power_lost | booted | operational, "t_s": board clock}
         self.e2e = p.E2EReceiver(config.max_delta_counter, config.sync_counter, config.max_no_new_or_repeated)
         self.command_name = protocol.command_name
         self.command_period_s = p.cycle_time_s(self.command_name)
@@ -155,14 +172,25 @@ class MagnetorquerBoard:
 
     @property
     def applied_dipole_am2(self) -> np.ndarray:
-        """The dipole the coils produce now (it lags the target by the coil time constant)."""
+        """The dipole the current sensors measure now (it lags the target by the coil time
+        constant): what the telemetry reports, which a hardware fault after the sensor (a coil
+        wired backwards, a weak coil) does not show."""
         return self.state.coil_current_a * self.config.coil_gain_am2_per_a
 
     @property
-    def output_dipole_am2(self) -> np.ndarray:
+    def setpoint_am2(self) -> np.ndarray:
         """The dipole the coil drivers are set to: zero in safe state and magnetometer windows."""
         s = self.state
         return np.zeros(3) if (s.safe_state or s.actuation_paused) else s.target_dipole_am2.copy()
+
+    @property
+    def output_dipole_am2(self) -> np.ndarray:
+        """The dipole the coils put into the field (what the plant turns into torque): the coil
+        drivers' set-point, through the hardware faults acting at the last update; zero without
+        power."""
+        if not self.hardware.windows:
+            return self.setpoint_am2
+        return self.hardware.physical_am2(self.setpoint_am2, self._hw_now_s)
 
     # --- the loop -------------------------------------------------------------------------
     def start(self, now_s: float) -> None:
@@ -182,6 +210,8 @@ class MagnetorquerBoard:
         command = int(frame.signals["Command"])
         if command == p.NMT_START and self.nmt_state != p.NMT_OPERATIONAL:
             self.nmt_state = p.NMT_OPERATIONAL
+            if self.power_log and self.power_log[-1]["event"] == "booted":
+                self.power_log.append({"event": "operational", "t_s": now_s})
             self._last_command_s = now_s            # the command timeout runs from the start
             self.e2e.reset()
         elif command in (p.NMT_STOP, p.NMT_ENTER_PRE_OPERATIONAL):
@@ -240,6 +270,45 @@ class MagnetorquerBoard:
         if changed and self.on_coils_changed is not None:
             self.on_coils_changed(s)
 
+    # --- power supply (board_power_loss) --------------------------------------------------
+    def _powered_at(self, now_s: float) -> bool:
+        """Whether the board has power at now_s; losing it or getting it back happens here."""
+        if not self.hardware.windows:
+            return True
+        powered = self.hardware.powered(now_s)
+        if powered != self._powered:
+            self._power_off(now_s) if not powered else self._power_on(now_s)
+        return powered
+
+    def _power_off(self, now_s: float) -> None:
+        """Power gone: no coil current, nothing sent or heard; whatever the board held in RAM (its
+        state, the E2E receiver, queued EMCYs, its counters) is lost."""
+        self._powered = False
+        self.power_log.append({"event": "power_lost", "t_s": now_s})
+        self.state = BoardState()             # safe state, coils off
+        self.nmt_state = p.NMT_BOOT_UP        # no NMT state until it boots again
+        self._last_command_s = self._next_no_data_s = self._last_emcy_s = None
+        self._pending_emcy.clear()
+        self._hw_now_s = now_s
+        if self.on_coils_changed is not None:
+            self.on_coils_changed(self.state)
+
+    def _power_on(self, now_s: float) -> None:
+        """Power back: the board boots as after a reset node (CiA 301): parameters from its object
+        dictionary, a new E2E receiver, its own counters from zero, boot-up heartbeat and
+        pre-operational until the NMT master starts it. The SecOC freshness it accepted last is
+        kept (non-volatile: a reboot must not reopen the window for a replay)."""
+        self._powered = True
+        self.power_log.append({"event": "booted", "t_s": now_s})
+        self.config = self._configured
+        self.e2e.reset()
+        self._tx_counter.clear()
+        self.error_register = 0
+        self._last_update_s = now_s
+        self._hw_now_s = now_s
+        self._hardware_state = self.hardware.state(now_s)
+        self.start(now_s)
+
     def step(self, now_s: float | None = None) -> None:
         """Handle every frame waiting on the bus, then advance the coils and send what is due."""
         now_s = self.clock() if now_s is None else now_s
@@ -260,6 +329,10 @@ class MagnetorquerBoard:
             due_s = self._next_heartbeat_s
             if self.nmt_state == p.NMT_OPERATIONAL:
                 due_s = min(due_s, self._next_telemetry_s)
+            if self.hardware.windows:   # a power loss's or a coil fault's edge
+                due_s = min(due_s, self.hardware.next_edge_s(self.clock()) or math.inf)
+                if not self._powered:
+                    due_s = min(due_s, self.clock() + 0.01)
             wait_s = max(0.0, due_s - self.clock())
             msg = self.bus.recv(timeout=min(wait_s, 0.01))
             now_s = self.clock()
@@ -270,6 +343,9 @@ class MagnetorquerBoard:
     # --- receiving ------------------------------------------------------------------------
     def handle(self, msg: can.Message, now_s: float) -> None:
         """One frame from the bus. Anything but a valid command is counted and ignored."""
+        if not self._powered_at(now_s):
+            self.ignored["without power"] += 1      # a board without power hears nothing
+            return
         received_ns = time.monotonic_ns()
         self.received[p.frame_kind(self.protocol, msg)] += 1
         if self.sdo.is_request(msg) and self.nmt_state != p.NMT_STOPPED:   # CiA 301: no SDO when stopped
@@ -334,6 +410,8 @@ class MagnetorquerBoard:
         s.safe_state = s.command_timeout = False
         self._last_command_s = now_s
         self.accepted += 1
+        if not self.hardware.armed:
+            self.hardware.arm(now_s)     # a board alone: its hardware faults count from its first command
         if self.on_applied is not None:
             self.on_applied(AppliedCommand(s.target_dipole_am2.copy(), frame.counter, received_ns, time.monotonic_ns(),
                                            self.last_command_age_s if self.freshness is not None else None))
@@ -376,6 +454,13 @@ class MagnetorquerBoard:
         """Safe state and magnetometer windows, coil currents up to now, periodic frames."""
         s, c = self.state, self.config
         changed = False
+        if self.hardware.windows:
+            if not self._powered_at(now_s):
+                return                                # no frames, no coil current
+            state = self.hardware.state(now_s)
+            changed = state != self._hardware_state != ()   # a coil fault began or ended: the coils changed
+            self._hardware_state = state
+        self._hw_now_s = now_s
         if (self._last_command_s is not None and not s.safe_state
                 and now_s - self._last_command_s > c.command_timeout_s):
             self._enter_safe_state(now_s)
@@ -392,6 +477,8 @@ class MagnetorquerBoard:
                 self.on_coils_changed(s)
             self._echo_setpoint(command_applied=False)
         target = np.zeros(3) if (s.safe_state or s.actuation_paused) else s.target_dipole_am2
+        if self.hardware.windows:
+            target = self.hardware.sensed_am2(target, now_s)   # what flows through the current sensor
         self._advance_coils(target / c.coil_gain_am2_per_a, now_s)
         if now_s >= self._next_telemetry_s and self.nmt_state == p.NMT_OPERATIONAL:
             self._count_late(now_s - self._next_telemetry_s, c.telemetry_period_s)
@@ -407,7 +494,10 @@ class MagnetorquerBoard:
         the command timeout, an E2E check without new data, a held EMCY, a magnetometer window
         edge. An event-driven caller (lock-step on simulated time) wakes the board then."""
         c, s = self.config, self.state
-        due = [self._next_heartbeat_s]
+        edge_s = self.hardware.next_edge_s(now_s) if self.hardware.windows else None
+        if not self._powered_at(now_s):
+            return edge_s if edge_s is not None else math.inf     # nothing happens until power returns
+        due = [self._next_heartbeat_s] + ([edge_s] if edge_s is not None else [])
         if self.nmt_state == p.NMT_OPERATIONAL:
             due.append(self._next_telemetry_s)
         if self._last_command_s is not None and not s.safe_state:
@@ -476,7 +566,7 @@ class MagnetorquerBoard:
         self._send(self._protected(p.TLM_SETPOINT, {
             "CommandCounter": s.last_command_counter, "CommandApplied": command_applied,
             "SafeState": s.safe_state, "ActuationPaused": s.actuation_paused,
-            **{f"Setpoint{a}": float(v) for a, v in zip(p.AXES, self.output_dipole_am2)},
+            **{f"Setpoint{a}": float(v) for a, v in zip(p.AXES, self.setpoint_am2)},
         }))
 
     def _protected(self, name: str, signals: dict) -> can.Message:
@@ -485,6 +575,8 @@ class MagnetorquerBoard:
         return self.protocol.encode(name, signals, counter)
 
     def _send(self, msg: can.Message) -> None:
+        if not self._powered:
+            return
         try:
             self.bus.send(msg)
             self.sent[p.frame_kind(self.protocol, msg)] += 1

@@ -121,6 +121,7 @@ class BusModel:
             self.add_node(node)
         self._held: list[Transmission] = []    # the injector's frames and frames it holds back, by time
         self.recover_at_ns: dict[str, int] = {}   # bus-off nodes: when they rejoin if the bus stays idle
+        self.unpowered: set[str] = set()          # nodes without power (board_power_loss): off the bus
         self._recovery: dict[str, _Recovery] = {}
         self._suspended_until_ns: dict[str, int] = {}   # error-passive transmitters (suspend transmission)
         self.in_flight: _InFlight | None = None
@@ -142,7 +143,26 @@ class BusModel:
         return tuple(n for n in self.nodes if n != source and n != same_wire)
 
     def _on_bus(self, node: str) -> bool:
-        return node not in self.recover_at_ns          # a bus-off node neither sends, hears nor ACKs
+        # A bus-off node neither sends, hears nor ACKs; nor does a board without power.
+        return node not in self.recover_at_ns and node not in self.unpowered
+
+    def _apply_power(self, t_ns: int) -> bool:
+        """The board's power supply at t_ns (the injector's board_power_loss windows): a board that
+        loses power leaves the bus, and the frames in its controller's queue are gone. True if
+        that changed anything."""
+        hardware = self.injector.hardware
+        if not hardware.windows:
+            return False
+        off = {BOARD} if BOARD in self.queues and not hardware.powered(t_ns / 1e9) else set()
+        if off == self.unpowered:
+            return False
+        for node in off - self.unpowered:
+            for tx in self.queues[node]:
+                self._log(tx.msg, CHANNEL_DROPPED, t_ns)
+                self.stats.dropped["power_loss"] += 1
+            self.queues[node].clear()
+        self.unpowered = off
+        return True
 
     # --- input ----------------------------------------------------------------------------
     def submit(self, source: str, msg: can.Message, t_ns: int) -> None:
@@ -188,6 +208,8 @@ class BusModel:
                 continue
             if start_ns is None or start_ns > t_ns:
                 break
+            if self._apply_power(start_ns):
+                continue          # who is on the bus changed: the frame that starts may be another
             self._arbitrate(start_ns)
         self.now_ns = max(self.now_ns, t_ns)
         return deliveries
@@ -540,6 +562,9 @@ class BusModel:
             "tec_max": dict(self.stats.tec_max),
             "command_latency_us": latency,
             "faults_t0_ns": self.injector.t0_ns,
+            # bus seconds per simulated second of the faults' start_s and duration_s (1 / time_factor
+            # on a real-time run's wall clock); each fault's window as armed is in "faults"
+            "fault_clock_scale": self.injector.wall_s_per_sim_s,
             "faults": self.injector.summary(),
         }
 

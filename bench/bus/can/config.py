@@ -110,9 +110,13 @@ class DriverConfig(msgspec.Struct, forbid_unknown_fields=True):
     heartbeat_timeout_periods: Annotated[float, msgspec.Meta(ge=1.0, le=1000.0)] = 2.5
     telemetry_timeout_periods: Annotated[float, msgspec.Meta(ge=1.0, le=1000.0)] = 3.0
     max_delta_counter: Annotated[int, msgspec.Meta(ge=1, le=15)] = 1
-    # Plausibility of the applied dipole against the command: beyond tolerance for longer than
-    # mismatch_time_s (after the coils had settle_s to follow) is a stuck or corrupted actuator.
-    dipole_tolerance_am2: PositiveS = 0.01
+    # Plausibility of the applied dipole (the coils' current sensors) against the commands: outside
+    # the range of the set-points the coils can be following (driver._check_plausibility) by more
+    # than the tolerance for longer than mismatch_time_s is a coil that does not do what it is told
+    # (open, stuck) or a corrupted command. The set-points are the board's (DAC step, limit), so
+    # the tolerance is the telemetry's 1e-4 A m^2 resolution with a margin: half a DAC step of the
+    # default board (an open coil commanded one DAC step shows).
+    dipole_tolerance_am2: PositiveS = 0.0005
     settle_s: PositiveS = 0.06
     mismatch_time_s: PositiveS = 0.15
     # After a spoofed command, an implausible applied dipole or bad telemetry, health is not ok

@@ -20,7 +20,10 @@ What the driver detects, and from what evidence:
 - spoofed or replayed commands: a frame with the command identifier that this driver did not
   send (a CAN controller never receives its own frames, so any such frame has another source);
   likewise an NMT frame (plain or authenticated): the driver is the bus's only NMT master;
-- stuck actuator or a command corrupted before protection: applied dipole against commanded;
+- a coil that does not follow its commands (open, stuck) or a command corrupted before
+  protection: the applied dipole the current sensors report against the range the commands allow
+  (`_check_plausibility`); a coil wired backwards or weaker than its datasheet, after the sensor,
+  is not for the driver to see (the FDIR actuator monitor's, from the dynamics);
 - its own controller's error-passive, bus-off and restart: SocketCAN error frames; back from
   bus-off also when the board is heard again after the ISO 11898 recovery time (128 x 11
   recessive bits at the bitrate), so that one stray bus-off error frame cannot leave it bus-off;
@@ -49,6 +52,7 @@ import numpy as np
 
 from bench.bus.can import canopen_od, errors
 from bench.bus.can import protocol as p
+from bench.bus.can.board import coil_driver_dipole
 from bench.bus.can.config import BoardConfig, CanConfig, DriverConfig
 
 MAX_EVENTS_KEPT = 10_000
@@ -104,7 +108,7 @@ class BoardHealth:
 @dataclass
 class _Sent:
     counter: int
-    dipole_am2: np.ndarray
+    dipole_am2: np.ndarray      # the set-point it gives the board's coil drivers (DBC scaling, DAC step, limit)
     sent_s: float
 
 
@@ -158,6 +162,13 @@ class MagnetorquerDriver:
         self._tlm: dict[str, dict] = {}
         self._bus_state = errors.ErrorState.ACTIVE
         self._mismatch_since_s: float | None = None
+        # Lock-step on simulated time (windowed_driver.py): a reply the driver owes (the NMT start
+        # for a board that booted) leaves only at the next window's start, so it is built then
+        # (`send_owed`), with that time's freshness value; built when the boot-up was heard, it was
+        # a step old when it left (100 ms at 10 Hz), and the board refused it as stale, for good.
+        self.defer_replies = False
+        self._owed_nmt: int | None = None
+        self._coils_off_s: float | None = None   # last telemetry that said the coils were off
         self._start_s = clock()
         self._new_events: list[FaultEvent] = []
         self._now_s = self._start_s      # the time of the frame being handled (canopen's callbacks)
@@ -185,12 +196,19 @@ class MagnetorquerDriver:
         self.bus.send(msg)
         self._counter = (counter + 1) % p.COUNTER_MODULO
         self.sent_frames += 1
-        requested = np.asarray(dipole_am2, dtype=float) if mode == p.MODE_DIPOLE else np.zeros(3)
-        self._sent.append(_Sent(counter, requested, sent_s))
+        self._sent.append(_Sent(counter, self._setpoint_am2(msg, mode), sent_s))
         if self._last_command_s is not None:
             self._largest_gap_s = max(self._largest_gap_s, sent_s - self._last_command_s)
         self._last_command_s = sent_s
         return counter
+
+    def _setpoint_am2(self, msg: can.Message, mode: int) -> np.ndarray:
+        """What the board's coil drivers are set to for this command: the frame's values (DBC
+        scaling, 1e-4 A m^2) quantised to the DAC step and saturated, as the board does."""
+        frame = self.protocol.decode(msg)
+        if mode != p.MODE_DIPOLE or frame is None:
+            return np.zeros(3)
+        return coil_driver_dipole(np.array([frame.signals[f"Dipole{a}"] for a in p.AXES]), self.board)[0]
 
     # --- receiving ------------------------------------------------------------------------
     def poll(self, timeout_s: float = 0.0, max_frames: int = 1000, lock=None) -> list[FaultEvent]:
@@ -254,12 +272,26 @@ class MagnetorquerDriver:
         """canopen's NMT master heard a heartbeat (state as sent: 0 is boot-up, which its
         `node.nmt.state` already shows as pre-operational)."""
         now_s = self._now_s
-        if state == p.NMT_BOOT_UP and self._nmt_state is not None:
-            self._event("board_rebooted", 0.0, p.HEARTBEAT)
+        if state == p.NMT_BOOT_UP:
+            if self._nmt_state is not None:
+                self._event("board_rebooted", 0.0, p.HEARTBEAT)
+            # A node that boots starts its own alive counters again, and its coils from rest.
+            for receiver in self._rx_e2e.values():
+                receiver.reset()
+            self._mismatch_since_s = None
         self._nmt_state = state
         self._arrived(self._heartbeat, now_s, "heartbeat_resumed", p.HEARTBEAT)
         if self.config.nmt_auto_start and state in (p.NMT_BOOT_UP, p.NMT_PRE_OPERATIONAL):
-            self.nmt(p.NMT_START)
+            if self.defer_replies:
+                self._owed_nmt = p.NMT_START
+            else:
+                self.nmt(p.NMT_START)
+
+    def send_owed(self) -> None:
+        """Send the reply owed since the last window (defer_replies), built now."""
+        if self._owed_nmt is not None:
+            command, self._owed_nmt = self._owed_nmt, None
+            self.nmt(command)
 
     def nmt(self, command: int) -> None:
         """Send a CiA 301 NMT command (p.NMT_START, ...) to this driver's board."""
@@ -313,7 +345,8 @@ class MagnetorquerDriver:
         self._tlm[frame.name] = frame.signals
         self._arrived(self._telemetry[frame.name], now_s, None, frame.name)
         if frame.name == p.TLM_DIPOLE:
-            self._check_plausibility(frame.signals, now_s)
+            # judged at the time the frame was on the bus (its wire stamp), the time it reports
+            self._check_plausibility(frame.signals, now_s, now_s - min(max(self._wire_age_s(msg), 0.0), now_s - self._start_s))
 
     def _on_error_frame(self, msg: can.Message) -> None:
         state, restarted = errors.read_error_frame(msg)
@@ -346,27 +379,45 @@ class MagnetorquerDriver:
         deadline.lost = False
         deadline.last_s = now_s
 
-    def _check_plausibility(self, tlm: dict, now_s: float) -> None:
-        """Applied dipole far from every command the coils had time to follow, for too long."""
+    def _check_plausibility(self, tlm: dict, now_s: float, sampled_s: float) -> None:
+        """The applied dipole the current sensors report at `sampled_s` (the frame's time on the
+        bus, on this driver's clock), outside what the coils can be doing then, for too long. A
+        coil's current follows its driver's set-point with a first-order lag (L/R), so whatever the
+        commands did, it is a weighted mean of the set-points since it last settled: on each axis
+        between the least and the greatest of the set-points of the newest command sent settle_s
+        before the sample and of every command after it up to the sample (and zero after the coils
+        were off). Each set-point is the board's own (DBC scaling, DAC step, limit), so the
+        tolerance covers the telemetry's resolution, not the board's quantisation.
+
+        Judged as it was before (the applied dipole against each command, at the frame's arrival),
+        a coil commanded faster than it settles was found "far from every command" while it did
+        just what it was told: a lock-step run on the wall clock sends a new dipole every ~4 ms of
+        wall time to coils of 5 ms, and attitude_slew_milqr raised 2-3 actuator_mismatch a run
+        (issue 45)."""
         if tlm["SafeState"] or tlm["ActuationPaused"] or not self._sent:
             self._mismatch_since_s = None
+            self._coils_off_s = now_s
             return
         applied = np.array([tlm[f"AppliedDipole{a}"] for a in p.AXES])
-        settled = [s for s in self._sent if now_s - s.sent_s >= self.config.settle_s]
+        settled = [s for s in self._sent if sampled_s - s.sent_s >= self.config.settle_s]
         if not settled:
             return
-        limit = self.board.max_dipole_am2
-        candidates = [settled[-1].dipole_am2] + [s.dipole_am2 for s in self._sent if s.sent_s > settled[-1].sent_s]
-        close = any(np.max(np.abs(applied - np.clip(c, -limit, limit))) <= self.config.dipole_tolerance_am2
-                    for c in candidates)
-        if close:
+        candidates = [settled[-1].dipole_am2] + [s.dipole_am2 for s in self._sent
+                                                 if settled[-1].sent_s < s.sent_s <= sampled_s]
+        if self._coils_off_s is not None and now_s - self._coils_off_s < self.config.settle_s:
+            candidates.append(np.zeros(3))          # the coils were off a moment ago: still rising
+        reachable = np.array(candidates)
+        tolerance = self.config.dipole_tolerance_am2
+        outside = (applied < reachable.min(axis=0) - tolerance) | (applied > reachable.max(axis=0) + tolerance)
+        if not outside.any():
             self._mismatch_since_s = None
             return
         if self._mismatch_since_s is None:
             self._mismatch_since_s = now_s
         elif now_s - self._mismatch_since_s >= self.config.mismatch_time_s:
+            axes = "".join(a for a, out in zip(p.AXES, outside) if out).lower()
             self._event("actuator_mismatch", now_s - self._mismatch_since_s + self.config.settle_s, p.TLM_DIPOLE,
-                        f"applied {np.round(applied, 4).tolist()} commanded {np.round(candidates[-1], 4).tolist()}")
+                        f"axis {axes}: applied {np.round(applied, 4).tolist()} commanded {np.round(candidates[-1], 4).tolist()}")
             self._mismatch_since_s = None  # report again if it persists another mismatch_time_s
 
     # --- reporting ------------------------------------------------------------------------

@@ -4,7 +4,10 @@ The bus model hands every frame a node submits to `FaultInjector.on_submit`, ask
 the flood's frames when the bus is free, and asks `destroys` before each transmission attempt.
 Each fault acts only inside its window, on its target frames, on every `every`-th of them, until
 it has affected `count` frames; every action is logged (InjectionRecord) so that a test can
-account for every frame and measure detection latency from the moment of injection.
+account for every frame and measure detection latency from the moment of injection. The hardware
+faults (the board's power and coils) touch no frame here: the injector arms them with the others
+(`hardware`, bench/bus/can/coils.py), for the board beside it and for the bus model, which takes a
+board without power off the bus.
 """
 from __future__ import annotations
 
@@ -14,6 +17,7 @@ from dataclasses import dataclass, field
 import can
 
 from bench.bus.can import protocol as p
+from bench.bus.can.coils import CoilHardware
 from bench.bus.can.faults import FaultSpec
 
 SOURCE_INJECTOR = "injector"
@@ -66,8 +70,9 @@ def _with_counter(msg: can.Message, counter: int) -> bytes:
 class ActiveFault:
     """One fault of the scenario while the bus model runs."""
 
-    def __init__(self, spec: FaultSpec, index: int, protocol: p.Protocol, seed: int):
+    def __init__(self, spec: FaultSpec, index: int, protocol: p.Protocol, seed: int, wall_s_per_sim_s: float = 1.0):
         self.spec = spec
+        self.wall_s_per_sim_s = wall_s_per_sim_s
         self.label = f"{index}:{spec.name}"
         self.protocol = protocol
         self.start_ns: int | None = None   # set by arm(): nothing happens before
@@ -80,7 +85,7 @@ class ActiveFault:
         self.affected = 0
 
     def arm(self, t0_ns: int) -> None:
-        self.start_ns, self.end_ns = self.spec.window_ns(t0_ns)
+        self.start_ns, self.end_ns = self.spec.window_ns(t0_ns, self.wall_s_per_sim_s)
 
     def in_window(self, t_ns: int) -> bool:
         return self.start_ns is not None and self.start_ns <= t_ns and (self.end_ns is None or t_ns < self.end_ns)
@@ -215,12 +220,16 @@ class CounterOffset(ActiveFault):
         return True
 
 
-class BoardDeath(Drop):
-    pass
+class HardwareFault(ActiveFault):
+    """A fault of the board's hardware (coils.py): no frame is its to touch; armed and reported here."""
+
+    def takes(self, msg, t_ns):
+        return False
 
 
-class StuckActuator(ActiveFault):
-    """The board's telemetry keeps its values from the fault's start; the board itself is fine."""
+class TelemetryFreeze(ActiveFault):
+    """The board's telemetry keeps its values from the fault's start; the board and its coils go on
+    as commanded (a frozen telemetry buffer, not a stuck actuator)."""
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
@@ -274,21 +283,28 @@ class ErrorFrames(ActiveFault):
 KINDS: dict[str, type[ActiveFault]] = {
     "drop": Drop, "delay": Delay, "duplicate": Duplicate, "replay": Replay, "corrupt": Corrupt,
     "spoof": Spoof, "counter_freeze": CounterFreeze, "counter_offset": CounterOffset, "flood": Flood,
-    "board_death": BoardDeath, "stuck_actuator": StuckActuator, "error_frames": ErrorFrames,
+    "telemetry_freeze": TelemetryFreeze, "error_frames": ErrorFrames,
 }
 
 
 class FaultInjector:
     """Fault times count from `arm(t0_ns)`: the bus model arms it with the first command frame,
-    so that a scenario's start_s means "after commanding started", whenever the nodes came up."""
+    so that a scenario's start_s means "after commanding started", whenever the nodes came up.
+    They are the run's simulated seconds: `wall_s_per_sim_s` of the bus's clock each (1 on a bus
+    on simulated time, 1 / time_factor on a real-time run's wall clock)."""
 
-    def __init__(self, specs: list[FaultSpec], protocol: p.Protocol, seed: int = 1):
+    def __init__(self, specs: list[FaultSpec], protocol: p.Protocol, seed: int = 1, wall_s_per_sim_s: float = 1.0,
+                 max_dipole_am2: float = float("inf")):
         self.protocol = protocol
         self.t0_ns: int | None = None
-        self.faults = [KINDS[s.name](s, i, protocol, seed) for i, s in enumerate(specs)]
+        self.wall_s_per_sim_s = wall_s_per_sim_s
+        self.faults = [(HardwareFault if s.hardware else KINDS[s.name])(s, i, protocol, seed, wall_s_per_sim_s)
+                       for i, s in enumerate(specs)]
+        # The board's power supply and coils under the hardware faults, armed with the others.
+        self.hardware = CoilHardware(specs, max_dipole_am2, wall_s_per_sim_s)
         self.floods = [f for f in self.faults if isinstance(f, Flood)]
         self.error_faults = [f for f in self.faults if isinstance(f, ErrorFrames)]
-        self.frame_faults = [f for f in self.faults if not isinstance(f, (Flood, ErrorFrames))]
+        self.frame_faults = [f for f in self.faults if not isinstance(f, (Flood, ErrorFrames, HardwareFault))]
         self.records: list[InjectionRecord] = []
 
     # --- called by the bus model ----------------------------------------------------------
@@ -296,6 +312,7 @@ class FaultInjector:
         self.t0_ns = t0_ns
         for fault in self.faults:
             fault.arm(t0_ns)
+        self.hardware.arm(t0_ns / 1e9)
 
     def on_submit(self, tx: Transmission) -> SubmitOutcome:
         outcome = SubmitOutcome()
@@ -352,5 +369,7 @@ class FaultInjector:
         for fault in self.faults:
             mine = [r for r in self.records if r.fault == fault.label]
             out.append({"fault": fault.label, "affected": fault.affected,
-                        "first_ns": mine[0].t_ns if mine else None, "last_ns": mine[-1].t_ns if mine else None})
+                        "first_ns": mine[0].t_ns if mine else None, "last_ns": mine[-1].t_ns if mine else None,
+                        # its window on the bus's clock as armed (None: not armed, or no end)
+                        "start_ns": fault.start_ns, "end_ns": fault.end_ns})
         return out

@@ -85,13 +85,14 @@ class LockStepBus:
         config = self.config
         self.clock = SimClock(t_ns)
         outsider = p.Protocol(config.node_id, config.security.profile)     # the injector has no key
-        self.injector = FaultInjector(config.faults, outsider, seed=self.seed)
+        self.injector = FaultInjector(config.faults, outsider, seed=self.seed, max_dipole_am2=config.board.max_dipole_am2)
         self.model = BusModel(self.injector, outsider, t_ns, bitrate_bps=config.bitrate_bps,
                               tx_queue_frames=config.tx_queue_frames, capture=self.capture,
                               to_wall_s=lambda ns: ns / 1e9)
         self.buses = {FLIGHT: SimBus(self.model, FLIGHT, self.clock), BOARD: SimBus(self.model, BOARD, self.clock)}
         self.board = MagnetorquerBoard(self.buses[BOARD], config.board, config.protocol(), clock=self.clock,
-                                       on_applied=self.applied.append, security=config.security)
+                                       on_applied=self.applied.append, security=config.security,
+                                       hardware=self.injector.hardware)
         self.board.start(self.clock())
 
     def advance(self, start_ns: int, end_ns: int, frames: list[SimFrame]) -> tuple[list[SimFrame], StepCoils]:

@@ -22,11 +22,12 @@ import can
 from bench.bus import keys
 from bench.bus.can import protocol as p
 from bench.bus.can.board import AppliedCommand, MagnetorquerBoard
+from bench.bus.can.coils import CoilHardware
 from bench.bus.can.busmodel import BOARD, CHANNEL_BUS, FLIGHT, BusModel, RealTimeBridge
 from bench.bus.can.config import CanConfig
 from bench.bus.can.injector import FaultInjector
 from bench.bus.can.lockstep_bus import LockStepBus, StepCoils
-from bench.bus.can.sim_window import SIM_ZERO_NS, CanWindow, bus_on_simulated_time
+from bench.bus.can.sim_window import SIM_ZERO_NS, CanWindow, bus_on_simulated_time, fault_clock_scale
 from bench.bus.can.transport import open_bus
 from bench.bus.schemas import MtqApplied, header
 
@@ -89,8 +90,11 @@ def run_board(ctx) -> int:
     def on_coils_changed(state) -> None:
         publish(None, state.last_command_counter)
 
+    # The board's own hardware faults, armed with the first command it accepts (fault times in
+    # simulated seconds, on its wall clock by the run's time factor).
+    hardware = CoilHardware(config.faults, config.board.max_dipole_am2, fault_clock_scale(ctx.scenario))
     board = MagnetorquerBoard(bus, config.board, config.protocol(), on_applied=on_applied,
-                              on_coils_changed=on_coils_changed, security=config.security)
+                              on_coils_changed=on_coils_changed, security=config.security, hardware=hardware)
     try:
         _wait_for_bus_peer(bus, config.board_channel, ctx)
         ctx.declare_ready([])   # the plant starts the loop once every node is ready
@@ -115,7 +119,10 @@ def write_board_summary(run_dir: Path, board: MagnetorquerBoard, applied: list[d
                "rejected": dict(board.rejected), "bad_frames": dict(board.protocol.bad.counts),
                "ignored": dict(board.ignored), "lost_commands": board.lost_commands, "nmt_state": board.nmt_state,
                "sdo_writes_refused": board.sdo.refused_writes, **board.host_lateness.report(),
-               "realtime_priority": realtime_priority, "applied": applied}
+               "realtime_priority": realtime_priority,
+               # Power lost, booted, operational again (board_power_loss), on the board's clock (ns).
+               "power_log": [{"event": e["event"], "t_ns": round(e["t_s"] * 1e9)} for e in board.power_log],
+               "hardware_faults": board.hardware.summary(), "applied": applied}
     (can_dir(run_dir) / BOARD_NAME).write_text(json.dumps(summary))
     return summary
 
@@ -149,7 +156,8 @@ def run_bus_model(ctx) -> int:
     protocol = p.Protocol(config.node_id, config.security.profile)   # no key: the injector is no insider
     t0_ns = time.monotonic_ns()
     wall_offset_s = time.time() - t0_ns / 1e9
-    injector = FaultInjector(config.faults, protocol, seed=ctx.scenario.run.seed)
+    injector = FaultInjector(config.faults, protocol, seed=ctx.scenario.run.seed,
+                             wall_s_per_sim_s=fault_clock_scale(ctx.scenario), max_dipole_am2=config.board.max_dipole_am2)
     model = BusModel(injector, protocol, t0_ns, bitrate_bps=config.bitrate_bps, tx_queue_frames=config.tx_queue_frames,
                      capture=capture, to_wall_s=lambda t_ns: t_ns / 1e9 + wall_offset_s)
     bridge = RealTimeBridge(model, buses)

@@ -108,3 +108,16 @@ def bus_on_simulated_time(scenario) -> bool:
     clock = can_config.lock_step_clock
     own_bus = can_config.transport == "zenoh" and can_config.driver_bus is None and can_config.board_bus is None
     return own_bus and (clock == "simulated" or (clock == "auto" and bool(can_config.faults)))
+
+
+def fault_clock_scale(scenario) -> float:
+    """Seconds of the bus's clock per simulated second: what a fault's start_s and duration_s (the
+    run's simulated seconds, FaultSpec.window_ns) are multiplied by on the bus. 1 where the bus runs
+    on simulated time; 1 / time_factor where a real-time run puts it on the wall clock (a
+    rendezvous at 6000: a fault at 18 000 s comes 3 s of wall time after the first command). A
+    lock-step run with the bus on the wall clock has no wall time per simulated second: an
+    attitude loop is refused faults there (bench.scenario), and a bus alone (no loop, or beside a
+    lock-step rendezvous, which it does not touch) counts them in its own seconds (1)."""
+    if bus_on_simulated_time(scenario) or scenario.run.mode != "real-time":
+        return 1.0
+    return 1.0 / float(scenario.run.time_factor)

@@ -7,7 +7,7 @@ modes, keep-alives every command period (mixed: counted from the change; cyclic:
 slots, the first slot carrying a new dipole). `heard` then hands it the frames the bus delivered
 during that step, each at its simulated time, with the deadline checks its real-time loop makes
 at every command slot in between. A frame it owes in reply (an NMT start for a booting board)
-goes out at the next step's start. No transport here: the controller's LockStepLink carries the
+goes out at the next step's start, built then (its SecOC freshness is that time's). No transport here: the controller's LockStepLink carries the
 windows over Zenoh; tests run it against the bus in process.
 """
 from __future__ import annotations
@@ -28,6 +28,7 @@ class WindowedDriver:
         self.outbox = OutboxBus(self.clock)
         self.driver = MagnetorquerDriver.from_config(self.outbox, config, clock=self.clock, wall_clock=self.clock,
                                                      event_clock_ns=lambda: self.clock.t_ns)
+        self.driver.defer_replies = True
         self.transmission = config.driver.transmission
         self.period_ns = round(config.driver.command_period_s * 1e9)
         self._dipole = [0.0, 0.0, 0.0]
@@ -38,6 +39,7 @@ class WindowedDriver:
         """The frames of the step [start_ns, end_ns), with (alive counter, monotonic ns sent) of
         the first one carrying `dipole_am2` (-1, None: no dipole given, or no frame in the step)."""
         self.clock.t_ns = start_ns
+        self.driver.send_owed()                   # an NMT start for a board that booted, built now
         counter, sent_ns = -1, None
         if dipole_am2 is not None:
             self._dipole = [float(x) for x in dipole_am2]
