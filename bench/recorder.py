@@ -52,6 +52,7 @@ from typing import Union
 
 import can
 import msgspec
+from mcap.data_stream import RecordBuilder
 from mcap.writer import Writer
 
 from bench.bus import clock_sync, data_auth, keys
@@ -59,6 +60,7 @@ from bench.bus.presence import PresenceQuery
 from bench.bus.can import protocol as can_protocol
 from bench.bus.can import zenoh_wire
 from bench.bus.can.zenoh_interface import CAN_TOPIC
+from bench.bus.spill import SpilledRecords
 from bench.bus.schemas import SCHEMA_VERSION, Message, MtqApplied, ProcessStats, json_schema
 from bench.bus import plan_message as _plan_message   # noqa: F401  registers AttitudePlanMessage
 
@@ -306,6 +308,25 @@ def deployment_metadata(argv: list[str]) -> dict[str, str] | None:
     return {"path": path, "host": value("--host") or "", "toml": text.decode("utf-8", errors="replace")}
 
 
+def _record_bytes(record) -> bytes:
+    builder = RecordBuilder()
+    record.write(builder)
+    return builder.end()
+
+
+def spill_chunk_indexes(writer: Writer, directory: Path) -> None:
+    """Keep the writer's chunk indexes on disk until finish() writes them into the summary.
+
+    mcap's Writer holds a ChunkIndex per chunk (with a message-index offset per channel) for the
+    whole run: with 64 KiB chunks, ~2 a second in a real-time attitude run, that was the recorder's
+    ~20 MiB/h of growth (issue 44). The file written is the same. Relies on the Writer's private
+    list (mcap 1.x: appended once per chunk, iterated once in finish()); a Writer without it keeps
+    its own list, as before."""
+    name = "_Writer__chunk_indices"
+    if isinstance(getattr(writer, name, None), list) and not getattr(writer, name):
+        setattr(writer, name, SpilledRecords(_record_bytes, directory))
+
+
 class Recording:
     """An MCAP file with one JSON channel per (topic, message type), CAN channels as JSON with their
     decoded signals, raw malformed channels, and the scenario and deployment as metadata."""
@@ -314,6 +335,7 @@ class Recording:
         self.run_id = run_id
         self._file = open(path, "wb")
         self._writer = Writer(self._file, chunk_size=CHUNK_SIZE_BYTES)
+        spill_chunk_indexes(self._writer, path.parent)
         self._writer.start(profile="", library="orbit-hil-bench recorder")
         if scenario is not None:
             self._writer.add_metadata(METADATA_SCENARIO, scenario_metadata(scenario))

@@ -22,6 +22,7 @@ from typing import Callable
 
 import numpy as np
 
+from bench.bus.spill import SpilledRows
 from bench.controller.config import ControllerConfig, DeadlineConfig, StressConfig
 from bench.controller.factory import weights_from_config
 from bench.gnc.cwh import RendezvousParams
@@ -102,11 +103,13 @@ class DeadlineMonitor:
         self.counter = MissCounter()
         self.fallbacks_applied: dict[str, int] = {}
         self._last = _LastGood(command=np.zeros(n_inputs))
-        self.cycle_times_s: list[float] = []
+        # Per cycle, on disk as they come (bench/bus/spill.py): summary() takes exact percentiles
+        # of them, and a controller of any run length keeps a flat memory (issue 44).
+        self.cycle_times_s = SpilledRows(())
         # Per cycle, how long after the deadline the OS ran the controller again (a law in a worker
         # process reports it, `WorkerLaw.last_wake_late_s`): the host's share of an overrun, so a
         # report tells a slow solver from a busy machine.
-        self.host_wake_late_s: list[float] = []
+        self.host_wake_late_s = SpilledRows(())
 
     # --- the cycle ---------------------------------------------------------------------------
     def run_cycle(
@@ -186,8 +189,8 @@ class DeadlineMonitor:
     # --- for the report ------------------------------------------------------------------
     def summary(self) -> dict:
         """Numbers for metrics.json: cycles, misses, worst cycle time, fallbacks applied."""
-        times = np.asarray(self.cycle_times_s) if self.cycle_times_s else np.zeros(1)
-        host_late = np.asarray(self.host_wake_late_s) if self.host_wake_late_s else np.zeros(1)
+        times = self.cycle_times_s.array() if self.cycle_times_s else np.zeros(1)
+        host_late = self.host_wake_late_s.array() if self.host_wake_late_s else np.zeros(1)
         return {
             **self.counter.summary(),
             "cycle_time_p50_s": float(np.percentile(times, 50)),

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from bench.bus.spill import SpilledRows
 from bench.gnc import quaternion as qt
 from bench.plant.attitude import (
     AttitudeSample, AttitudeSensorSpec, AttitudeSimulation, CircularOrbit, TiltedDipole,
@@ -98,14 +99,21 @@ class LastTimeField:
 
 @dataclass
 class StepLog:
-    time_s: list
-    q_wxyz: list
-    omega_radps: list
-    field_body_t: list
-    field_inertial_t: list
-    dipole_applied_am2: list
-    torque_control_nm: list
-    torque_disturbance_nm: list
+    """Per integrated step, one row per column, on disk as it comes (bench/bus/spill.py): a plant
+    of any run length keeps a flat memory (issue 44); `AttitudePlant.trajectory()` reads them back."""
+    time_s: SpilledRows
+    q_wxyz: SpilledRows
+    omega_radps: SpilledRows
+    field_body_t: SpilledRows
+    field_inertial_t: SpilledRows
+    dipole_applied_am2: SpilledRows
+    torque_control_nm: SpilledRows
+    torque_disturbance_nm: SpilledRows
+
+    @classmethod
+    def empty(cls) -> "StepLog":
+        widths = {"time_s": (), "q_wxyz": (4,)}
+        return cls(**{name: SpilledRows(widths.get(name, (3,))) for name in cls.__dataclass_fields__})
 
 
 class AttitudePlant:
@@ -122,7 +130,7 @@ class AttitudePlant:
                                       np.deg2rad(config.initial_rate_dps), spec, self.orbit, self.field, seed=seed,
                                       magnetometer_due=magnetometer_due)
         self.residual_dipole_am2 = np.asarray(config.disturbances.residual_dipole_am2, float)
-        self.log = StepLog(*([] for _ in range(8)))
+        self.log = StepLog.empty()
         self._sample = self.sim.measure(self.sim.omega_body_radps)
 
     @property
@@ -172,9 +180,4 @@ class AttitudePlant:
 
     def trajectory(self) -> dict[str, np.ndarray]:
         """Per integrated step: the state at its start and what acted over it."""
-        log = self.log
-        n = len(log.time_s)
-        shapes = {"q_wxyz": 4}
-        return {f"att_{name}": np.array(getattr(log, name), dtype=float).reshape(n, shapes.get(name, 3))
-                if name != "time_s" else np.array(log.time_s, dtype=float)
-                for name in StepLog.__dataclass_fields__}
+        return {f"att_{name}": getattr(self.log, name).array() for name in StepLog.__dataclass_fields__}

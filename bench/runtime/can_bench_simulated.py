@@ -20,7 +20,7 @@ from pathlib import Path
 from bench.bus.can import run_key
 from bench.bus.can.config import CanConfig
 from bench.bus.can.lockstep_bus import LockStepBus
-from bench.bus.can.nodes import ACCOUNTING_NAME, CAPTURE_NAME, Capture, applied_record, can_dir, step_applied, \
+from bench.bus.can.nodes import ACCOUNTING_NAME, CAPTURE_NAME, Capture, can_dir, step_applied, \
     write_board_summary, write_bus_results
 from bench.bus.can.sim_window import SIM_ZERO_NS, mission_s
 from bench.bus.can.windowed_driver import BOOT_WINDOWS, WindowedDriver
@@ -112,7 +112,7 @@ class SimulatedCanBench:
                                       "t0_ns": BOOT_WINDOWS[0][1]}
         write_bus_results(self.run_dir, self.capture, report, self.bus.injector)   # closes the capture
         self.capture = None
-        write_board_summary(self.run_dir, self.bus.board, [applied_record(c) for c in self.bus.applied])
+        write_board_summary(self.run_dir, self.bus.board, self.bus.applied)
         return read_run(self.run_dir, self.config, self.driver.driver, events=list(self.events),
                         commanded=list(self.commanded), sent=list(self.sent), mtq_applied=list(self.mtq_applied),
                         command_start_ns=self.command_start_ns, last_command_ns=self.last_command_ns,

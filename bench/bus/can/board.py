@@ -75,6 +75,12 @@ class AppliedCommand:
     age_s: float | None = None      # secoc: age from its freshness value when applied (board clock)
 
 
+def applied_record(command: AppliedCommand) -> dict:
+    """One command the board applied, as can/board.json lists it."""
+    return {"counter": command.alive_counter, "dipole_am2": command.dipole_am2.tolist(),
+            "applied_ns": command.applied_ns, "age_s": command.age_s}
+
+
 @dataclass
 class BoardState:
     target_dipole_am2: np.ndarray = field(default_factory=lambda: np.zeros(3))

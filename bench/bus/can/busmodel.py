@@ -25,11 +25,13 @@ from dataclasses import dataclass, field
 from typing import Callable
 
 import can
+import numpy as np
 
 from bench.bus.can import bittiming, errors
 from bench.bus.can import protocol as p
 from bench.bus.can.host_lateness import HostLateLog
 from bench.bus.can.injector import SOURCE_INJECTOR, FaultInjector, Flood, Transmission
+from bench.bus.spill import SpilledRows, WindowCounter
 
 FLIGHT = "flight"
 BOARD = "board"
@@ -87,8 +89,11 @@ class BusStats:
     bus_off: Counter = field(default_factory=Counter)         # by node
     tec_max: Counter = field(default_factory=Counter)
     bus_errors: Counter = field(default_factory=Counter)      # by kind (bit, ack, ...)
-    command_latency_ns: dict = field(default_factory=lambda: {"without_flood": [], "with_flood": []})
-    load_windows: Counter = field(default_factory=Counter)    # window index -> busy ns
+    # Per command frame and per 100 ms window: on disk as they come (bench/bus/spill.py), so that
+    # a bus model of any run length keeps a flat memory; the report reads them back, exact.
+    command_latency_ns: dict = field(default_factory=lambda: {"without_flood": SpilledRows((), np.int64),
+                                                              "with_flood": SpilledRows((), np.int64)})
+    load_windows: WindowCounter = field(default_factory=WindowCounter)    # window index -> busy ns
     bus_off_recovered: Counter = field(default_factory=Counter)   # by node
     bus_off_time_ns: Counter = field(default_factory=Counter)     # by node, recovered episodes
     bus_off_longest_ns: Counter = field(default_factory=Counter)  # by node

@@ -19,6 +19,7 @@ import can
 from bench.bus.can import protocol as p
 from bench.bus.can.coils import CoilHardware
 from bench.bus.can.faults import FaultSpec
+from bench.bus.spill import SpilledJson
 
 SOURCE_INJECTOR = "injector"
 
@@ -305,7 +306,10 @@ class FaultInjector:
         self.floods = [f for f in self.faults if isinstance(f, Flood)]
         self.error_faults = [f for f in self.faults if isinstance(f, ErrorFrames)]
         self.frame_faults = [f for f in self.faults if not isinstance(f, (Flood, ErrorFrames, HardwareFault))]
-        self.records: list[InjectionRecord] = []
+        # One record per frame a fault touched (a flood: every frame it sends): on disk as they
+        # come (bench/bus/spill.py); iterating gives InjectionRecords back, oldest first.
+        self.records = SpilledJson(encode=lambda r: r.__dict__, decode=lambda d: InjectionRecord(**d))
+        self._span: dict[str, tuple[int, int]] = {}   # fault label -> its first and last record's t_ns
 
     # --- called by the bus model ----------------------------------------------------------
     def arm(self, t0_ns: int) -> None:
@@ -345,6 +349,7 @@ class FaultInjector:
     def record(self, t_ns: int, label: str, action: str, msg: can.Message, original: can.Message | None = None) -> None:
         self.records.append(InjectionRecord(t_ns, label, action, msg.arbitration_id, bytes(msg.data).hex(),
                                             bytes(original.data).hex() if original is not None else ""))
+        self._span[label] = (self._span.get(label, (t_ns,))[0], t_ns)
 
     def drop(self, tx: Transmission, outcome: SubmitOutcome, label: str) -> None:
         outcome.dropped.append((tx.msg, label))
@@ -367,9 +372,9 @@ class FaultInjector:
     def summary(self) -> list[dict]:
         out = []
         for fault in self.faults:
-            mine = [r for r in self.records if r.fault == fault.label]
+            first_ns, last_ns = self._span.get(fault.label, (None, None))
             out.append({"fault": fault.label, "affected": fault.affected,
-                        "first_ns": mine[0].t_ns if mine else None, "last_ns": mine[-1].t_ns if mine else None,
+                        "first_ns": first_ns, "last_ns": last_ns,
                         # its window on the bus's clock as armed (None: not armed, or no end)
                         "start_ns": fault.start_ns, "end_ns": fault.end_ns})
         return out

@@ -24,12 +24,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from bench.bus.can import protocol as p
-from bench.bus.can.board import AppliedCommand, MagnetorquerBoard
+from bench.bus.can.board import AppliedCommand, MagnetorquerBoard, applied_record
 from bench.bus.can.busmodel import BOARD, FLIGHT, BusModel
 from bench.bus.can.config import CanConfig
 from bench.bus.can.injector import FaultInjector
 from bench.bus.can.sim_window import SimFrame, to_can_message, to_sim_frame
 from bench.bus.can.simbus import SimBus, SimClock
+from bench.bus.spill import SpilledJson
 
 
 @dataclass
@@ -78,7 +79,10 @@ class LockStepBus:
         self.seed = seed
         self.capture = capture
         self.clock: SimClock | None = None
-        self.applied: list[AppliedCommand] = []
+        # Every command the board applied, as can/board.json lists it (`applied_record`): on disk as
+        # they come (bench/bus/spill.py), so a lock-step run of any length keeps a flat memory.
+        self.applied = SpilledJson()
+        self._applied_in_step: list[AppliedCommand] = []
         self._command_id = config.protocol().frame_ids[config.protocol().command_name]
 
     def _boot(self, t_ns: int) -> None:
@@ -91,7 +95,7 @@ class LockStepBus:
                               to_wall_s=lambda ns: ns / 1e9)
         self.buses = {FLIGHT: SimBus(self.model, FLIGHT, self.clock), BOARD: SimBus(self.model, BOARD, self.clock)}
         self.board = MagnetorquerBoard(self.buses[BOARD], config.board, config.protocol(), clock=self.clock,
-                                       on_applied=self.applied.append, security=config.security,
+                                       on_applied=self._on_applied, security=config.security,
                                        hardware=self.injector.hardware)
         self.board.start(self.clock())
 
@@ -106,7 +110,7 @@ class LockStepBus:
             raise ValueError("a flight frame's time is outside its step")
         step_command = next(((f.arbitration_id, f.data) for f in pending if f.arbitration_id == self._command_id), None)
         heard: list[SimFrame] = []
-        applied_before = len(self.applied)
+        self._applied_in_step = []
         average = StepAverage(start_ns, end_ns)
         off_ns = 0
         i = 0
@@ -140,11 +144,15 @@ class LockStepBus:
             if board.state.safe_state or board.state.actuation_paused:
                 off_ns += next_ns - now_ns
             self.clock.t_ns = next_ns
-        new = self.applied[applied_before:]
+        new = self._applied_in_step
         coils = StepCoils(average.dipole_am2(board.output_dipole_am2), bool(board.state.safe_state),
                           bool(board.state.actuation_paused), board.state.coil_current_a.copy(),
                           new[0].alive_counter if new else None, off_ns / average.step_ns)
         return heard, coils
+
+    def _on_applied(self, command: AppliedCommand) -> None:
+        self._applied_in_step.append(command)
+        self.applied.append(applied_record(command))
 
     @property
     def t_ns(self) -> int | None:

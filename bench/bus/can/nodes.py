@@ -21,7 +21,7 @@ import can
 
 from bench.bus import keys
 from bench.bus.can import protocol as p
-from bench.bus.can.board import AppliedCommand, MagnetorquerBoard
+from bench.bus.can.board import AppliedCommand, MagnetorquerBoard, applied_record
 from bench.bus.can.coils import CoilHardware
 from bench.bus.can.busmodel import BOARD, CHANNEL_BUS, FLIGHT, BusModel, RealTimeBridge
 from bench.bus.can.config import CanConfig
@@ -30,6 +30,7 @@ from bench.bus.can.lockstep_bus import LockStepBus, StepCoils
 from bench.bus.can.sim_window import SIM_ZERO_NS, CanWindow, bus_on_simulated_time, fault_clock_scale
 from bench.bus.can.transport import open_bus
 from bench.bus.schemas import MtqApplied, header
+from bench.bus.spill import SpilledJson, write_json_with_list
 
 PEER_WAIT_S = 10.0
 CAPTURE_NAME = "can.log"             # in the run directory: what a sniffer on the bus would see
@@ -70,7 +71,9 @@ def run_board(ctx) -> int:
     if config is None:
         return 2
     bus = open_node_bus(ctx, config, "board")
-    applied: list[dict] = []
+    # One record per applied command (100 a second at a 10 ms command period): on disk as they
+    # come, copied into board.json at the end (bench/bus/spill.py), so the board's memory stays flat.
+    applied = SpilledJson(can_dir(ctx.run_dir))
 
     def publish(received_ns: int | None, counter: int, target_dipole_am2: list[float] | None = None) -> None:
         stamps = {"applied": time.monotonic_ns()}
@@ -103,18 +106,15 @@ def run_board(ctx) -> int:
         ctx.leave_realtime_priority()   # the files at normal priority: they must not hold up another run's bus
         summary = write_board_summary(ctx.run_dir, board, applied, ctx.realtime_priority)
         ctx.log.info("board: sent %s, accepted %d, rejected %s", summary["sent"], board.accepted, summary["rejected"])
+        applied.close()
         bus.shutdown()
     return 0
 
 
-def applied_record(command: AppliedCommand) -> dict:
-    """One command the board applied, as board.json lists it."""
-    return {"counter": command.alive_counter, "dipole_am2": command.dipole_am2.tolist(),
-            "applied_ns": command.applied_ns, "age_s": command.age_s}
-
-
-def write_board_summary(run_dir: Path, board: MagnetorquerBoard, applied: list[dict], realtime_priority: int = 0) -> dict:
-    """<run_dir>/can/board.json: the board's counts and every command it applied (`applied_record`)."""
+def write_board_summary(run_dir: Path, board: MagnetorquerBoard, applied, realtime_priority: int = 0) -> dict:
+    """<run_dir>/can/board.json: the board's counts and every command it applied (`applied_record`);
+    `applied`: a list of those records or a SpilledJson of them (copied to the file as it is read).
+    Returns the counts (without the applied records)."""
     summary = {"sent": dict(board.sent), "received": dict(board.received), "accepted": board.accepted,
                "rejected": dict(board.rejected), "bad_frames": dict(board.protocol.bad.counts),
                "ignored": dict(board.ignored), "lost_commands": board.lost_commands, "nmt_state": board.nmt_state,
@@ -122,8 +122,8 @@ def write_board_summary(run_dir: Path, board: MagnetorquerBoard, applied: list[d
                "realtime_priority": realtime_priority,
                # Power lost, booted, operational again (board_power_loss), on the board's clock (ns).
                "power_log": [{"event": e["event"], "t_ns": round(e["t_s"] * 1e9)} for e in board.power_log],
-               "hardware_faults": board.hardware.summary(), "applied": applied}
-    (can_dir(run_dir) / BOARD_NAME).write_text(json.dumps(summary))
+               "hardware_faults": board.hardware.summary()}
+    write_json_with_list(can_dir(run_dir) / BOARD_NAME, summary, "applied", applied)
     return summary
 
 
@@ -187,8 +187,8 @@ def write_bus_results(run_dir: Path, capture: Capture | None, report: dict, inje
         capture.stop()
     (out / REPORT_NAME).write_text(json.dumps(report, indent=1))
     with open(out / INJECTIONS_NAME, "w") as f:
-        for record in injector.records:
-            f.write(json.dumps(record.__dict__) + "\n")
+        for text in injector.records.raw():    # the JSON of each InjectionRecord, as it was spilled
+            f.write(text + "\n")
 
 
 def _log_bus_load(ctx, report: dict) -> None:
@@ -225,7 +225,7 @@ def run_lockstep_bus(ctx, config: CanConfig) -> int:
             # Bus time throughout: can.log stamps are t_ns / 1e9 (wall_offset_s 0), events t_ns.
             report = bus.report() | {"clock": "simulated", "sim_zero_ns": SIM_ZERO_NS, "wall_offset_s": 0.0}
             write_bus_results(ctx.run_dir, capture, report, bus.injector)
-            write_board_summary(ctx.run_dir, bus.board, [applied_record(c) for c in bus.applied])
+            write_board_summary(ctx.run_dir, bus.board, bus.applied)
         elif capture is not None:
             capture.stop()
     return 0
