@@ -27,6 +27,9 @@ def cmd_export(args) -> int:
 
 
 def cmd_check(args) -> int:
+    if args.node == "board":
+        from bench.contract.board_check import cmd_check_board
+        return cmd_check_board(args)
     from bench.contract.check import load_check_scenario, run_check, write_verdict
 
     try:
@@ -57,9 +60,10 @@ def add_commands(subparsers) -> None:
     export.add_argument("directory", metavar="DIR")
     export.set_defaults(func=cmd_export)
     check = sub.add_parser("check", help="run plant and estimator against an outside node and judge it")
-    check.add_argument("node", choices=["controller", "estimator"], help="the part provided from outside")
+    check.add_argument("node", choices=["controller", "estimator", "board"], help="the part provided from outside")
     check.add_argument("--scenario", help="built-in name or TOML (default: rendezvous_lqr for the controller, "
-                                          "rendezvous_smoother for the estimator)")
+                                          "rendezvous_smoother for the estimator; its [can] section for the board: "
+                                          "the bench's board with its set-point echo)")
     check.add_argument("--steps", type=int, default=10, help="plant steps (default: 10)")
     check.add_argument("--mode", choices=["lock-step", "real-time"], help="override the scenario's run.mode")
     check.add_argument("--command-timeout", type=float, default=5.0,
@@ -74,4 +78,23 @@ def add_commands(subparsers) -> None:
     check.add_argument("--runs-dir", default="runs", help="where the check's run goes (default: runs)")
     check.add_argument("--allowed-misses", type=int, default=0,
                        help="real time: plant-side missed steps tolerated (default: 0)")
+    add_board_arguments(check)
     check.set_defaults(func=cmd_check)
+
+
+def add_board_arguments(check) -> None:
+    """The board check's own options (bench/contract/board_check.py)."""
+    board = check.add_argument_group("board (bench contract check board)")
+    board.add_argument("--interface", help="the board's python-can interface (socketcan, slcan, pcan, ...); default: "
+                                           "the bench's zenoh CAN interface on the hub the check opens")
+    board.add_argument("--channel", help="its channel (a device, never a URL); default: the scenario's board_channel")
+    board.add_argument("--bitrate", type=int, help="bit/s for --interface (default: the adapter's)")
+    board.add_argument("--no-fd", action="store_true", help="classic CAN only (needs the e2e profile)")
+    board.add_argument("--key-file", help="the board's SecOC key, 32 hex digits, mode 0600 (secoc profile, a board "
+                                          "the check does not configure)")
+    board.add_argument("--margin", type=float, default=0.03,
+                       help="s beyond a period or timeout the board may take (default: 0.03)")
+    board.add_argument("--dipole-tolerance", type=float,
+                       help="A m^2 between telemetry and set-point (default: [can.driver] dipole_tolerance_am2)")
+    board.add_argument("--real-time-only", action="store_true",
+                       help="the board sends no set-point echo (MTQ_TLM_SETPOINT): do not require it")

@@ -91,6 +91,9 @@ class NodeContext:
     # `bench node --break trust-inputs`: take every input without checking its tag or counter. Only
     # to show that `bench contract check` fails such a node (it sends forged inputs); never in a run.
     trust_inputs: bool = False
+    # `bench node mtq --break MODE` (bench/bus/can/board_breaks.py): the board broken on purpose, for
+    # `bench contract check board`'s self-test only.
+    breaks: tuple[str, ...] = ()
 
     # --- publishing -----------------------------------------------------------------------
     def publish(self, topic: str, message: Message) -> None:
@@ -356,7 +359,7 @@ def stop_when_gone(ctx: NodeContext, process: str) -> None:
 
 def run_node(name: str, run_id: str, scenario: Scenario, options: SessionOptions, run_dir: Path,
              peers: list[str] | None = None, stop_with: str | None = None, host: str | None = None,
-             trust_inputs: bool = False) -> int:
+             trust_inputs: bool = False, breaks: tuple[str, ...] = ()) -> int:
     """Open the session, install signal handlers, run the node, always close cleanly.
 
     stop_with: also stop when that process's alive token vanishes (nodes on other hosts than the
@@ -366,12 +369,14 @@ def run_node(name: str, run_id: str, scenario: Scenario, options: SessionOptions
 
     if name not in NODES:
         raise ValueError(f"unknown node {name!r} (known: {', '.join(sorted(NODES))})")
+    if breaks and name != "mtq":
+        raise ValueError(f"--break {', '.join(breaks)} breaks the board (node mtq), not {name}")
     die_with_launcher()
     report_key = key_from_environment()
     if options.identity is not None:
         check_identity(options.identity)     # a bad certificate is named before a missing key
     data_key = data_auth.node_key(run_dir, options.identity.ca_path.parent if options.identity else None)
-    module = importlib.import_module(NODES[name])
+    module = importlib.import_module("bench.bus.can.board_breaks" if breaks else NODES[name])
     log = logging.getLogger(f"bench.{name}")
     lease_ms = int(round(scenario.run.liveliness.lease_s * 1000))
     # Before the session: Zenoh's threads, started with it, inherit the priority.
@@ -382,7 +387,7 @@ def run_node(name: str, run_id: str, scenario: Scenario, options: SessionOptions
     session = open_session(dataclasses.replace(options, lease_ms=lease_ms))
     ctx = NodeContext(name=name, run_id=run_id, scenario=scenario, session=session, run_dir=run_dir, log=log,
                       peers=list(peers or []), report_key=report_key, data_key=data_key, realtime_priority=priority,
-                      trust_inputs=trust_inputs)
+                      trust_inputs=trust_inputs, breaks=tuple(breaks))
     if trust_inputs:
         log.warning("--break trust-inputs: this node takes every input without checking its tag (a broken node, "
                     "for bench contract check's self-test)")

@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 from bench.bus import keys
+from bench.bus.can.board_breaks import BREAKS as BOARD_BREAKS
 from bench.bus.certs import CertificateError
 from bench.bus.deployment import LAUNCHER, DeploymentError, load_deployment
 from bench.bus.session import SessionConfigError
@@ -36,8 +37,9 @@ def cmd_node(args) -> int:
             host = args.host
             if load_deployment(args.deployment).launcher_host != host:
                 stop_with = LAUNCHER   # the launcher cannot signal another host: its leaving ends the run
+        breaks = tuple(b for b in (args.breaks or ()) if b != "trust-inputs")
         return run_node(args.name, run_id, scenario, options, run_dir, peers, stop_with=stop_with, host=host,
-                        trust_inputs="trust-inputs" in (args.breaks or ()))
+                        trust_inputs="trust-inputs" in (args.breaks or ()), breaks=breaks)
     except (ScenarioError, SessionConfigError, DeploymentError, CertificateError, ValueError) as exc:
         print(f"bench node: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
@@ -56,7 +58,8 @@ def add_commands(subparsers) -> None:
     node.add_argument("--cert-dir", help="certificate directory: mutual TLS as this node, access control on")
     node.add_argument("--deployment", help="deployment TOML (endpoints, certificates) ...")
     node.add_argument("--host", help="... and which of its hosts this is")
-    node.add_argument("--break", dest="breaks", action="append", choices=["trust-inputs"],
-                      help="break this node on purpose, to see `bench contract check` fail it: trust-inputs takes "
-                           "every input without checking its tag or counter")
+    node.add_argument("--break", dest="breaks", action="append", choices=["trust-inputs", *BOARD_BREAKS],
+                      help="break this node on purpose, to see `bench contract check` fail it (self-test only, never "
+                           "in a run): trust-inputs takes every input without checking its tag or counter; the others "
+                           "break the board, node mtq (bench/bus/can/board_breaks.py)")
     node.set_defaults(func=cmd_node)

@@ -1,0 +1,165 @@
+"""`bench contract check board` (issue 47): a magnetorquer board checked from outside, on its CAN
+bus, by a flight side that speaks only mtq.dbc (bench/contract/board_check.py).
+
+The bench's own board (`bench node mtq`, started by the check's --command and connected to the
+check's hub) passes on both command profiles, and so does one already running on its own bus (the
+check boots it with an NMT reset node). Broken on purpose (`bench node mtq --break MODE`,
+bench/bus/can/board_breaks.py), it fails, each mode naming its problem. Each run takes some 10 s.
+"""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+
+import msgspec
+import numpy as np
+import pytest
+
+from bench.bus.can import protocol as p
+from bench.bus.can import run_key
+from bench.bus.can.config import BusSpec
+from bench.bus.can.transport import open_bus
+from bench.bus.session import SessionOptions, free_loopback_port, loopback_endpoint, open_session
+from bench.contract.board_check import BoardContract, board_scenario, run_board_check
+from bench.runtime.priority import set_realtime_priority
+from conftest import REPO, run_bench_cli
+
+pytestmark = pytest.mark.timeout(900)
+
+
+def _board_command(*extra: str) -> str:
+    return " ".join([sys.executable, "-m", "bench.cli", "node", "mtq", "--run-id {run_id} --scenario {scenario}",
+                     "--connect {connect} --run-dir {run_dir}", *extra])
+
+
+def _check(runs_dir, run_id: str, *args: str) -> tuple[subprocess.CompletedProcess, dict]:
+    result = run_bench_cli("contract", "check", "board", "--runs-dir", str(runs_dir), "--run-id", run_id, *args,
+                           timeout_s=240)
+    path = runs_dir / run_id / "contract_check.json"
+    return result, (json.loads(path.read_text()) if path.is_file() else {})
+
+
+@pytest.fixture(scope="module")
+def runs_dir(tmp_path_factory):
+    return tmp_path_factory.mktemp("board_check")
+
+
+# --- fast -------------------------------------------------------------------------------------
+def test_the_contract_is_the_board_configuration_and_its_set_point_rule():
+    contract = BoardContract.of(board_scenario(None).can, 0.03, None, real_time_only=False)
+    assert (contract.profile, contract.heartbeat_period_s, contract.command_timeout_s, contract.max_dipole_am2,
+            contract.dipole_resolution_am2, contract.command_period_s) == ("secoc", 0.1, 0.1, 0.2, 1e-3, 0.02)
+    assert contract.setpoint_echo and contract.heartbeat_timeout_s == pytest.approx(0.25)
+    setpoint, saturated = contract.setpoint(np.array([0.0404, -0.0803, 0.35]), p.MODE_DIPOLE)
+    np.testing.assert_allclose(setpoint, [0.040, -0.080, 0.2], atol=1e-12)
+    assert saturated
+    assert contract.setpoint(np.array([0.1, 0.1, 0.1]), p.MODE_OFF)[0].tolist() == [0.0, 0.0, 0.0]
+
+
+def test_a_board_break_is_refused_on_another_node(tmp_path):
+    result = run_bench_cli("node", "plant", "--run-id", "brk", "--scenario", "rendezvous_lqr", "--run-dir",
+                           str(tmp_path / "brk"), "--break", "accept-bad-crc")
+    assert result.returncode == 2, result.stdout + result.stderr
+    assert "--break accept-bad-crc breaks the board (node mtq), not plant" in result.stderr
+
+
+# --- the bench's board passes -----------------------------------------------------------------
+def test_the_bench_board_passes_the_board_check(runs_dir):
+    result, verdict = _check(runs_dir, "board-pass", "--command", _board_command())
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert result.stdout.startswith("contract check board: pass (secoc, node 0x10 on zenoh board; heartbeat "), result.stdout
+    assert "refused with EMCY 0x8100: bad-crc, repeated-counter, bad-mac, old-freshness, plain-command, plain-nmt-stop" \
+        in result.stdout
+    assert verdict["passed"] and verdict["problems"] == []
+    m, c = verdict["measured"], verdict["contract"]
+    assert m["boot"]["first_heartbeat_state"] == "boot-up"
+    assert m["heartbeat"]["states"] == ["boot-up", "pre-operational", "operational", "pre-operational", "operational",
+                                        "stopped", "operational", "boot-up", "pre-operational"]
+    assert abs(m["heartbeat"]["period_median_s"] - c["heartbeat_period_s"]) <= 0.1 * c["heartbeat_period_s"]
+    assert m["echo"]["echoed"] == m["echo"]["commands"] > 100
+    assert c["command_timeout_s"] <= m["command_timeout"]["emcy_after_s"] <= c["command_timeout_s"] + c["margin_s"]
+    assert [r["moved"] for r in m["refusals"]] == [[]] * 6
+    held = {r["hold"]: r for r in m["commands"]}
+    assert held["saturated"]["expected_am2"] == [0.2, -0.2, 0.1] and held["saturated"]["saturated_flag"] == [True]
+    assert held["quantised"]["echo_am2"] == pytest.approx([0.040, -0.080, 0.003], abs=1e-9)
+    assert (runs_dir / "board-pass" / "can.log").stat().st_size > 0
+
+
+def test_the_bench_board_on_the_e2e_profile_passes(runs_dir):
+    scenario = runs_dir / "board_e2e.json"
+    scenario.write_text(json.dumps({"name": "board_e2e", "run": {"seed": 1},
+                                    "can": {"board": {"setpoint_echo": True}, "security": {"profile": "e2e"}}}))
+    result, verdict = _check(runs_dir, "board-e2e", "--scenario", str(scenario), "--command", _board_command())
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert result.stdout.startswith("contract check board: pass (e2e, ")
+    assert [r["probe"] for r in verdict["measured"]["refusals"]] == ["bad-crc", "repeated-counter"]
+
+
+def test_a_board_already_running_on_its_own_bus_is_reset_and_passes(tmp_path):
+    """No --command: the board is up and operational on its bus before the check; the check boots it
+    with an NMT reset node first (no boot-up to see at start), then checks the rest."""
+    scenario = run_key.with_run_key(board_scenario(None))
+    path = tmp_path / "scenario.json"
+    run_key.write_private(path, msgspec.json.encode(scenario))
+    hub = loopback_endpoint(free_loopback_port())
+    set_realtime_priority(scenario.can.realtime_priority, inherited=True)   # the Zenoh threads, as the CLI's
+    session = open_session(SessionOptions(listen=(hub,)))
+    set_realtime_priority(0)
+    board = None
+    try:
+        # The board's own run directory: the check never sees it.
+        board = subprocess.Popen([sys.executable, "-m", "bench.cli", "node", "mtq", "--run-id", "own", "--scenario",
+                                  str(path), "--connect", hub, "--run-dir", str(tmp_path / "board")], cwd=REPO,
+                                 stdout=open(tmp_path / "board.log", "w"), stderr=subprocess.STDOUT)
+        bus = open_bus(BusSpec(interface="zenoh", channel="board"), run_id="own", session=session)
+        protocol = scenario.can.protocol()
+        deadline = time.monotonic() + 60
+        state = None
+        while state != p.NMT_OPERATIONAL:
+            assert time.monotonic() < deadline and board.poll() is None, (tmp_path / "board.log").read_text()
+            msg = bus.recv(0.1)
+            frame = protocol.decode(msg) if msg is not None else None
+            if frame is not None and frame.name == p.HEARTBEAT:
+                state = frame.signals["NmtState"]
+                if state != p.NMT_OPERATIONAL:
+                    bus.send(protocol.nmt(p.NMT_START, sent_s=time.monotonic()))
+        bus.shutdown()
+        verdict = run_board_check(scenario, "own", tmp_path / "check", None, BusSpec(interface="zenoh", channel="board"),
+                                  None, None, bus_session=session)
+    finally:
+        set_realtime_priority(0)
+        if board is not None:
+            board.terminate()           # the board this test started, by its handle
+            board.wait(timeout=20)
+        session.close()
+    assert verdict.passed, verdict.text("board")
+    measured = json.loads((tmp_path / "check" / "contract_check.json").read_text())["measured"]
+    assert measured["boot"] == {"first_heartbeat_state": "operational", "first_heartbeat_after_s": measured["boot"][
+        "first_heartbeat_after_s"], "reset_node_at_start": True, "pre_operational_heartbeats": 4}
+
+
+# --- broken on purpose, it fails ----------------------------------------------------------------
+BROKEN = {
+    "slow-heartbeat": "heartbeat: period 200.0 ms (median of",
+    "no-boot-up": "boot-up: no boot-up message at start (CiA 301: a heartbeat with state 0 first)",
+    "obey-plain-nmt": "plain NMT stop on secoc (identifier 0, no MAC): not refused: heartbeat said stopped",
+    "no-saturation": "commands: saturated [0.35, -0.5, 0.1] A m^2: telemetry applied [0.35, -0.5, 0.1], the contract's "
+                     "[0.2, -0.2, 0.1]",
+    "no-safe-state": "command timeout: no safe state: the telemetry never said coils off",
+    "accept-bad-crc": "bad CRC (a command whose E2E CRC is wrong, its MAC authentic on secoc): not refused: set-point "
+                      "echoed [-0.15, 0.15, -0.15]",
+    "accept-stale": "old freshness (an authentic command whose freshness value is ten windows old): not refused: "
+                    "set-point echoed [-0.15, 0.15, -0.15]",
+    "no-echo": "set-point echo: no MTQ_TLM_SETPOINT with CommandApplied 1",
+}
+
+
+@pytest.mark.parametrize("mode", sorted(BROKEN))
+def test_a_broken_board_fails_the_check_naming_the_problem(runs_dir, mode):
+    result, verdict = _check(runs_dir, f"board-{mode}", "--command", _board_command("--break", mode))
+    assert result.returncode == 1, result.stdout + result.stderr
+    assert result.stdout.startswith("contract check board: FAIL (")
+    assert any(problem.startswith(BROKEN[mode]) for problem in verdict["problems"]), result.stdout
+    assert f"  - {BROKEN[mode]}" in result.stdout
