@@ -23,7 +23,9 @@ from mcap.writer import Writer
 from bench.bus.can import protocol as p
 from bench.bus.can.busmodel import FLIGHT, BusModel, _percentiles_us
 from bench.bus.can.injector import FaultInjector
-from bench.bus.spill import SpilledJson, SpilledRecords, SpilledRows, WindowCounter, write_json_with_list
+from bench.bus.spill import (
+    SpilledJson, SpilledRecords, SpilledRows, StepColumn, WindowCounter, write_json_with_list,
+)
 from bench.recorder import spill_chunk_indexes
 
 
@@ -84,6 +86,29 @@ def test_window_counter_equals_a_counter_with_windows_touched_late():
         counter[window] += 13
     assert windows.items() == sorted(counter.items())
     assert max(windows.values()) == max(counter.values())
+
+
+def test_a_step_column_equals_a_preallocated_array_with_late_and_repeated_writes():
+    rng = random.Random(5)
+    for n, shape, dtype, fill in [(4000, (3,), np.float64, np.nan), (4000, (), np.int64, -1), (3000, (), bool, False),
+                                  (7, (3,), np.float64, np.nan), (0, (), np.int64, -1)]:
+        expected = np.full((n, *shape), fill, dtype=dtype)
+        column = StepColumn(n, shape, dtype, fill, window=64)
+        for k in range(n):
+            # this step's row, and now and then a recent one (a chain closed late) or a long-gone one
+            for j in (k, max(0, k - rng.choice((0, 1, 2, 5, 100, 3000)))):
+                if rng.random() < 0.7:
+                    value = rng.random() if dtype is np.float64 else rng.randrange(100) if dtype is np.int64 \
+                        else rng.random() < 0.5
+                    column[j] = value
+                    expected[j] = value
+            m = rng.randrange(n)
+            assert np.array_equal(np.asarray(column[m]), expected[m], equal_nan=dtype is np.float64)
+        assert np.asarray(column).dtype == expected.dtype
+        assert np.array_equal(np.asarray(column), expected, equal_nan=dtype is np.float64)
+        assert np.array_equal(column[:n // 2], expected[:n // 2], equal_nan=dtype is np.float64)
+    with pytest.raises(IndexError):
+        StepColumn(3, (), np.int64, -1)[3] = 1
 
 
 def _write_mcap(spill: bool) -> bytes:
@@ -174,3 +199,14 @@ def test_the_deadline_monitor_holds_no_more_memory_after_more_cycles(traced):
         counts.append(traced())
     assert counts[1] - counts[0] < RETAINED_LIMIT_BYTES, counts
     assert monitor.summary()["cycles"] == 9000
+
+
+def test_the_attitude_plant_per_step_logs_do_not_take_memory_for_the_whole_run_up_front(traced):
+    from bench.plant.attitude_node import AppliedLog
+    from bench.plant.mtq_chain import CommandChains
+
+    before = traced()
+    logs = AppliedLog(10**6), CommandChains(10**6, 0.16)    # a day at 10 Hz is 864 000 steps
+    # preallocated, these were ~190 MB (17 columns of a million rows); now 1024 recent rows each
+    assert traced() - before < 2 * 1024 * 1024
+    assert len(logs[0].commanded) == 10**6

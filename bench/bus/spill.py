@@ -241,3 +241,76 @@ class WindowCounter:
 
     def __bool__(self) -> bool:
         return bool(self._live) or bool(self._spilled)
+
+
+class StepColumn:
+    """One value (or row) per step of a run of `n_rows` steps, unwritten rows at `fill`, written in
+    about step order (a step's row is filled while the step is recent: its command, its report,
+    the stamps of a chain closed a few steps later). Only the newest `window` rows are in memory;
+    older ones go to disk. A write to a row already on disk (more than `window` steps late) is kept
+    aside and applied when the column is read. Indexing: `column[k] = row`, `column[k]`, and
+    `column[:n]` or np.asarray(column) for the whole column (read back from disk)."""
+
+    def __init__(self, n_rows: int, row_shape: tuple[int, ...] = (), dtype=np.float64, fill=0, window: int = 1024,
+                 directory: str | os.PathLike | None = None):
+        self.n_rows = int(n_rows)
+        self.row_shape = tuple(row_shape)
+        self.dtype = np.dtype(dtype)
+        self.fill = fill
+        self._recent = np.full((max(1, min(window, self.n_rows)), *self.row_shape), fill, dtype=self.dtype)
+        self._base = 0                      # the oldest step still in memory; steps before it are on disk
+        self._spilled = SpilledRows(self.row_shape, self.dtype, directory=directory)
+        self._late: dict[int, np.ndarray] = {}
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return (self.n_rows, *self.row_shape)
+
+    def __len__(self) -> int:
+        return self.n_rows
+
+    def _step(self, k) -> int:
+        k = int(k)
+        if not 0 <= k < self.n_rows:
+            raise IndexError(f"step {k} is outside 0..{self.n_rows - 1}")
+        return k
+
+    def __setitem__(self, k, row) -> None:
+        k = self._step(k)
+        if k < self._base:
+            late = np.empty(self.row_shape, dtype=self.dtype)
+            late[...] = row
+            self._late[k] = late
+            return
+        window = len(self._recent)
+        while k >= self._base + window:      # make room: the oldest row in memory is final
+            slot = self._base % window
+            self._spilled.append(self._recent[slot])
+            self._recent[slot] = self.fill
+            self._base += 1
+        self._recent[k % len(self._recent)] = row
+
+    def __getitem__(self, key):
+        if isinstance(key, slice):
+            return self.array()[key]
+        k = self._step(key)
+        if k >= self._base + len(self._recent):     # not written yet
+            row = np.full(self.row_shape, self.fill, dtype=self.dtype)
+            return row if self.row_shape else row[()]
+        if k >= self._base:
+            return self._recent[k % len(self._recent)].copy() if self.row_shape else self._recent[k % len(self._recent)]
+        return self.array()[k]              # on disk: read back (not for a loop)
+
+    def array(self) -> np.ndarray:
+        out = np.full(self.shape, self.fill, dtype=self.dtype)
+        spilled = self._spilled.array()
+        out[:len(spilled)] = spilled
+        for k in range(self._base, min(self._base + len(self._recent), self.n_rows)):
+            out[k] = self._recent[k % len(self._recent)]
+        for k, row in self._late.items():
+            out[k] = row
+        return out
+
+    def __array__(self, dtype=None, copy=None) -> np.ndarray:
+        array = self.array()
+        return array if dtype is None else array.astype(dtype)

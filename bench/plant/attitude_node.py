@@ -39,6 +39,7 @@ import numpy as np
 
 from bench.bus import keys
 from bench.bus.can.sim_window import bus_on_simulated_time
+from bench.bus.spill import StepColumn
 from bench.bus.schemas import (
     AttitudeTruth, DipoleCommand, GyroSample, MagnetometerSample, Message, MtqApplied, StarTrackerSample, StepDone,
     header,
@@ -175,16 +176,18 @@ def sensor_messages(hdr, sample: AttitudeSample) -> list[tuple[str, Message]]:
 
 
 class AppliedLog:
-    """Per step: the dipole commanded, the board's report used, what was applied and why not."""
+    """Per step: the dipole commanded, the board's report used, what was applied and why not.
+    Columns of the recent steps in memory, the rest on disk (bench/bus/spill.py StepColumn): the
+    plant's memory stays flat in a run of any length; `column[:n]` reads one back whole."""
 
     def __init__(self, n_steps: int):
-        self.commanded = np.full((n_steps, 3), np.nan)
-        self.reported = np.full((n_steps, 3), np.nan)
-        self.counter = np.full(n_steps, -1, dtype=np.int64)
-        self.refused = np.zeros(n_steps, dtype=bool)
-        self.safe_state = np.zeros(n_steps, dtype=bool)
-        self.board_applied_ns = np.full(n_steps, -1, dtype=np.int64)   # board set its coils (sense-to-torque)
-        self.command_received_ns = np.full(n_steps, -1, dtype=np.int64)  # step k's command in (on time in real time)
+        self.commanded = StepColumn(n_steps, (3,), np.float64, np.nan)
+        self.reported = StepColumn(n_steps, (3,), np.float64, np.nan)
+        self.counter = StepColumn(n_steps, (), np.int64, -1)
+        self.refused = StepColumn(n_steps, (), bool, False)
+        self.safe_state = StepColumn(n_steps, (), bool, False)
+        self.board_applied_ns = StepColumn(n_steps, (), np.int64, -1)   # board set its coils (sense-to-torque)
+        self.command_received_ns = StepColumn(n_steps, (), np.int64, -1)  # step k's command in (on time in real time)
 
 
 def run(ctx: NodeContext) -> int:

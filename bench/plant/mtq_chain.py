@@ -28,6 +28,7 @@ import msgspec
 import numpy as np
 
 from bench.bus.schemas import DipoleCommand, Header, MtqApplied
+from bench.bus.spill import StepColumn
 from bench.plant.stepping import StampLog
 
 COUNTER_MODULO = 16
@@ -70,7 +71,7 @@ class CommandChains:
 
     def __init__(self, n_steps: int, expire_after_s: float):
         self.stamps = StampLog(n_steps)
-        self.board_counter = np.full(n_steps, -1, dtype=np.int64)   # the frame whose report closed step k
+        self.board_counter = StepColumn(n_steps, (), np.int64, -1)   # the frame whose report closed step k
         self.expire_after_ns = int(expire_after_s * 1e9)
         self._open: list[_Open] = []
 

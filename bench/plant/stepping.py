@@ -14,6 +14,7 @@ import numpy as np
 
 from bench.bus import keys
 from bench.bus.schemas import STAGES, StepDone, header
+from bench.bus.spill import StepColumn
 from bench.plant.acceptance import CommandGate
 from bench.runtime.deadline import PlantCommandDeadline
 from bench.runtime.node import NodeContext
@@ -58,7 +59,8 @@ class StampLog:
     """Monotonic stamps (ns) of every applied command, one row per step, -1 where absent."""
 
     def __init__(self, n_steps: int):
-        self.stamps = {stage: np.full(n_steps, -1, dtype=np.int64) for stage in STAGES}
+        # The recent steps in memory, the rest on disk (bench/bus/spill.py): flat in a run of any length.
+        self.stamps = {stage: StepColumn(n_steps, (), np.int64, -1) for stage in STAGES}
 
     def record(self, k: int, stamps_ns: dict[str, int]) -> None:
         for stage, value in stamps_ns.items():
