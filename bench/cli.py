@@ -32,6 +32,7 @@ COMMAND_MODULES: dict[str, str] = {
     "campaign": "bench.studies.campaign_cli",
     "campaign-report": "bench.studies.campaign_cli",
     "contract": "bench.contract.cli",
+    "inject": "bench.live.inject_cli",
 }
 
 

@@ -133,6 +133,9 @@ def board_is_external(scenario: Scenario) -> bool:
 
 
 BOARD_SIDE_NODES = ("mtq", "canbus")    # what an external board replaces: the simulated board and the bus model
+WATCHERS = ("recorder", "live")          # they stop last: every other node's last messages are theirs too
+LIVE_NODE = "live"                       # `--live`: the Foxglove WebSocket server (bench/live/node.py, docs/live.md)
+LIVE_DEFAULT_PORT = 8765                 # Foxglove's default WebSocket port
 
 
 def with_driver_on_the_board_bus(scenario: Scenario) -> Scenario:
@@ -200,11 +203,11 @@ def _spawn(name: str, run_id: str, scenario_path: Path, hub: str, run_dir: Path,
 
 def stop_stages(names: list[str]) -> list[list[str]]:
     """The order nodes stop in, each stage's nodes at once: the loop and the flight side, then
-    the bus and the board (so the driver never sees the board vanish), then the recorder (so it
-    records every other node's last messages)."""
-    stages = [[n for n in names if n not in (*BOARD_SIDE_NODES, "recorder")],
+    the bus and the board (so the driver never sees the board vanish), then the recorder and the
+    live view (so they record and show every other node's last messages)."""
+    stages = [[n for n in names if n not in (*BOARD_SIDE_NODES, *WATCHERS)],
               [n for n in names if n in BOARD_SIDE_NODES],
-              [n for n in names if n == "recorder"]]
+              [n for n in names if n in WATCHERS]]
     return [stage for stage in stages if stage]
 
 
@@ -759,10 +762,14 @@ def _data_key(identity) -> bytes:
 
 def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None, show_progress: bool = True,
               zenoh_config: str | None = None, write_report: bool = True,
-              placement: Placement | None = None) -> tuple[int, Path]:
+              placement: Placement | None = None, live_port: int | None = None,
+              allow_live_faults: bool = False) -> tuple[int, Path]:
     """Run a scenario as separate processes. Returns (exit code, run directory).
 
     placement: where the sessions are (default: this host, loopback, plain TCP).
+    live_port: also start the live view (node "live": a Foxglove WebSocket server on this loopback
+    port, docs/live.md). allow_live_faults: canbus and the board take faults injected while the run
+    runs (`bench inject`, the live view's service); refused otherwise.
     """
     external = external_parts(scenario)      # bad input: before anything is opened
     scenario = with_driver_on_the_board_bus(scenario)
@@ -776,6 +783,10 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
         # a deployment's node on another host opens its channel there.
         check_run_buses(scenario.can, roles_on_this_host(scenario.can, {**placement.remote, **external, **board_side}))
     hub = placement.hub_endpoint
+    if live_port is not None:
+        from bench.live.node import check_live_port
+
+        check_live_port(live_port)     # taken: exit 2, nothing started
     # The zygote before any session of ours (the one `bench run` started first, if it matches): it
     # imports the nodes' packages while the launcher goes on, and is started by fork+exec, never
     # forked from a process running Zenoh's threads.
@@ -817,7 +828,7 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
     children: list[Child] = []
     group = ProcessGroup()
     started = time.monotonic()
-    names = nodes_for(scenario)
+    names = nodes_for(scenario) + ([LIVE_NODE] if live_port is not None else [])
     collector = StatsCollector(session, run_id, set(names), set(remote))
     stats = collector.stats
     ending = RunEnding(EXIT_FAILED, "the launcher failed")
@@ -841,10 +852,12 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
                         continue
                     peers = loop_peers if name == "plant" else []
                     children.append(_spawn(name, run_id, scenario_path, hub, run_dir, peers, zenoh_config, group,
-                                           placement.node_args, zygote))
+                                           placement.node_args + _live_args(name, live_port, allow_live_faults), zygote))
                     collector.trust(name, group.report_keys[children[-1].process.pid])
                 _wait_alive(presence, children, scenario.run.liveliness.startup_timeout_s, remote,
                             show=show_progress, interrupted=guard.check)
+                if live_port is not None or allow_live_faults:
+                    _announce_live(run_id, live_port, allow_live_faults, data_key, runs_dir)
                 if write_report:
                     _import_report_meanwhile()
                 _follow_run(session, run_id, children, scenario.n_steps, show_progress, scenario.run.liveliness, run_dir,
@@ -892,6 +905,33 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
             if zygote is not None:
                 zygote.close()
     return ending.code, run_dir
+
+
+def _live_args(name: str, live_port: int | None, allow_live_faults: bool) -> list[str]:
+    """`bench node` options of live operation: the live view's port, and live faults for the nodes
+    that take them (canbus's injector, the board's hardware)."""
+    args = ["--live-port", str(live_port)] if name == LIVE_NODE and live_port is not None else []
+    if allow_live_faults and name in (*BOARD_SIDE_NODES, LIVE_NODE):
+        args.append("--allow-live-faults")
+    return args
+
+
+def _announce_live(run_id: str, live_port: int | None, allow_live_faults: bool, data_key: bytes, runs_dir: Path) -> None:
+    """What to open and how to inject, on the terminal (docs/live.md)."""
+    from bench.live.node import live_urls, service_token
+
+    if live_port is not None:
+        ws_url, app_url = live_urls(live_port)
+        print(f"bench: live view: {ws_url} (Foxglove: Open connection > Foxglove WebSocket, or {app_url}); "
+              f"layout docs/foxglove/live_layout.json", file=sys.stderr)
+    if allow_live_faults:
+        runs = "" if Path(runs_dir) == Path("runs") else f" --runs-dir {runs_dir}"
+        how = f"bench: live faults allowed: bench inject {run_id}{runs} KIND [--duration S] [--axis x] ..."
+        if live_port is not None:
+            how += f", or the live view's service /inject_fault with \"token\": \"{service_token(data_key)}\""
+        print(how, file=sys.stderr)
+    else:
+        print("bench: live faults refused (start the run with --allow-live-faults to inject them)", file=sys.stderr)
 
 
 def _import_report_meanwhile() -> None:
@@ -992,13 +1032,17 @@ def cmd_run(args) -> int:
             if args.port is not None:
                 raise DeploymentError("--port: the deployment file names the hub's endpoint")
             placement = deployment_placement(load_deployment(args.deployment), Path(args.deployment),
-                                             nodes_for(scenario), args.zenoh_config)
+                                             nodes_for(scenario) + ([LIVE_NODE] if args.live is not None else []),
+                                             args.zenoh_config)
         elif args.secure:
             # Not in runs/<run_id>: the run claims that directory new (a second run with a live id is refused).
             cert_dir = Path(args.cert_dir) if args.cert_dir else make_local_certs(Path(args.runs_dir) / ".certs" / run_id)
             placement = local_placement(args.port, args.zenoh_config, cert_dir)
+        if args.live is not None and not 0 < args.live < 65536:
+            raise ScenarioError(f"--live PORT must be between 1 and 65535, got {args.live}")
         code, _ = run_bench(scenario, run_id, Path(args.runs_dir), args.port, not args.no_progress, args.zenoh_config,
-                            write_report=not args.no_report, placement=placement)
+                            write_report=not args.no_report, placement=placement, live_port=args.live,
+                            allow_live_faults=args.allow_live_faults)
         return code
     except (ScenarioError, SessionConfigError, DeploymentError, CertificateError, ValueError) as exc:
         print(f"bench: error: {exc}", file=sys.stderr)
@@ -1033,6 +1077,12 @@ def add_commands(subparsers) -> None:
                      help="a part provided from outside: not started, waited for under its name (docs/contract.md)")
     run.add_argument("--no-progress", action="store_true", help="no progress bar")
     run.add_argument("--no-report", action="store_true", help="skip report.html/report.md (bench report RUN_DIR later)")
+    run.add_argument("--live", nargs="?", type=int, const=LIVE_DEFAULT_PORT, metavar="PORT",
+                     help=f"watch the run in Foxglove: a WebSocket server on 127.0.0.1:PORT (default {LIVE_DEFAULT_PORT}) "
+                          "with the run's topics as they happen (docs/live.md); put it after the scenario")
+    run.add_argument("--allow-live-faults", action="store_true",
+                     help="take faults injected while the run runs (`bench inject`, the live view's service); "
+                          "refused otherwise")
     run.set_defaults(func=cmd_run)
 
     scenarios = subparsers.add_parser("scenarios", help="list the built-in scenarios")

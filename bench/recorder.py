@@ -61,7 +61,7 @@ from bench.bus.can import protocol as can_protocol
 from bench.bus.can import zenoh_wire
 from bench.bus.can.zenoh_interface import CAN_TOPIC
 from bench.bus.spill import SpilledRecords
-from bench.bus.schemas import SCHEMA_VERSION, Message, MtqApplied, ProcessStats, json_schema
+from bench.bus.schemas import SCHEMA_VERSION, BusEvent, Message, MtqApplied, ProcessStats, json_schema
 from bench.bus import plan_message as _plan_message   # noqa: F401  registers AttitudePlanMessage
 
 RECORDING_FILE = "recording.mcap"
@@ -81,9 +81,10 @@ CLOCK_SYNC_EARLY_FOR_S = 3.0
 # on a small machine each wake-up of the recorder competes with the loop's processes for a core.
 DRAIN_PERIOD_S = 0.2
 
-# Messages whose header has no simulated time of the loop: the shutdown counts, and the board's
-# report (the board sees CAN frames, not steps; its header carries 0.0).
-UNSTEPPED_TYPES: tuple[type[Message], ...] = (ProcessStats, MtqApplied)
+# Messages whose header has no simulated time of the loop: the shutdown counts, the board's
+# report (the board sees CAN frames, not steps; its header carries 0.0), and what the driver
+# detects on the bus (event/can: its thread sees frames, not steps).
+UNSTEPPED_TYPES: tuple[type[Message], ...] = (ProcessStats, MtqApplied, BusEvent)
 MAX_LOG_TIME_NS = 2**63 - 1     # MCAP times are uint64; kept in int64 range for every reader
 METADATA_SCENARIO = "scenario"
 METADATA_DEPLOYMENT = "deployment"

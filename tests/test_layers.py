@@ -32,7 +32,10 @@ LAYERS: list[dict[str, list[str]]] = [
     {"controller": ["bench.controller", "bench.controller.*"]},
     # The planner plans for the flight side: it reads the controller's beliefs and replan rule.
     {"planner": ["bench.planner", "bench.planner.*"]},
-    {"studies": ["bench.studies", "bench.studies.*"]},    # seed 003 studies, campaigns
+    {"studies": ["bench.studies", "bench.studies.*"],     # seed 003 studies, campaigns
+     # Live operation (issue 48): the Foxglove server node reads the recorder's schemas and the flight
+     # side's target; `bench inject` only the bus. The launcher starts the node and prints its URL.
+     "live": ["bench.live", "bench.live.*"]},
     {"report": ["bench.report", "bench.report.*"]},
     # The message contract as text: the key table, the fields' meanings, contract.json and the
     # export, which the launcher writes beside each run (it describes every part, so it sits above them).

@@ -236,8 +236,10 @@ def test_can_bus_load_and_fault_timeline_on_simulated_time(tmp_path):
     assert bus["frames"] == 100
     assert bus["mean_load"] == pytest.approx(10 * frame_bits(frame) / (1e6 * 0.1))
     assert bus["peak_load"] == pytest.approx(bus["mean_load"])      # every window alike
-    assert bus["faults"] == [{"name": "drop", "start_sim_s": pytest.approx(1800.0), "end_sim_s": pytest.approx(3600.0)},
-                             {"name": "corrupt", "start_sim_s": pytest.approx(3600.0), "end_sim_s": pytest.approx(4500.0)}]
+    windows = [{k: f[k] for k in ("name", "start_sim_s", "end_sim_s", "live")} for f in bus["faults"]]
+    assert windows == [{"name": "drop", "start_sim_s": pytest.approx(1800.0), "end_sim_s": pytest.approx(3600.0), "live": False},
+                       {"name": "corrupt", "start_sim_s": pytest.approx(3600.0), "end_sim_s": pytest.approx(4500.0), "live": False}]
+    assert [f["detected"] for f in bus["faults"]] == [False, False]     # no can/driver.json: nothing detected
     assert bus["injections"] == {"0:drop dropped": 3}
     assert (run_dir / "plots" / "bus_load.png").stat().st_size > 10_000
     report = (run_dir / "report.md").read_text()

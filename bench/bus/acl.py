@@ -33,6 +33,7 @@ from bench.bus.can.config import CanConfig
 from bench.bus.presence import PRESENCE
 
 ANY_RUN = "*"
+NOT_NODES = ("router", "launcher", "operator")    # identities that publish no stats of their own
 
 
 @dataclass(frozen=True)
@@ -42,6 +43,9 @@ class Role:
     publishes: tuple[str, ...] = ()
     subscribes: tuple[str, ...] = ()
     can_channels: tuple[str, ...] = ()   # CAN frames over Zenoh: bench/<run>/can/<channel>
+    # Command channels (queries, bench/bus/fault_command.py): the ones it may ask, the ones it answers.
+    asks: tuple[str, ...] = ()
+    answers: tuple[str, ...] = ()
 
 
 _CAN = CanConfig()
@@ -60,17 +64,24 @@ ROLES: dict[str, Role] = {
         subscribes=("sense/*", keys.TRUTH, "truth/*", keys.COMMAND_THRUST),
     ),
     "controller": Role(
-        publishes=("command/*", keys.EVENT_DEADLINE, keys.CAN_STEP_FLIGHT),
+        publishes=("command/*", keys.EVENT_DEADLINE, keys.EVENT_CAN, keys.CAN_STEP_FLIGHT),
         subscribes=("estimate/*", "plan/*", keys.CAN_STEP_BUS),
         can_channels=(_CAN.flight_channel,),   # the magnetorquer driver lives in the controller
     ),
     # MILQR plans from the attitude estimate; it commands nothing itself.
     "planner": Role(publishes=(keys.PLAN_ATTITUDE,), subscribes=(keys.ESTIMATE_ATTITUDE,)),
-    "mtq": Role(publishes=(keys.ACTUATOR_MTQ,), can_channels=(_CAN.board_channel,)),
+    # It takes live hardware faults from canbus's event/fault (bench/bus/can/live_faults.py).
+    "mtq": Role(publishes=(keys.ACTUATOR_MTQ,), subscribes=(keys.EVENT_FAULT,), can_channels=(_CAN.board_channel,)),
     # In lock-step with the bus on simulated time the board runs inside canbus (sim_window.py).
-    "canbus": Role(publishes=(keys.CAN_STEP_BUS, keys.ACTUATOR_MTQ), subscribes=(keys.CAN_STEP_FLIGHT,),
-                   can_channels=(_CAN.flight_channel, _CAN.board_channel)),
+    # It answers the live fault-injection channel (the injector is its own) and publishes every fault's window.
+    "canbus": Role(publishes=(keys.CAN_STEP_BUS, keys.ACTUATOR_MTQ, keys.EVENT_FAULT), subscribes=(keys.CAN_STEP_FLIGHT,),
+                   can_channels=(_CAN.flight_channel, _CAN.board_channel), answers=(keys.CONTROL_FAULT,)),
     "recorder": Role(subscribes=("**",)),
+    # `bench run --live` (bench/live/node.py): reads what the recorder reads, and forwards the live
+    # view's fault-injection service calls to canbus.
+    "live": Role(subscribes=("**",), asks=(keys.CONTROL_FAULT,)),
+    # `bench inject` (bench/live/inject_cli.py): an operator's terminal; asks canbus for a fault, nothing else.
+    "operator": Role(asks=(keys.CONTROL_FAULT,)),
     "launcher": Role(subscribes=(keys.STATUS_STEP, f"{keys.STATUS_STATS}/*")),
     "router": Role(),
 }
@@ -91,7 +102,7 @@ def _own_stats(name: str) -> str:
 def publications(name: str) -> list[str]:
     role = ROLES[name]
     topics = list(role.publishes)
-    if name not in ("router", "launcher"):
+    if name not in NOT_NODES:
         topics.append(_own_stats(name))      # every node publishes its own counters at the end
     topics += [f"can/{ch}" for ch in role.can_channels]
     return topics
@@ -124,6 +135,14 @@ def _rules_for(name: str) -> list[dict]:
     if subs:
         rules.append(_rule(f"{name}-receives", "egress", ["put", "delete"], subs))
         rules.append(_rule(f"{name}-subscribes", "ingress", ["declare_subscriber"], subs))
+    if role_of(name).asks:
+        # A command channel (bench/bus/fault_command.py): its queries in, the answers back to it.
+        rules.append(_rule(f"{name}-commands", "ingress", ["query"], list(role_of(name).asks)))
+        rules.append(_rule(f"{name}-commands-answered", "egress", ["reply"], list(role_of(name).asks)))
+    if role_of(name).answers:
+        rules.append(_rule(f"{name}-command-queryable", "ingress", ["declare_queryable", "reply"],
+                           list(role_of(name).answers)))
+        rules.append(_rule(f"{name}-command-asked", "egress", ["query"], list(role_of(name).answers)))
     if name != "router":
         # Every process answers presence queries on its own key only, and may ask the others
         # (the launcher and the plant watch their peers, the recorder pings their clocks, a node
@@ -139,6 +158,10 @@ def _rules_for(name: str) -> list[dict]:
     # What we tell this identity about ourselves: declarations and liveliness, never data.
     rules.append(_rule(f"{name}-told", "egress", _DECLARATIONS, ["**"]))
     return rules
+
+
+def role_of(name: str) -> Role:
+    return ROLES[name]
 
 
 def access_control_config(names: list[str] | None = None) -> dict:

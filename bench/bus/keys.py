@@ -26,6 +26,13 @@ ESTIMATE_ATTITUDE = "estimate/attitude"
 COMMAND_DIPOLE = "command/dipole"
 PLAN_ATTITUDE = "plan/attitude"       # MILQR plans, planner -> controller (issue 12)
 EVENT_DEADLINE = "event/deadline"
+# Live operation (issue 48): what the flight side detects on the magnetorquer bus, as it detects it
+# (controller), and each fault of the bus model as it is armed, scripted or injected live (canbus).
+EVENT_CAN = "event/can"
+EVENT_FAULT = "event/fault"
+# The command channel of live fault injection: queries to the canbus process, signed under the run's
+# key like the data topics (bench/bus/fault_command.py).
+CONTROL_FAULT = "control/fault"
 STATUS_STEP = "status/step"
 STATUS_STATS = "status/stats"
 ALIVE = "alive"      # the launcher's liveliness token alive/launcher, a hint that it left (presence.py decides)

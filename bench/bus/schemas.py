@@ -265,3 +265,34 @@ class DipoleCommand(Message, tag="dipole_command"):
     saturated: bool = False
     weak_field: bool = False
     fallback: str | None = None
+
+
+# --- live operation (issue 48) -------------------------------------------------------------------
+from bench.bus.can.faults import FaultSpec  # noqa: E402  (the fault schema of [[can.faults]], no cycle)
+
+
+class BusEvent(Message, tag="bus_event"):
+    """Controller -> recorder and live view on `event/can`: what the flight side detected on the
+    magnetorquer bus, as it detects it: the driver's own events and the FDIR actuator monitor's
+    (the same events can/driver.json lists at the end). The driver's thread sees frames, not steps:
+    the header carries sim_time_s 0.0, as the board's MtqApplied does, and the recorder and the
+    live view place it at the newest step."""
+    source: str                      # "driver" or "FDIR"
+    kind: str                        # e.g. heartbeat_timeout, command_rejected, fdir_reversed
+    latency_s: float                 # from the fault's evidence on the bus to this detection
+    detected_ns: int                 # the driver's event clock (monotonic ns; the bus's simulated ns in lock-step)
+    frame: str = ""
+    detail: str = ""
+
+
+class FaultWindow(Message, tag="fault_window"):
+    """canbus -> recorder, live view and board on `event/fault`: one fault of the bus model as it is
+    armed, scripted ([[can.faults]], when the first command frame arms the injector) or injected
+    live (`bench inject`, the live view's service; bench/bus/fault_command.py). header.sim_time_s is
+    the fault's start on the run's simulated time, as `fault.start_s` (simulated seconds from the
+    first command frame)."""
+    label: str                       # "<index>:<name>", as in can/injections.jsonl and busmodel.json
+    fault: FaultSpec                 # the fault, as a scripted one is written
+    live: bool                       # injected while the run ran
+    end_sim_s: float | None = None   # None: no end (a count of frames, or a hardware fault to the run's end)
+    requested_by: str = ""           # live: who signed the request ("inject", "live")

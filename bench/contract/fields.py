@@ -70,7 +70,7 @@ THRUST_STATUS_PATTERN = f"^in-plane {_one}, out-of-plane {_one}$"
 PLAN_STOP_REASONS = ("feedforward_small", "cost_change_small", "max_iterations", "wall_time",
                      "regularisation_limit", "stalled", "hold")
 UNAUTHENTIC_KINDS = ("forged", "replayed")      # bench/bus/data_auth.py FORGED, REPLAYED
-STATS_PROCESSES = ("plant", "estimator", "controller", "planner", "mtq", "canbus", "recorder")
+STATS_PROCESSES = ("plant", "estimator", "controller", "planner", "mtq", "canbus", "recorder", "live")
 DEADLINE_PROCESSES = ("plant", "controller")
 
 
@@ -334,6 +334,38 @@ FIELDS: dict[str, dict[str, Field]] = {
         "unauthentic": Field("Messages dropped for their tag: kind -> topic -> count (\"forged\": no valid tag "
                              "under the run's key; \"replayed\": a counter already passed).", keys=UNAUTHENTIC_KINDS),
         "realtime_priority": Field("The SCHED_FIFO priority the process ran at (0: the default scheduler)."),
+    },
+    # Live operation (issue 48): event/can, event/fault (bench/bus/schemas.py, bench/bus/can/live_faults.py).
+    "BusEvent": {
+        "source": Field("Which monitor detected it: the flight-side driver, or the FDIR actuator monitor.",
+                        allowed=("driver", "FDIR")),
+        "kind": Field("What was detected (bench/bus/can/driver.py KINDS; the FDIR monitor's \"fdir_<class>\"), as "
+                      "metrics.json's can_bus.driver.events counts it."),
+        "latency_s": Field("The detection's latency: from the fault's evidence on the bus to this detection "
+                           "(the FDIR monitor's: the span of evidence it took).", unit="s"),
+        "detected_ns": Field("When it was detected on the driver's event clock: CLOCK_MONOTONIC ns, or in lock-step "
+                             "with the bus on simulated time the bus's simulated ns.", unit="ns"),
+        "frame": Field("The frame it concerns (a DBC name), \"FDIR\" for the actuator monitor's, \"\" for none."),
+        "detail": Field("What the detector says of it (free text, at most 400 characters)."),
+    },
+    "FaultWindow": {
+        "label": Field("\"<index>:<name>\": the fault's place in the injector's list (the scenario's faults first, "
+                       "then those injected live) and its kind, as in can/injections.jsonl and busmodel.json."),
+        "fault": Field("The fault as a [[can.faults]] entry (see FaultSpec); start_s is its start on simulated time."),
+        "live": Field("True for a fault injected while the run ran (`bench inject`, the live view's service)."),
+        "end_sim_s": Field("Its end in simulated seconds from the first command frame; null: no end (a count of "
+                           "frames, or a hardware fault to the run's end).", unit="s"),
+        "requested_by": Field("A live fault: the sender of the signed request (\"inject\", \"live\"); \"\" for a "
+                              "scripted one."),
+    },
+    "FaultSpec": {
+        "name": Field("The fault's kind (`bench faults` lists them with their parameters)."),
+        "frames": Field("DBC frame names it acts on (frame faults; empty: the kind's default frames)."),
+        "start_s": Field("When it starts: simulated seconds from the driver's first command frame.", unit="s"),
+        "duration_s": Field("How long it acts, simulated seconds (null: to the end, or its count).", unit="s"),
+        "count": Field("Frames it affects at most (0: no limit)."),
+        "every": Field("It acts on every n-th matching frame."),
+        "params": Field("The kind's own parameters (name -> value; `bench faults`)."),
     },
 }
 

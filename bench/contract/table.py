@@ -14,9 +14,9 @@ from bench.bus import keys
 from bench.bus.can.sim_window import CanWindow
 from bench.bus.plan_message import AttitudePlanMessage
 from bench.bus.schemas import (
-    AttitudeEstimate, AttitudeTruth, DeadlineEvent, DipoleCommand, GyroSample, MagnetometerSample, Message, MtqApplied,
-    ProcessStats, RangeBearing, RelativePosition, StarTrackerSample, StepDone, ThrustCommand, TranslationEstimate,
-    TruthState,
+    AttitudeEstimate, AttitudeTruth, BusEvent, DeadlineEvent, DipoleCommand, FaultWindow, GyroSample, MagnetometerSample,
+    Message, MtqApplied, ProcessStats, RangeBearing, RelativePosition, StarTrackerSample, StepDone, ThrustCommand,
+    TranslationEstimate, TruthState,
 )
 
 RENDEZVOUS, ATTITUDE, BOTH = "rendezvous", "attitude", "both"
@@ -64,10 +64,14 @@ TOPICS: tuple[Topic, ...] = (
           "the attitude estimate of step k"),
     Topic(keys.COMMAND_DIPOLE, (DipoleCommand,), ATTITUDE, ("controller",), ("plant",), "the dipole asked for at step k"),
     Topic(keys.PLAN_ATTITUDE, (AttitudePlanMessage,), ATTITUDE, ("planner",), ("controller",), "a MILQR plan for the tracker"),
-    Topic(keys.EVENT_DEADLINE, (DeadlineEvent,), BOTH, ("plant", "controller"), (), "a deadline miss, as it happens"),
+    Topic(keys.EVENT_DEADLINE, (DeadlineEvent,), BOTH, ("plant", "controller"), ("live",), "a deadline miss, as it happens"),
+    Topic(keys.EVENT_CAN, (BusEvent,), ATTITUDE, ("controller",), ("live",),
+          "what the flight side detected on the magnetorquer bus (driver, FDIR), as it detects it"),
+    Topic(keys.EVENT_FAULT, (FaultWindow,), ATTITUDE, ("canbus",), ("mtq", "live"),
+          "each fault of the bus model as it is armed: scripted, or injected live (the board takes live hardware faults)"),
     Topic(keys.STATUS_STEP, (StepDone,), BOTH, ("plant",), ("launcher",), "step k integrated (`finished` on the last)"),
     Topic(f"{keys.STATUS_STATS}/<process>", (ProcessStats,), BOTH,
-          ("plant", "estimator", "controller", "planner", "mtq", "canbus", "recorder"), ("launcher",),
+          ("plant", "estimator", "controller", "planner", "mtq", "canbus", "recorder", "live"), ("launcher",),
           "a node's counts, once, as it stops (under its own name)"),
 )
 # The control plane (not data): what the launcher and the plant wait for (bench/bus/presence.py).
@@ -79,6 +83,9 @@ TOKENS = {
     "presence/launcher": "the launcher's answer: a node not started by the launcher stops when it no longer answers",
     f"{keys.ALIVE}/launcher": "the launcher's liveliness token, a hint only: its delete at the end of a run makes "
                               "the nodes not started by the launcher ask presence/launcher at once",
+    keys.CONTROL_FAULT: "canbus's queryable for live fault injection (bench/bus/fault_command.py): a FaultRequest "
+                        "signed under the run's key (the data-topic tag, sender `inject` or `live`), answered with a "
+                        "FaultReply signed by canbus; taken only in a run started with --allow-live-faults",
 }
 
 

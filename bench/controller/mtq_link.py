@@ -24,6 +24,7 @@ from dataclasses import asdict
 
 from bench.bus import keys
 from bench.bus.can import protocol as p
+from bench.bus.can.bus_events import publish_bus_events
 from bench.bus.can.config import CanConfig
 from bench.bus.can.driver import BoardHealth, CommandLoop, FaultEvent, MagnetorquerDriver
 from bench.bus.can.nodes import can_dir, open_node_bus
@@ -168,6 +169,7 @@ def _log_events(ctx: NodeContext, events: list[FaultEvent]) -> None:
         level = logging.INFO if event.kind == "host_overrun" else logging.WARNING
         ctx.log.log(level, "magnetorquer bus: %s after %.1f ms (%s %s)", event.kind, event.latency_s * 1e3,
                     event.frame, event.detail)
+    publish_bus_events(ctx, events)    # event/can, as they come (recorder, live view)
 
 
 def _write_report(ctx: NodeContext, health: BoardHealth, driver: MagnetorquerDriver) -> None:

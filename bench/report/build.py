@@ -203,8 +203,16 @@ def can_section(run: RunData, plot_dir: Path) -> tuple[Section | None, dict | No
     rows.append(["authentication", {True: "SecOC: commands and NMT carry an AES-CMAC (the run's key)", None: "unknown",
                                     False: "NONE (e2e profile): the bus is unauthenticated, anyone on it can command "
                                            "the coils or stop the board"}[m["authenticated"]]])
-    rows += [[f"fault {f['name']} (simulated time)", f"{fmt(f['start_sim_s'])} s to {fmt(f['end_sim_s'])} s"]
+    rows += [[f"fault {f['name']}{' (injected live)' if f.get('live') else ''} (simulated time)",
+              f"{fmt(f['start_sim_s'])} s to {fmt(f['end_sim_s'])} s; "
+              + (f"first detected by the {f['detected_by']} ({f['first_detection']}) {fmt(f['detection_latency_s'] * 1e3)} ms "
+                 f"after its start" if f.get("detected") else "not detected before the next fault or the end")]
              for f in m["faults"]]
+    live = m.get("live_faults")
+    if live:
+        refused = ", ".join(f"{reason} {n}" for reason, n in sorted(live["refused"].items())) or "none"
+        rows.append(["live fault injection", f"{'allowed' if live['allowed'] else 'not allowed (no --allow-live-faults)'}; "
+                                             f"{live['taken']} taken, refused: {refused}"])
     rows += [[f"injected {what}", fmt(n)] for what, n in sorted(m["injections"].items())]
     rows += canbus.bus_off_rows(m.get("bus_off") or {})
     rows += canbus.board_power_rows(m.get("board_power") or {})

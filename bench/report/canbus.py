@@ -22,12 +22,16 @@ import can
 import numpy as np
 
 from bench.bus.can.bittiming import DEFAULT_BITRATE_BPS, frame_bits
+from bench.bus.can.live_faults import live_fault_specs, read_live_faults
 from bench.bus.can.host_lateness import held_s, load_host_late_records
 from bench.report.document import fmt
 from bench.report.timebase import RunClock, wall_to_mono_ns
 from bench.report.rundata import RunData
 
 WINDOW_S = 0.1
+# A fault injected while the run ran (`bench inject`, the live view; can/live_faults.json): its
+# window's name in the report's tables and plots ends so; metrics.json flags it "live".
+LIVE_SUFFIX = " (live)"
 INJECTIONS_FILE = Path("can") / "injections.jsonl"
 BUSMODEL_FILE = Path("can") / "busmodel.json"
 
@@ -51,7 +55,8 @@ class BusLoad:
             "bitrate_bps": self.bitrate_bps,
             "mean_load": float(self.load.mean()) if self.load.size else 0.0,
             "peak_load": float(self.load.max()) if self.load.size else 0.0,
-            "faults": [{"name": n, "start_sim_s": a, "end_sim_s": b} for n, a, b in self.fault_windows],
+            "faults": [{"name": n.removesuffix(LIVE_SUFFIX), "start_sim_s": a, "end_sim_s": b,
+                        "live": n.endswith(LIVE_SUFFIX)} for n, a, b in self.fault_windows],
             "injections": actions,
         }
 
@@ -119,9 +124,12 @@ def _bus_model_report(run_dir: Path) -> dict:
 
 
 def fault_windows_sim_s(run_dir: Path, can_cfg, clock: RunClock | None) -> list[tuple[str, float, float]]:
-    """Configured faults as (name, start, end) in simulated seconds, clipped to the run; empty
-    without the bus model's arming time or the plant's stamps (nothing to place them by)."""
-    faults = list(getattr(can_cfg, "faults", None) or [])
+    """Configured faults as (name, start, end) in simulated seconds, clipped to the run, then those
+    injected while it ran (can/live_faults.json, numbered after the scenario's by the injector; their
+    names end with LIVE_SUFFIX); empty without the bus model's arming time or the plant's stamps
+    (nothing to place them by)."""
+    scripted = list(getattr(can_cfg, "faults", None) or [])
+    faults = scripted + live_fault_specs(run_dir)
     model = _bus_model_report(run_dir)
     clock = _bus_clock(model, clock)
     t0_ns = model.get("faults_t0_ns")
@@ -141,8 +149,43 @@ def fault_windows_sim_s(run_dir: Path, can_cfg, clock: RunClock | None) -> list[
             end_ns = armed.get("last_ns") or start_ns
         start, end = (min(max(clock.sim_s(t), clock.start_sim_s), clock.end_sim_s) if t != float("inf")
                       else clock.end_sim_s for t in (start_ns, end_ns))
-        windows.append((str(fault.name), start, end))
+        windows.append((str(fault.name) + (LIVE_SUFFIX if i >= len(scripted) else ""), start, end))
     return windows
+
+
+DETECTION_KINDS_LEFT_OUT = frozenset({"heartbeat_resumed", "board_error_reset", "error_active", "bus_restarted",
+                                      "host_overrun"})   # the bus well again, or the host: bench.studies.fault_bus
+
+
+def fault_detections(run_dir: Path, windows: list[tuple[str, float, float]], clock: RunClock | None) -> list[dict]:
+    """Per fault window (fault_windows_sim_s' order), what the flight side detected first: the first
+    alarm of the driver or the FDIR monitor (can/driver.json; not the kinds that say the bus is well
+    again) at or after the fault's start and before the next fault's start, on simulated time, as the
+    fault campaign's matrix has it: {"detected", "first_detection", "detected_by", "detected_sim_s",
+    "detection_latency_s"} (latency from the fault's start, simulated seconds)."""
+    from bench.studies.fault_bus import monitor_of
+
+    path = Path(run_dir) / "can" / "driver.json"
+    try:
+        events = json.loads(path.read_text()).get("events") or [] if path.is_file() else []
+    except (OSError, ValueError):
+        events = []
+    clock = _bus_clock(_bus_model_report(run_dir), clock)
+    alarms = []
+    if clock is not None:
+        alarms = sorted((float(clock.sim_s(e["detected_ns"])), e["kind"]) for e in events
+                        if e.get("kind") not in DETECTION_KINDS_LEFT_OUT and e.get("detected_ns") is not None)
+    starts = sorted(start for _, start, _ in windows)
+    out = []
+    for _, start, _ in windows:
+        later = [s for s in starts if s > start]
+        until = later[0] if later else float("inf")
+        first = next(((t, kind) for t, kind in alarms if start <= t < until), None)
+        out.append({"detected": first is not None, "first_detection": first[1] if first else None,
+                    "detected_by": monitor_of(first[1]) if first else None,
+                    "detected_sim_s": first[0] if first else None,
+                    "detection_latency_s": first[0] - start if first else None})
+    return out
 
 
 # Faults that hold frames on the bus themselves (a dead board acknowledges nothing, a babbling node
@@ -313,4 +356,12 @@ def can_metrics(run: RunData) -> tuple[BusLoad | None, dict | None, list[list[st
     driver_rows, driver_metrics = driver_events(run.run_dir / "can" / "driver.json")
     if driver_metrics is not None:
         m["driver"] = driver_metrics
+    # Each fault with what detected it first (scripted or live alike), and the live injections asked for.
+    detections = fault_detections(run.run_dir, load.fault_windows, RunClock.from_run(run.trajectory, run.scenario))
+    m["faults"] = [{**fault, **found} for fault, found in zip(m["faults"], detections)]
+    live = read_live_faults(run.run_dir)
+    if live:
+        m["live_faults"] = {"allowed": bool(live.get("allowed")), "taken": len(live.get("accepted") or []),
+                            "refused": dict(live.get("refused") or {}),
+                            "requested_by": sorted({e.get("requested_by", "") for e in live.get("accepted") or []})}
     return load, m, driver_rows

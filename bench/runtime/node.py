@@ -53,6 +53,7 @@ NODES: dict[str, str] = {
     "mtq": "bench.bus.can.nodes",       # magnetorquer board
     "canbus": "bench.bus.can.nodes",    # CAN bus model and fault injector
     "planner": "bench.planner.node",    # MILQR attitude plans (issue 12)
+    "live": "bench.live.node",          # `bench run --live`: the Foxglove WebSocket server (issue 48)
 }
 
 
@@ -94,6 +95,10 @@ class NodeContext:
     # `bench node mtq --break MODE` (bench/bus/can/board_breaks.py): the board broken on purpose, for
     # `bench contract check board`'s self-test only.
     breaks: tuple[str, ...] = ()
+    # Live operation (issue 48): the run was started with --allow-live-faults (canbus takes faults
+    # from the command channel, the board live hardware faults), and the live view's WebSocket port.
+    allow_live_faults: bool = False
+    live_port: int | None = None
 
     # --- publishing -----------------------------------------------------------------------
     def publish(self, topic: str, message: Message) -> None:
@@ -359,7 +364,8 @@ def stop_when_gone(ctx: NodeContext, process: str) -> None:
 
 def run_node(name: str, run_id: str, scenario: Scenario, options: SessionOptions, run_dir: Path,
              peers: list[str] | None = None, stop_with: str | None = None, host: str | None = None,
-             trust_inputs: bool = False, breaks: tuple[str, ...] = ()) -> int:
+             trust_inputs: bool = False, breaks: tuple[str, ...] = (), allow_live_faults: bool = False,
+             live_port: int | None = None) -> int:
     """Open the session, install signal handlers, run the node, always close cleanly.
 
     stop_with: also stop when that process's alive token vanishes (nodes on other hosts than the
@@ -387,7 +393,8 @@ def run_node(name: str, run_id: str, scenario: Scenario, options: SessionOptions
     session = open_session(dataclasses.replace(options, lease_ms=lease_ms))
     ctx = NodeContext(name=name, run_id=run_id, scenario=scenario, session=session, run_dir=run_dir, log=log,
                       peers=list(peers or []), report_key=report_key, data_key=data_key, realtime_priority=priority,
-                      trust_inputs=trust_inputs, breaks=tuple(breaks))
+                      trust_inputs=trust_inputs, breaks=tuple(breaks), allow_live_faults=allow_live_faults,
+                      live_port=live_port)
     if trust_inputs:
         log.warning("--break trust-inputs: this node takes every input without checking its tag (a broken node, "
                     "for bench contract check's self-test)")

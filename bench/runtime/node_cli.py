@@ -39,7 +39,8 @@ def cmd_node(args) -> int:
                 stop_with = LAUNCHER   # the launcher cannot signal another host: its leaving ends the run
         breaks = tuple(b for b in (args.breaks or ()) if b != "trust-inputs")
         return run_node(args.name, run_id, scenario, options, run_dir, peers, stop_with=stop_with, host=host,
-                        trust_inputs="trust-inputs" in (args.breaks or ()), breaks=breaks)
+                        trust_inputs="trust-inputs" in (args.breaks or ()), breaks=breaks,
+                        allow_live_faults=args.allow_live_faults, live_port=args.live_port)
     except (ScenarioError, SessionConfigError, DeploymentError, CertificateError, ValueError) as exc:
         print(f"bench node: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
@@ -62,4 +63,7 @@ def add_commands(subparsers) -> None:
                       help="break this node on purpose, to see `bench contract check` fail it (self-test only, never "
                            "in a run): trust-inputs takes every input without checking its tag or counter; the others "
                            "break the board, node mtq (bench/bus/can/board_breaks.py)")
+    node.add_argument("--allow-live-faults", action="store_true",
+                      help="take faults injected while the run runs (canbus, the board; `bench run --allow-live-faults`)")
+    node.add_argument("--live-port", type=int, help="node live: the Foxglove WebSocket port on loopback (`bench run --live`)")
     node.set_defaults(func=cmd_node)

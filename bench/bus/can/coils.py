@@ -62,6 +62,16 @@ class CoilHardware:
             start_ns, end_ns = spec.window_ns(t0_ns, self.wall_s_per_sim_s)
             self.windows.append((index, spec, start_ns / 1e9, math.inf if end_ns is None else end_ns / 1e9))
 
+    def add(self, index: int, spec: FaultSpec) -> None:
+        """A hardware fault that arrived while the run runs (live injection, bench/bus/can/live_faults.py),
+        `index` its place after the scenario's; windowed at once if armed, else when armed."""
+        if not spec.hardware:
+            return
+        if self.t0_s is not None:
+            start_ns, end_ns = spec.window_ns(round(self.t0_s * 1e9), self.wall_s_per_sim_s)
+            self.windows.append((index, spec, start_ns / 1e9, math.inf if end_ns is None else end_ns / 1e9))
+        self.faults.append((index, spec))
+
     def _acting(self, now_s: float):
         return [(i, spec) for i, spec, start, end in self.windows if start <= now_s < end]
 

@@ -299,6 +299,8 @@ class FaultInjector:
         self.protocol = protocol
         self.t0_ns: int | None = None
         self.wall_s_per_sim_s = wall_s_per_sim_s
+        self.seed = seed
+        self.live_labels: set[str] = set()     # faults added while the bus ran (add_live)
         self.faults = [(HardwareFault if s.hardware else KINDS[s.name])(s, i, protocol, seed, wall_s_per_sim_s)
                        for i, s in enumerate(specs)]
         # The board's power supply and coils under the hardware faults, armed with the others.
@@ -345,6 +347,29 @@ class FaultInjector:
     def flood_active(self, t_ns: int) -> bool:
         return any(f.in_window(t_ns) for f in self.floods)
 
+    # --- faults that arrive at run time (live injection: bench/bus/can/live_faults.py) -----
+    def add_live(self, spec: FaultSpec) -> ActiveFault:
+        """Add a fault while the bus runs: the next index of the scenario's list ("<index>:<name>"),
+        armed at once (its start_s counts from the first command frame, as a scripted fault's; the
+        caller checks the injector is armed), acting from the bus model's next event on. Called on
+        another thread than the bus model's: the fault is whole before any list holds it."""
+        index = len(self.faults)
+        fault = (HardwareFault if spec.hardware else KINDS[spec.name])(spec, index, self.protocol, self.seed,
+                                                                       self.wall_s_per_sim_s)
+        if self.t0_ns is not None:
+            fault.arm(self.t0_ns)
+        if spec.hardware:
+            self.hardware.add(index, spec)
+        elif isinstance(fault, Flood):
+            self.floods.append(fault)
+        elif isinstance(fault, ErrorFrames):
+            self.error_faults.append(fault)
+        else:
+            self.frame_faults.append(fault)
+        self.faults.append(fault)
+        self.live_labels.add(fault.label)
+        return fault
+
     # --- used by the faults ---------------------------------------------------------------
     def record(self, t_ns: int, label: str, action: str, msg: can.Message, original: can.Message | None = None) -> None:
         self.records.append(InjectionRecord(t_ns, label, action, msg.arbitration_id, bytes(msg.data).hex(),
@@ -376,5 +401,5 @@ class FaultInjector:
             out.append({"fault": fault.label, "affected": fault.affected,
                         "first_ns": first_ns, "last_ns": last_ns,
                         # its window on the bus's clock as armed (None: not armed, or no end)
-                        "start_ns": fault.start_ns, "end_ns": fault.end_ns})
+                        "start_ns": fault.start_ns, "end_ns": fault.end_ns, "live": fault.label in self.live_labels})
         return out

@@ -26,6 +26,7 @@ from bench.bus.can.coils import CoilHardware
 from bench.bus.can.busmodel import BOARD, CHANNEL_BUS, FLIGHT, BusModel, RealTimeBridge
 from bench.bus.can.config import CanConfig
 from bench.bus.can.injector import FaultInjector
+from bench.bus.can.live_faults import LiveFaults, follow_live_hardware_faults
 from bench.bus.can.lockstep_bus import LockStepBus, StepCoils
 from bench.bus.can.sim_window import SIM_ZERO_NS, CanWindow, bus_on_simulated_time, fault_clock_scale
 from bench.bus.can.transport import open_bus
@@ -98,6 +99,7 @@ def run_board(ctx) -> int:
     hardware = CoilHardware(config.faults, config.board.max_dipole_am2, fault_clock_scale(ctx.scenario))
     board = MagnetorquerBoard(bus, config.board, config.protocol(), on_applied=on_applied,
                               on_coils_changed=on_coils_changed, security=config.security, hardware=hardware)
+    follow_live_hardware_faults(ctx, hardware)    # live hardware faults, from canbus (bench/bus/can/live_faults.py)
     try:
         _wait_for_bus_peer(bus, config.board_channel, ctx)
         ctx.declare_ready([])   # the plant starts the loop once every node is ready
@@ -161,10 +163,13 @@ def run_bus_model(ctx) -> int:
     model = BusModel(injector, protocol, t0_ns, bitrate_bps=config.bitrate_bps, tx_queue_frames=config.tx_queue_frames,
                      capture=capture, to_wall_s=lambda t_ns: t_ns / 1e9 + wall_offset_s)
     bridge = RealTimeBridge(model, buses)
+    # Faults that arrive while the run runs (`bench inject`, the live view): bench/bus/can/live_faults.py.
+    live = LiveFaults(ctx, lambda: injector, time.monotonic_ns, ctx.allow_live_faults, out)
     ctx.declare_ready([])   # the launcher and tests start the other CAN nodes after this
     try:
         bridge.run(ctx.stop)
     finally:
+        live.close()
         # Results first: whatever happens while the buses close, the run's record is on disk.
         # At normal priority: writing the capture must not hold up another run's bus.
         ctx.leave_realtime_priority()
@@ -201,6 +206,8 @@ def run_lockstep_bus(ctx, config: CanConfig) -> int:
     capture = Capture(Path(ctx.run_dir) / CAPTURE_NAME, can_dir(ctx.run_dir) / ACCOUNTING_NAME) if config.capture else None
     bus = LockStepBus(config, seed=ctx.scenario.run.seed, capture=capture)
     windows = ctx.subscribe_queue(keys.CAN_STEP_FLIGHT, CanWindow)
+    live = LiveFaults(ctx, lambda: getattr(bus, "injector", None), lambda: bus.t_ns, ctx.allow_live_faults,
+                      can_dir(ctx.run_dir))   # bench/bus/can/live_faults.py
     # Not actuator/mtq: its reader, the plant, subscribes before it waits for this token, and
     # the driver boots the board through canstep/* before the plant is up.
     ctx.declare_ready([keys.CAN_STEP_BUS])
@@ -221,6 +228,7 @@ def run_lockstep_bus(ctx, config: CanConfig) -> int:
                 bus, coils, header(ctx.run_id, window.step, window.header.sim_time_s, board_received=received_ns,
                                    applied=time.monotonic_ns()), window.step))
     finally:
+        live.close()
         if bus.t_ns is not None:
             # Bus time throughout: can.log stamps are t_ns / 1e9 (wall_offset_s 0), events t_ns.
             report = bus.report() | {"clock": "simulated", "sim_zero_ns": SIM_ZERO_NS, "wall_offset_s": 0.0}
