@@ -824,6 +824,7 @@ def run_bench(scenario: Scenario, run_id: str, runs_dir: Path, port: int | None,
     run_key.write_private(run_dir / data_auth.KEY_FILE, (data_key.hex() + "\n").encode())
     # The launcher answers presence queries too: nodes on other hosts stop when it no longer does.
     launcher_presence = PresenceResponder(session, run_id, LAUNCHER, data_key)
+    launcher_presence.ready = True     # nothing to wait for: its answer means the run is on
     presence = PresenceQuery(session, run_id, data_key)
     children: list[Child] = []
     group = ProcessGroup()

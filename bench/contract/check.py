@@ -381,7 +381,12 @@ def judge(run_dir: Path, scenario: Scenario, exit_code: int, allowed_misses: int
                         f"(CLOCK_MONOTONIC ns; first seq {unstamped[0]})")
 
     # What the bench did with the commands: the plant's output stage.
-    refused = _thrust_acceptance(run_dir).get("rejected") or {} if role.node == "controller" else {}
+    refused = dict(_thrust_acceptance(run_dir).get("rejected") or {}) if role.node == "controller" else {}
+    late_refused = 0
+    if scenario.run.mode == "real-time":
+        # In real time a command that comes after its step was integrated is refused as stale: that
+        # is lateness (the step it was for counts as missed, below), not a command the plant refuses.
+        late_refused = refused.pop("stale", 0)
     if refused:
         acceptance = _thrust_acceptance(run_dir)
         envelope = (f"; each |thrust_n[i]| at most {acceptance['max_abs']:g} {acceptance.get('unit', 'N')}"
@@ -408,9 +413,13 @@ def judge(run_dir: Path, scenario: Scenario, exit_code: int, allowed_misses: int
             # A step whose command the plant refused ran on the held command too: named above as a
             # refusal, not here as lateness.
             missed = max(0, missed - sum(refused.values()))
+        if late_refused:
+            timing_note = f"; {late_refused} command(s) came after their step and were not applied"
+        else:
+            timing_note = ""
         if missed is not None and missed > allowed_misses:
             problems.append(f"deadline: {missed} real-time step(s) integrated on a held command (the command for step k "
-                            f"must arrive before step k+1 starts; {allowed_misses} allowed)")
+                            f"must arrive before step k+1 starts; {allowed_misses} allowed{timing_note})")
     over = int(np.sum(response_s > budget_s)) if response_s.size else 0
     timing = (f"response at the recorder p50 {np.median(response_s) * 1e3:.2f} ms, worst {response_s.max() * 1e3:.2f} ms"
               + (f", {over} over the {budget_s * 1e3:g} ms budget" if role.node == "controller" else "")

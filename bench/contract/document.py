@@ -197,7 +197,14 @@ def _timing(scenario: Scenario) -> dict:
         "real_time": ("the plant publishes sample k at t0 + k real_time_period_s on its monotonic clock and never "
                       "waits: the command for step k must arrive before step k + 1's tick, else step k is "
                       "integrated on the last accepted command (zero-order hold) and counted as a missed step; a "
-                      "command for a step already integrated is counted as late and not applied"),
+                      "command for a step already integrated is counted as late and not applied (refused as stale)"),
+        "realtime_priority": run.realtime_priority,
+        "realtime_scheduling": (f"in real time the bench's plant, estimator and controller run at SCHED_FIFO "
+                                f"{run.realtime_priority} (run.realtime_priority; 0: the default scheduler), every "
+                                "thread of them, set before their Zenoh session opens so its threads inherit it. An "
+                                "outside node of the loop should do the same (it needs CAP_SYS_NICE): at the default "
+                                "scheduler a busy host holds it up behind the bench's own processes, and its "
+                                "commands come late"),
         "controller_budget": ("[controller.deadline] budget_s is the controller's budget from the estimate's arrival "
                               "to the command leaving: the bench's controller, in real time, sends its fallback "
                               "(fallback = hold: the last command; shifted_plan: the last on-time plan; lqr) past it, "
