@@ -191,8 +191,10 @@ class MtqApplied(Message, tag="mtq_applied"):
     Header stamps: board_received (command frame decoded), applied (coil targets set). The CAN
     command carries no sample index, so `alive_counter` joins this to the driver's command.
     """
-    dipole_am2: Vec3                 # coil driver target after quantisation and saturation
-    coil_current_a: Vec3             # coil currents now (they lag the target by the coil L/R)
+    # What the coils put into the field (the plant's m x B): the coil driver target after quantisation
+    # and saturation, through the board's hardware faults (bench/bus/can/coils.py); zero without power.
+    dipole_am2: Vec3
+    coil_current_a: Vec3             # coil currents now, as measured (they lag the target by the coil L/R)
     safe_state: bool                 # coils off: no valid command within the command timeout
     actuation_paused: bool = False   # coils off for a magnetometer sampling window
     alive_counter: NonNegInt = 0

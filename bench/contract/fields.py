@@ -223,10 +223,13 @@ FIELDS: dict[str, dict[str, Field]] = {
                           "the last dipole); null otherwise.", allowed=FALLBACKS),
     },
     "MtqApplied": {
-        "dipole_am2": Field("The dipole the coil drivers apply: the command after quantisation and saturation "
-                            "(zero in the safe state or a magnetometer window).", unit="A m^2", frame="body"),
-        "coil_current_a": Field("Coil currents now (they lag the target by the coils' L/R time constant).", unit="A",
-                                frame="body"),
+        "dipole_am2": Field("The dipole the coils put into the field, which the plant turns into torque m x B: the "
+                            "command after quantisation and saturation (zero in the safe state, a magnetometer "
+                            "window or without power), through the board's hardware faults (an open, stuck, "
+                            "reversed or weak coil, [[can.faults]]).", unit="A m^2", frame="body"),
+        "coil_current_a": Field("Coil currents now, as the current sensors in series with the coils measure them "
+                                "(they lag the target by the coils' L/R time constant; a coil wired backwards or "
+                                "weak after the sensor does not show).", unit="A", frame="body"),
         "safe_state": Field("True when the coils are off because no valid command came within the board's command "
                             "timeout."),
         "actuation_paused": Field("True when the coils are off for a magnetometer sampling window."),

@@ -6,8 +6,12 @@ from rich.table import Table
 
 from bench.bus.can.faults import FAULTS, Param
 
-COMMON = ("every fault also takes: frames (DBC message names), start_s, duration_s, "
-          "count (frames affected, 0 = no limit), every (act on every n-th matching frame)")
+COMMON = ("every fault also takes start_s and duration_s (the run's simulated seconds from the first command frame); "
+          "a frame fault also frames (DBC message names), count (frames affected, 0 = no limit) and every (act on "
+          "every n-th matching frame). Retired: board_death (use board_power_loss), stuck_actuator (use "
+          "telemetry_freeze or coil_stuck)")
+ACTS = {"frame": "per frame", "window": "time window (needs duration_s)",
+        "hardware": "the board's hardware, from start_s (for duration_s, or to the end)"}
 
 
 def _describe(param: Param) -> str:
@@ -19,13 +23,13 @@ def _describe(param: Param) -> str:
 
 
 def cmd_faults(_args) -> int:
-    table = Table(title="CAN faults (bus model)", show_lines=True)
+    table = Table(title="CAN faults (bus model and the board's hardware)", show_lines=True)
     table.add_column("name", no_wrap=True)
     for column in ("what it does", "acts", "default frames", "parameters"):
         table.add_column(column, overflow="fold")
     for fault in FAULTS.values():
         table.add_row(fault.name, fault.summary,
-                      "per frame" if fault.trigger == "frame" else "time window (needs duration_s)",
+                      ACTS[fault.trigger] + (" (needs duration_s)" if fault.needs_duration else ""),
                       ", ".join(fault.default_frames) or "-",
                       "\n".join(_describe(p) for p in fault.params) or "-")
     console = Console()
