@@ -92,7 +92,9 @@ def one_run(scenario: str, steps: int, runs_dir: Path, run_id: str, condition: i
         watcher.stop.set()
         watcher.join(timeout=10)
     if result.returncode != 0:
-        raise SystemExit(f"bench run exited with {result.returncode}:\n{result.stderr[-2000:]}")
+        logs = "".join(f"\n--- {log.name}:\n" + "\n".join(log.read_text(errors="replace").splitlines()[-6:])
+                       for log in sorted((runs_dir / run_id / "logs").glob("*.log")))
+        raise SystemExit(f"bench run exited with {result.returncode}:\n{result.stderr[-2000:]}{logs}")
     with np.load(runs_dir / run_id / "trajectory.npz") as data:
         sensed = data["stamp_sensed_ns"]
     out = {"rate_hz": (len(sensed) - 1) / ((sensed[-1] - sensed[0]) / 1e9)}

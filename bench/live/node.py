@@ -47,7 +47,6 @@ import hashlib
 import hmac
 import json
 import math
-import os
 import queue
 import threading
 import time
@@ -68,7 +67,6 @@ from bench.bus.schemas import (
 from bench.bus.session import LOOPBACK_HOST, check_port_free, loopback_endpoint
 from bench.live.criteria import LiveMetrics
 
-LIVE_NICE = 10                   # the live view's niceness (docs/live.md, benchmarks/bench_live.py)
 LIVE_FILE = "live.json"          # in the run directory: what this node forwarded, dropped and refused
 QUEUE_SAMPLES = 4096             # Zenoh -> the forwarding thread; full: dropped and counted
 STATUS_PERIOD_S = 1.0            # live/status (wall clock)
@@ -626,13 +624,9 @@ def run(ctx) -> int:
     if port is None:
         ctx.log.error("node live needs --live-port PORT (`bench run SCENARIO --live [PORT]`)")
         return 2
-    # A viewer yields the CPU to the loop: on a host where the loop's processes use every core (a
-    # lock-step run), the scheduler gives them the time first and the view what is left; what it
-    # cannot forward in time is dropped from its queue and counted, the loop is never held up.
-    try:
-        os.nice(LIVE_NICE)
-    except OSError:
-        pass
+    # No lower priority (os.nice) for the forwarding thread: it shares the GIL with Zenoh's receive
+    # threads, and a thread the scheduler starves while it holds the GIL would stall the callback
+    # that must never wait (seen once with the view at nice 10: a lock-step run stalled 10 s at load 30).
     view = LiveView(ctx, port)
     ws_url, app_url = live_urls(view.server.port)
     ctx.log.info("live view on %s (%s); fault injection %s", ws_url, app_url,
