@@ -207,5 +207,8 @@ class PresenceWatcher:
         return expired if now >= expired else None
 
     def stop(self) -> None:
+        # Joined whatever it takes (one query at most): a query left in flight when the session
+        # closes and the interpreter exits can call into Python from Zenoh's threads, which aborts.
         self._stop.set()
-        self._thread.join(timeout=2.0)
+        if self._thread.is_alive():
+            self._thread.join()

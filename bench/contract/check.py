@@ -161,7 +161,7 @@ class Outside:
     def stop(self, grace_s: float = STOP_GRACE_S) -> int | None:
         """Its exit code; None if it never started; KILLED if it did not stop within grace_s."""
         self._stop.set()
-        self._thread.join(timeout=1.0)
+        self._thread.join()        # a process started after this look would be left running
         if self.process is None:
             return None
         try:
@@ -193,7 +193,10 @@ class ProbeStarter:
 
     def close(self) -> InputProbe | None:
         self._stop.set()
-        self._thread.join(timeout=5.0)
+        # No timeout: a probe still opening its session (seconds on a loaded host) would otherwise be
+        # left open, and Zenoh's threads calling into Python while the interpreter exits abort the
+        # process ("FATAL: exception not rethrown", exit -6).
+        self._thread.join()
         if self.probe is not None:
             self.probe.close()
         return self.probe
