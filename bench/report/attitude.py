@@ -81,13 +81,11 @@ def board_telemetry_am2(run) -> tuple[np.ndarray, np.ndarray] | None:
     """The board's applied-dipole telemetry as the flight side reads it on the bus (MTQ_TLM_DIPOLE
     frames of can.log, after whatever the fault injector did to them): (simulated s, (n, 3) A m²)."""
     from bench.bus.can import protocol as can_protocol
-    from bench.report.timebase import wall_to_mono_ns
 
     if run.can_log is None or run.scenario.can is None:
         return None
     clock = RunClock.from_run(run.trajectory, run.scenario)
-    wall_offset_s = canbus._bus_model_report(run.run_dir).get("wall_offset_s")
-    if clock is None or wall_offset_s is None:
+    if clock is None:
         return None
     protocol = can_protocol.Protocol(run.scenario.can.node_id, run.scenario.can.security.profile)
     times, dipoles = [], []
@@ -98,7 +96,10 @@ def board_telemetry_am2(run) -> tuple[np.ndarray, np.ndarray] | None:
             dipoles.append([frame.signals[f"AppliedDipole{axis}"] for axis in "XYZ"])
     if not times:
         return None
-    sim_s = np.atleast_1d(clock.sim_s(wall_to_mono_ns(times, wall_offset_s)))
+    # on simulated time in both modes: a lock-step bus's stamps are bus time, not wall time
+    sim_s = canbus.capture_sim_s(run.run_dir, clock, times)
+    if sim_s is None:
+        return None
     inside = (sim_s >= clock.start_sim_s) & (sim_s <= clock.end_sim_s)
     return sim_s[inside], np.asarray(dipoles, float)[inside]
 

@@ -115,6 +115,28 @@ def _bus_clock(model: dict, run_clock: RunClock | None):
     return _SimulatedBusClock(int(model["sim_zero_ns"]), run_clock.start_sim_s, run_clock.end_sim_s)
 
 
+def capture_sim_s(run_dir: Path, clock: RunClock | None, timestamps) -> np.ndarray | None:
+    """Simulated seconds of can.log capture timestamps: on a bus that ran on simulated time (lock-step,
+    busmodel.json `clock` = "simulated") the stamps are bus time, `(t - sim_zero_ns / 1e9)`; on a bus
+    on the wall clock they are wall (epoch) seconds, mapped through the run's clock (`wall_offset_s`).
+    Not clipped: the board's boot comes before the first step and its safe state after the last.
+    None without the bus model's report or the plant's stamps (nothing to place them by)."""
+    model = _bus_model_report(run_dir)
+    t = np.asarray(timestamps, dtype=float)
+    if model.get("clock") == "simulated" and model.get("sim_zero_ns") is not None:
+        return t - int(model["sim_zero_ns"]) / 1e9
+    if clock is None or model.get("wall_offset_s") is None:
+        return None
+    return np.atleast_1d(clock.sim_s(wall_to_mono_ns(t, float(model["wall_offset_s"]))))
+
+
+def capture_wall_s(run_dir: Path, timestamps) -> np.ndarray:
+    """Wall-clock (epoch) seconds of can.log capture timestamps; NaN where the bus ran on simulated
+    time (its capture has no wall clock)."""
+    t = np.asarray(timestamps, dtype=float)
+    return np.full(t.shape, np.nan) if _bus_model_report(run_dir).get("clock") == "simulated" else t
+
+
 def _bus_model_report(run_dir: Path) -> dict:
     path = Path(run_dir) / BUSMODEL_FILE
     try:

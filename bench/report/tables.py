@@ -19,10 +19,19 @@ table's "bench" metadata with every column's unit and source array):
   named there ("left_out").
 
 `can_frames.parquet`, when the run has a can.log (candump capture of the bus model): one row per
-captured frame, with its capture time (`timestamp_s`, the capture's wall clock, s), channel, id,
+captured frame, with its capture time (`timestamp_s`, the capture's own stamp, s), channel, id,
 flags, data in hex, DBC name, direction (DBC sender -> receivers, "OBC->MTQ" is the flight side to
 the board), whether it decodes as a frame of the protocol, its E2E CRC verdict, and its signals as
-JSON text.
+JSON text. Its times, named by their clock (the table's "bench" metadata `time_columns` says so too):
+- `sim_time_s`: the run's simulated time of the frame (the time base of steps.parquet's `t_s`),
+  monotone, clipped to the run's span [first t_s, last t_s + one step]: the board's boot frames come before
+  step 0 and its safe-state frames after the last step (`in_run` says which frames are inside);
+- `step`: the row of steps.parquet the frame falls in (the last step with t_s <= sim_time_s), to
+  join the two tables on;
+- `wall_time_s`: the wall clock (Unix epoch s) at which the bus model passed the frame, NaN where
+  the bus ran on simulated time (lock-step with bus faults: there the capture stamp is bus time,
+  simulated time + 1000 s, and no frame has a wall time);
+- `timestamp_s`: candump's stamp as written in can.log (one of the two above, by the bus's clock).
 """
 from __future__ import annotations
 
@@ -67,13 +76,15 @@ def write_tables(run_dir: str | Path) -> list[Path]:
     has the source of; returns the paths written."""
     run_dir = Path(run_dir)
     written = []
+    arrays: dict[str, np.ndarray] = {}
     if (run_dir / TRAJECTORY_FILE).is_file():
         with np.load(run_dir / TRAJECTORY_FILE) as npz:
             arrays = {k: npz[k] for k in npz.files}
         pq.write_table(steps_table(arrays), run_dir / STEPS_FILE)
         written.append(run_dir / STEPS_FILE)
     if (run_dir / CAN_LOG_FILE).is_file():
-        pq.write_table(can_frames_table(run_dir / CAN_LOG_FILE, _protocol(run_dir)), run_dir / CAN_FRAMES_FILE)
+        table = can_frames_table(run_dir / CAN_LOG_FILE, _protocol(run_dir))
+        pq.write_table(with_frame_times(table, run_dir, arrays), run_dir / CAN_FRAMES_FILE)
         written.append(run_dir / CAN_FRAMES_FILE)
     return written
 
@@ -183,6 +194,54 @@ def _protocol(run_dir: Path) -> can_protocol.Protocol:
     except (ScenarioError, OSError):
         config = None
     return can_protocol.Protocol(config.node_id, config.security.profile) if config is not None else can_protocol.Protocol()
+
+
+def with_frame_times(table: pa.Table, run_dir: Path, arrays: dict[str, np.ndarray]) -> pa.Table:
+    """The frames' table with its times named by their clock (module docstring): `sim_time_s`,
+    `in_run`, `step` and `wall_time_s` after `timestamp_s`, and the metadata that says which is which.
+    Without the run's steps or its bus model's report, the table as it is, its metadata saying so."""
+    from bench.report import canbus
+    from bench.report.timebase import RunClock
+
+    metadata = json.loads(table.schema.metadata[METADATA_KEY])
+    stamps = table.column("timestamp_s").to_numpy()
+    scenario = None
+    try:
+        scenario = load_scenario(run_dir / "scenario.json")
+    except (ScenarioError, OSError):
+        pass
+    times = arrays.get("att_time_s", arrays.get("t_s"))
+    clock = RunClock.from_run(arrays, scenario) if times is not None else None
+    sim_s = canbus.capture_sim_s(run_dir, clock, stamps) if times is not None else None
+    on_sim_bus = canbus._bus_model_report(run_dir).get("clock") == "simulated"
+    capture_clock = ("bus time of a bus on simulated time: simulated s + 1000 s" if on_sim_bus
+                     else "wall clock (Unix epoch s) of the bus model")
+    metadata["units"]["timestamp_s"] = f"s (can.log's stamp: {capture_clock})"
+    if sim_s is None or len(times) == 0:
+        metadata["time_columns"] = {"timestamp_s": capture_clock, "sim_time_s": "absent: no steps or bus model report"}
+        return table.replace_schema_metadata({METADATA_KEY: json.dumps(metadata).encode()})
+    times = np.asarray(times, dtype=float)
+    # the run's span: from its first step's start to its last step's end (one step after its start)
+    lo, hi = float(times[0]), float(times[-1] + (times[-1] - times[-2] if len(times) > 1 else 0.0))
+    in_run = (sim_s >= lo) & (sim_s <= hi)
+    # one bus, frames in capture order: monotone already; the running maximum keeps it so exactly
+    clipped = np.maximum.accumulate(np.clip(sim_s, lo, hi)) if sim_s.size else sim_s
+    step = np.clip(np.searchsorted(times, clipped, side="right") - 1, 0, len(times) - 1).astype(np.int64)
+    wall = canbus.capture_wall_s(run_dir, stamps)
+    units = {"sim_time_s": "s (simulated time of the run, as steps.parquet t_s)", "in_run": "1",
+             "step": "1 (row of steps.parquet)", "wall_time_s": "s (wall clock, Unix epoch; NaN: bus on simulated time)"}
+    metadata["units"].update(units)
+    metadata["time_columns"] = {
+        "sim_time_s": f"the run's simulated time, clipped to the run's span [{lo:g}, {hi:g}] s, monotone",
+        "in_run": "the frame's simulated time lies within the steps (not the boot before or the safe state after)",
+        "step": "steps.parquet row (step k with t_s <= sim_time_s < t_s of k+1): join on it",
+        "wall_time_s": "wall clock (Unix epoch s); NaN where the bus ran on simulated time",
+        "timestamp_s": capture_clock}
+    position = table.schema.get_field_index("timestamp_s") + 1
+    for name, values, type_ in (("wall_time_s", wall, pa.float64()), ("step", step, pa.int64()),
+                                ("in_run", in_run.tolist(), pa.bool_()), ("sim_time_s", clipped, pa.float64())):
+        table = table.add_column(position, pa.field(name, type_, metadata={"unit": units[name]}), arrow_column(values, type_))
+    return table.replace_schema_metadata({METADATA_KEY: json.dumps(metadata).encode()})
 
 
 def can_frames_table(path: Path, protocol: can_protocol.Protocol) -> pa.Table:
