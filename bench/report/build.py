@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.report import canbus, plots, summary, tables
+from bench.report import canbus, plots, recording_can, summary, tables
 from bench.report.attitude import attitude_section
 from bench.report.deadlines import DeadlineResult, deadlines
 from bench.report.jsonout import write_json
@@ -294,6 +294,7 @@ def write_report(run_dir: str | Path) -> tuple[Path, Path]:
     """Write report.md, report.html, plots/ and the report's numbers into metrics.json."""
     run = load_run(run_dir)
     tables.write_tables(run.run_dir)    # steps.parquet, can_frames.parquet
+    recording_can.place_can_frames(run)  # recording.mcap's CAN frames on simulated time, decoded, every mode
     plot_dir = run.run_dir / PLOTS_DIR
     plot_dir.mkdir(exist_ok=True)
     mission = mission_metrics(run)
