@@ -88,7 +88,13 @@ def trajectory_section(run: RunData, plot_dir: Path) -> Section | None:
 def latency_section(run: RunData, result: LatencyResult, plot_dir: Path) -> Section:
     section = Section("Latency", [
         "From the monotonic stamps each stage writes into the message header (recording.mcap), and the "
-        "plant's record of the command it applied (trajectory.npz) for plant_received and applied."
+        "plant's record of the command it applied (trajectory.npz) for plant_received and applied.",
+        "Two end-to-end figures, named by what they measure: 'sensed → command at the plant' is the loop's own "
+        "latency, the same quantity in both modes; 'sensed → applied' adds the wait for the step boundary at "
+        "which the plant applies a command: in real time the plant's one-step hold (about one step period), "
+        "in lock-step nothing (the plant waits for the command and applies it at once)."
+        + (" This run is real time: sensed → applied includes the hold." if run.scenario.run.mode == "real-time"
+           else " This run is lock-step: the two differ by the plant's own apply time only."),
     ])
     if not result.hops:
         section.paragraphs.append("No stamped messages in this run.")

@@ -28,6 +28,10 @@ def cmd_compare(args) -> int:
     except (RunDirError, CompareError) as exc:
         print(f"bench compare: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
+    # the comparison itself, as the terminal shows it: its first section (note and table)
+    text = md.read_text()
+    first = text.split("\n## ", 2)
+    print(("## " + first[1]).split("![")[0].rstrip() if len(first) > 1 else text)
     print(f"wrote {page} and {md}")
     return 0
 

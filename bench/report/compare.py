@@ -19,7 +19,7 @@ from bench.report import plots
 from bench.report.build import PLOTS_DIR, mission_metrics, trajectory_series
 from bench.report.deadlines import DeadlineResult, deadlines
 from bench.report.document import Document, Figure, Section, Table, fmt, write
-from bench.report.latency import END_TO_END, LatencyResult, latency
+from bench.report.latency import END_TO_END, SENSE_TO_PLANT, LatencyResult, latency
 from bench.report.rundata import RunData, load_run
 
 
@@ -61,6 +61,37 @@ def _verdict(summary: RunSummary) -> str:
     return "not judged" if passed is None else ("PASS" if passed else "FAIL")
 
 
+def driver_events_of(summary: RunSummary) -> str:
+    """What the CAN driver detected, per kind: 'kind n, ...'."""
+    events = ((summary.run.metrics.get("can_bus") or {}).get("driver") or {}).get("events") or {}
+    return ", ".join(f"{kind} {n}" for kind, n in sorted(events.items())) or "none"
+
+
+def detections_of(summary: RunSummary) -> str:
+    """Per fault window, which monitor (driver or FDIR) detected it first and how long after its start."""
+    faults = (summary.run.metrics.get("can_bus") or {}).get("faults") or []
+    out = []
+    for f in faults:
+        if f.get("detected"):
+            out.append(f"{f['name']}: {f.get('first_detection')} ({f.get('detected_by')}) after "
+                       f"{fmt((f.get('detection_latency_s') or 0.0) * 1e3)} ms")
+        else:
+            out.append(f"{f['name']}: not detected")
+    return "; ".join(out) or "none"
+
+
+def mode_note(summaries: list[RunSummary]) -> str | None:
+    """A warning when the runs' time modes differ: what is and what is not comparable."""
+    modes = {s.run.scenario.run.mode for s in summaries}
+    if len(modes) < 2:
+        return None
+    which = ", ".join(f"{s.run.run_id}: {s.run.scenario.run.mode}" for s in summaries)
+    return (f"The runs' time modes differ ({which}). 'sensed → applied' includes the plant's one-step hold in "
+            "real time and not in lock-step, so it is not compared across modes here; 'sensed → command at the "
+            "plant' (the loop's own latency, no hold) is the same quantity in both. Deadline misses mean a late "
+            "command in real time and a slow cycle in lock-step.")
+
+
 # One row per quantity: (name, function of a RunSummary), the ones of each loop, then the common ones.
 RENDEZVOUS_ROWS = (
     ("scenario", lambda r: r.run.scenario.name),
@@ -90,20 +121,28 @@ ATTITUDE_ROWS = (
 )
 COMMON_ROWS = (
     ("verdict", _verdict),
-    ("end-to-end latency p50 [ms]", lambda r: _lat(r, END_TO_END.name, "p50_ms")),
-    ("end-to-end latency p99 [ms]", lambda r: _lat(r, END_TO_END.name, "p99_ms")),
+    ("sensed → command at the plant p50 [ms] (loop, no hold)", lambda r: _lat(r, SENSE_TO_PLANT.name, "p50_ms")),
+    ("sensed → command at the plant p99 [ms] (loop, no hold)", lambda r: _lat(r, SENSE_TO_PLANT.name, "p99_ms")),
+    ("sensed → applied p50 [ms] (with the step hold in real time)", lambda r: _lat(r, END_TO_END.name, "p50_ms")),
     ("controller compute p50 [ms]", lambda r: _lat(r, "controller compute", "p50_ms")),
     ("solve time p50 [ms]", lambda r: r.deadlines.to_metrics()["solve_time_p50_ms"]),
     ("solve time p99 [ms]", lambda r: r.deadlines.to_metrics()["solve_time_p99_ms"]),
     ("controller deadline misses", lambda r: len(r.deadlines.controller_miss_seq)),
     ("plant-side missed steps", lambda r: len(r.deadlines.plant_miss_seq)),
+    ("CAN driver events", driver_events_of),
+    ("fault detections (first, by which monitor)", detections_of),
 )
 
 
 def comparison_table(summaries: list[RunSummary]) -> Table:
     loop_rows = ATTITUDE_ROWS if summaries[0].run.scenario.kind == "attitude" else RENDEZVOUS_ROWS
-    return Table(["", *(s.run.run_id for s in summaries)],
-                 [[name, *(fmt(get(s)) for s in summaries)] for name, get in (*loop_rows, *COMMON_ROWS)])
+    rows = [[name, *(fmt(get(s)) for s in summaries)] for name, get in (*loop_rows, *COMMON_ROWS)]
+    if mode_note(summaries) is not None:    # not like with like: left blank, the note says why
+        rows = [[r[0], *(("- (modes differ)",) * len(summaries))] if r[0].startswith("sensed → applied") else r
+                for r in rows]
+    if not any(s.run.scenario.can for s in summaries):
+        rows = [r for r in rows if r[0] not in ("CAN driver events", "fault detections (first, by which monitor)")]
+    return Table(["", *(s.run.run_id for s in summaries)], rows)
 
 
 def check_comparable(summaries: list[RunSummary], reference: Path | None) -> int | None:
@@ -143,17 +182,20 @@ def write_comparison(run_dirs: list[str | Path], out_dir: str | Path | None = No
     if trajectories:
         path = plots.trajectory(trajectories, summaries[0].run.scenario.params(), plot_dir / "trajectories.png")
         figures.append(Figure(Path(PLOTS_DIR) / path.name, "Trajectories against the constraints (first run's limits)"))
-    e2e = {s.label: s.latency.hops[END_TO_END.name] for s in summaries if END_TO_END.name in s.latency.hops}
+    e2e = {s.label: s.latency.hops[SENSE_TO_PLANT.name] for s in summaries if SENSE_TO_PLANT.name in s.latency.hops}
     if e2e:
-        path = plots.latency_cdfs(e2e, plot_dir / "latency_cdf.png", "End-to-end latency (CDF)")
-        figures.append(Figure(Path(PLOTS_DIR) / path.name, "End-to-end latency per run"))
+        path = plots.latency_cdfs(e2e, plot_dir / "latency_cdf.png", "Sensed → command at the plant (loop latency, CDF)")
+        figures.append(Figure(Path(PLOTS_DIR) / path.name, "Loop latency per run: sensed → command at the plant, "
+                                                           "no step hold (the same quantity in both modes)"))
     solve = {s.label: s.deadlines.solve_time_s for s in summaries if s.deadlines.solve_time_s.size}
     if solve:
         path = plots.solve_times(solve, plot_dir / "solve_time.png")
         figures.append(Figure(Path(PLOTS_DIR) / path.name, "Solve-time distribution per run"))
 
     runs_text = "Runs: " + "; ".join(f"{s.run.run_id} = {s.run.run_dir}" for s in summaries) + "."
-    sections = [Section("Runs side by side", [runs_text], [comparison_table(summaries)], figures)]
+    note = mode_note(summaries)
+    sections = [Section("Runs side by side", [runs_text] + ([note] if note else []), [comparison_table(summaries)],
+                        figures)]
     if summaries[0].run.scenario.kind == "attitude":
         from bench.report.attitude import comparison_section
 

@@ -57,7 +57,14 @@ HOPS = (
 # The magnetorquer board's own chain: its MtqApplied header carries board_received and applied
 # under the board's counter, not the plant's step index, so it is kept apart from the loop's steps.
 BOARD_APPLY = Hop("board decode → coils set (CAN)", "board_received", "applied")
-END_TO_END = Hop("end to end (sensed → applied)", "sensed", "applied")
+# Two end-to-end quantities, named by what they measure. The plant applies a command at a step
+# boundary: in real time a command that reaches it during step k waits there for step k+1 (the
+# zero-order hold, one step), in lock-step the plant waits for it and applies it at once. So
+# sensed -> applied holds the step hold in real time (101.5 ms at 0.1 s steps) and not in lock-step;
+# sensed -> at the plant (plant_received) holds no hold in either mode: the loop's own latency,
+# comparable across modes.
+SENSE_TO_PLANT = Hop("sensed → command at the plant (loop, no hold)", "sensed", "plant_received")
+END_TO_END = Hop("sensed → applied (with the plant's step hold in real time)", "sensed", "applied")
 SENSE_TO_COMMAND = Hop("sensed → commanded", "sensed", "commanded")
 PERCENTILES = (50, 90, 99)
 
@@ -160,7 +167,7 @@ def latency(run: RunData) -> LatencyResult:
     """Every hop with data, then sense-to-command and end-to-end."""
     stamps = merged_stamps(run)
     hops: dict[str, np.ndarray] = {}
-    for hop in (*HOPS, SENSE_TO_COMMAND, END_TO_END):
+    for hop in (*HOPS, SENSE_TO_COMMAND, SENSE_TO_PLANT, END_TO_END):
         _, values = hop_samples_s(stamps, hop)
         if values.size:
             hops[hop.name] = values

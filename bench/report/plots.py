@@ -83,17 +83,21 @@ def trajectory(series: list[TrajectorySeries], params: RendezvousParams, path: P
     return _save(fig, path)
 
 
-def _cdf(ax, samples_ms: np.ndarray, label: str) -> None:
+def _cdf(ax, samples_ms: np.ndarray, label: str, **style) -> None:
     values = np.sort(samples_ms)
-    ax.step(values, np.arange(1, values.size + 1) / values.size, where="post", label=f"{label} (n={values.size})")
+    ax.step(values, np.arange(1, values.size + 1) / values.size, where="post", label=f"{label} (n={values.size})",
+            **style)
 
 
 def latency_cdfs(series_s: dict[str, np.ndarray], path: Path, title: str) -> Path:
     """Empirical CDFs of latencies (one line per hop or per run), log time axis."""
     fig, ax = plt.subplots(figsize=(10, 5))
-    for label, samples_s in series_s.items():
+    # one colour per line: the default cycle has 10, a loop with CAN has more hops than that
+    colours = plt.get_cmap("tab20").colors
+    for i, (label, samples_s) in enumerate(series_s.items()):
         if samples_s.size:
-            _cdf(ax, np.asarray(samples_s) * 1e3, label)
+            _cdf(ax, np.asarray(samples_s) * 1e3, label, color=colours[(2 * i) % 20 + (2 * i) // 20 % 2],
+                 ls="-" if i < 20 else "--")
     ax.set_xscale("log")
     ax.set_xlabel("latency [ms]")
     ax.set_ylabel("fraction of steps")

@@ -204,7 +204,10 @@ def with_frame_times(table: pa.Table, run_dir: Path, arrays: dict[str, np.ndarra
     from bench.report.timebase import RunClock
 
     metadata = json.loads(table.schema.metadata[METADATA_KEY])
-    stamps = table.column("timestamp_s").to_numpy()
+    # from the buffer: ChunkedArray.to_numpy asks for pandas (see arrow_column)
+    chunks = table.column("timestamp_s").chunks
+    stamps = np.concatenate([np.frombuffer(c.buffers()[1], dtype=np.float64, count=len(c), offset=c.offset * 8)
+                             for c in chunks]) if chunks else np.zeros(0)
     scenario = None
     try:
         scenario = load_scenario(run_dir / "scenario.json")
