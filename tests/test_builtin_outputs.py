@@ -37,9 +37,12 @@ SECTIONS = {"rendezvous": ("Summary", "Trajectory", "Latency", "Deadlines", "Rec
             "attitude": ("Summary", "Attitude", "Latency", "Deadlines", "CAN bus", "Recording")}
 
 
-def short_form(name: str) -> dict:
-    """The scenario cut short, its faults (if any) moved inside the short run."""
+def short_form(name: str, mode: str | None = None) -> dict:
+    """The scenario cut short, its faults (if any) moved inside the short run; `mode` another time
+    mode than the scenario's own."""
     data = msgspec.to_builtins(load_scenario(name))
+    if mode is not None:
+        data["run"]["mode"] = mode
     if data.get("kind") == "attitude":
         if data["run"]["mode"] == "real-time":
             data["attitude"]["duration_s"] = ATTITUDE_SHORT_S
@@ -89,12 +92,17 @@ def chain_breaks(trajectory: dict) -> list[str]:
 _done: dict[str, object] = {}
 
 
+def run_id_of(name: str) -> str:
+    return name.replace("@", "_")    # "@" is Zenoh's verbatim-chunk mark: not in a run id
+
+
 def short_run(runs, name: str):
     """`bench run` of the scenario's short form, once per test session; the finished process."""
-    if name not in _done:
-        scenario_file = runs / f"{name}.json"
-        scenario_file.write_text(json.dumps(short_form(name)))
-        _done[name] = run_bench_cli("run", str(scenario_file), "--run-id", name, "--runs-dir", str(runs), "--no-progress",
+    if name not in _done:   # "<scenario>@<mode>": the scenario in the other time mode
+        scenario_file = runs / f"{run_id_of(name)}.json"
+        base, _, mode = name.partition("@")
+        scenario_file.write_text(json.dumps(short_form(base, mode or None)))
+        _done[name] = run_bench_cli("run", str(scenario_file), "--run-id", run_id_of(name), "--runs-dir", str(runs), "--no-progress",
                                     timeout_s=RUN_TIMEOUT_S)
     return _done[name]
 
@@ -160,3 +168,78 @@ def test_each_loops_report_renders_in_a_browser_with_no_empty_plot(runs, tmp_pat
     assert images_loaded(tmp_path, page) == (n_figures, n_figures)
     for plot in sorted((runs / name / "plots").glob("*.png")):
         assert colourful_fraction(plot) > 1e-4, f"{plot.name} is empty"    # a dozen points: 3.5e-4
+
+
+# --- issue 46: one time base for CAN, decoded CAN in the MCAP, latencies named by what they measure
+# Both modes of the fault run (the bus on simulated time in lock-step, on the wall clock in real
+# time), and the two attitude runs with a smoother (real time, lock-step with MILQR).
+TIME_BASE_RUNS = ["attitude_fault_all", "attitude_fault_all@lock-step", "attitude_pointing_rt", "attitude_slew_milqr"]
+
+
+def _span_s(steps) -> tuple[float, float]:
+    t = steps["t_s"].to_numpy()
+    return float(t[0]), float(t[-1] + (t[-1] - t[-2]))
+
+
+@pytest.mark.parametrize("name", TIME_BASE_RUNS)
+def test_can_frames_telemetry_and_latencies_on_one_time_base(runs, name):
+    import pandas as pd
+    import pyarrow.parquet as pq
+    from mcap.reader import make_reader
+
+    from bench.report.attitude import board_telemetry_am2
+    from bench.report.latency import END_TO_END, SENSE_TO_PLANT
+    from bench.report.tables import METADATA_KEY
+
+    result = short_run(runs, name)
+    assert result.returncode == 0, result.stderr[-3000:]
+    run_dir = runs / run_id_of(name)
+    run = load_run(run_dir)
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    steps = pd.read_parquet(run_dir / "steps.parquet")
+    start, end = _span_s(steps)
+    mode = run.scenario.run.mode
+    assert ("@lock-step" in name) <= (mode == "lock-step")
+
+    if run.scenario.can is not None:
+        # can_frames.parquet: simulated time beside the wall clock, named, monotone, joins the steps
+        table = pq.read_table(run_dir / "can_frames.parquet")
+        meta = json.loads(table.schema.metadata[METADATA_KEY])
+        assert {"sim_time_s", "wall_time_s", "timestamp_s", "step"} <= set(meta["time_columns"])
+        frames = table.to_pandas()
+        sim = frames["sim_time_s"].to_numpy()
+        assert len(sim) > 20 and np.all(np.diff(sim) >= 0)
+        assert start <= sim.min() and sim.max() <= end + 1e-9
+        assert sim.max() - sim.min() > 0.5 * (end - start)        # spread over the run, not at one instant
+        joined = frames[frames["in_run"]].merge(steps[["t_s"]], left_on="step", right_index=True)
+        assert len(joined) == frames["in_run"].sum() > 0
+        assert (joined["t_s"] <= joined["sim_time_s"] + 1e-9).all()
+        # the board's telemetry trace of the report spans the run on simulated time, where the board
+        # reports on it: a bus on simulated time (lock-step with faults), or real time. (A fault-free
+        # lock-step bus keeps the wall clock: the board's periodic telemetry comes per wall second,
+        # a handful over a run faster than real time.)
+        sim_bus = json.loads((run_dir / "can" / "busmodel.json").read_text()).get("clock") == "simulated"
+        telemetry = board_telemetry_am2(run)
+        assert telemetry is not None
+        if sim_bus or mode == "real-time":
+            assert len(np.unique(np.round(telemetry[0], 3))) > 5, telemetry[0]
+            assert telemetry[0].max() - telemetry[0].min() > 0.5 * (end - start), (telemetry[0].min(), telemetry[0].max())
+        assert sim_bus == ("@lock-step" in name)
+        # the MCAP: decoded CAN topics, on simulated time
+        with open(run_dir / "recording.mcap", "rb") as f:
+            can_messages = [(c.topic, m.log_time, json.loads(m.data)) for _, c, m in make_reader(f).iter_messages()
+                            if c.topic in ("can/flight", "can/board")]
+        assert {t for t, _, _ in can_messages} == {"can/flight", "can/board"}
+        assert any(body["decoded"] and body["signals"] for _, _, body in can_messages)
+        log_s = np.array([t for _, t, _ in can_messages]) / 1e9
+        assert start <= log_s.min() and log_s.max() <= end + 1e-9
+        assert log_s.max() - log_s.min() > 0.5 * (end - start)
+
+    # latency: two names for two quantities; the hold only in real time
+    assert SENSE_TO_PLANT.name != END_TO_END.name
+    assert metrics["latency_ms"][SENSE_TO_PLANT.name]["n"] > 0 and metrics["latency_ms"][END_TO_END.name]["n"] > 0
+    assert metrics["end_to_end_latency"]["includes_step_hold"] == (mode == "real-time")
+    assert metrics["sense_to_plant_latency"]["includes_step_hold"] is False
+    assert metrics["sense_to_plant_latency"]["samples"] > 0
+    if mode == "real-time":
+        assert metrics["end_to_end_latency"]["p50_ms"] > metrics["sense_to_plant_latency"]["p50_ms"]
