@@ -235,6 +235,17 @@ def test_can_frames_telemetry_and_latencies_on_one_time_base(runs, name):
         assert start <= log_s.min() and log_s.max() <= end + 1e-9
         assert log_s.max() - log_s.min() > 0.5 * (end - start)
 
+    # an attitude run with a smoother: its Estimator section, with a plot that is not empty
+    if run.scenario.kind == "attitude" and run.scenario.estimator.mode != "truth":
+        report = (run_dir / "report.md").read_text()
+        assert "\n## Estimator\n" in report
+        section = report.split("\n## Estimator\n", 1)[1].split("\n## ", 1)[0]
+        assert "±3σ" in section and "NEES" in section and "gyro bias" in section
+        plot = run_dir / "plots" / "attitude_estimator.png"
+        assert f"]({plot.relative_to(run_dir)})" in section
+        assert plot.is_file() and colourful_fraction(plot) > 1e-3
+        assert metrics["estimator_error"]["samples"] > 0 and metrics["estimator_error"]["mean_nees"] is not None
+
     # latency: two names for two quantities; the hold only in real time
     assert SENSE_TO_PLANT.name != END_TO_END.name
     assert metrics["latency_ms"][SENSE_TO_PLANT.name]["n"] > 0 and metrics["latency_ms"][END_TO_END.name]["n"] > 0

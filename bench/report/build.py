@@ -307,6 +307,10 @@ def write_report(run_dir: str | Path) -> tuple[Path, Path]:
     lat = latency(run)
     dl = deadlines(run)
     est_section, est_metrics = estimation_section(run, plot_dir)
+    if est_section is None and run.scenario.kind == "attitude":   # the attitude loop's smoother
+        from bench.report.attitude_estimation import attitude_estimation_section
+
+        est_section, est_metrics = attitude_estimation_section(run, plot_dir)
     can_sec, can_metrics = can_section(run, plot_dir)
     rec_section, rec_metrics = recording_section(run)
     att_section, _ = attitude_section(run, plot_dir)
