@@ -93,7 +93,7 @@ def _finish(runs_dir, run_id: str, run: subprocess.Popen) -> tuple[dict, dict]:
 def comparable(metrics: dict) -> dict:
     """metrics.json without what differs between any two runs (times, pids) and the drop counts
     (the launcher's `forged` and `replayed`, the nodes' `unauthentic`: their data-topic MAC)."""
-    varying = {"wall_time_s", "end_to_end_latency", "processes"}
+    varying = {"wall_time_s", "end_to_end_latency", "sense_to_plant_latency", "processes"}
     kept = {k: v for k, v in metrics.items() if k not in varying}
     kept["process_stats"] = {name: {k: v for k, v in entry.items() if k not in ("forged", "replayed", "unauthentic")}
                              for name, entry in metrics["process_stats"].items()}

@@ -61,11 +61,21 @@ def summary_section(run: RunData, mission: dict, judged: dict) -> Section:
         rows = [[name, value] for name, value in summary.summary_rows(mission)]
     else:
         rows = [[name, fmt(mission.get(key))] for name, key in MISSION_ROWS if key in mission]
+        rows = [[name, summary.constraints_text(mission)] if name == "constraints satisfied" else [name, value]
+                for name, value in rows]
     paragraphs = [text]
     if run.metrics.get("partial"):
         paragraphs.insert(0, f"Partial run: {run.metrics.get('end_reason', 'it did not finish')}. "
                              "The numbers cover the steps it ran.")
     section_tables = [Table(["metric", "value"], rows)]
+    if mission.get("constraints"):
+        judged_metrics = {c["metric"] for c in judged.get("criteria") or []}
+        paragraphs.append("The constraints table: each of the mission's constraints with its value and bound"
+                          + ("" if "constraints_satisfied" in judged_metrics else
+                             " (information: the verdict judges the scenario's criteria, not these)") + ".")
+        section_tables.append(Table(["constraint", "value", "bound", "holds"],
+                                    [[c["name"], f"{fmt(c['value'])} {c['unit']}", f"≤ {fmt(c['bound'])} {c['unit']}",
+                                      "yes" if c["satisfied"] else "NO"] for c in mission["constraints"]]))
     if judged.get("passed") is None:
         paragraphs.append("Verdict: not judged (the scenario declares no criteria).")
     else:

@@ -6,6 +6,7 @@ two files always say the same thing. Figures are PNG files referenced by relativ
 from __future__ import annotations
 
 import html
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -81,7 +82,8 @@ def to_html(doc: Document) -> str:
              f"<style>{_STYLE}</style></head><body><h1>{e(doc.title)}</h1>"]
     for section in doc.sections:
         parts.append(f"<section><h2>{e(section.title)}</h2>")
-        parts += [f"<p>{e(p)}</p>" for p in section.paragraphs]
+        # the Markdown's one emphasis, **bold**, as HTML's (the verdict): not a literal **PASS**
+        parts += ["<p>" + re.sub(r"\*\*(.+?)\*\*", r"<strong>\1</strong>", e(p)) + "</p>" for p in section.paragraphs]
         for table in section.tables:
             parts.append("<table><tr>" + "".join(f"<th>{e(c)}</th>" for c in table.columns) + "</tr>")
             parts += ["<tr>" + "".join(f"<td>{e(c)}</td>" for c in row) + "</tr>" for row in table.rows]

@@ -29,5 +29,15 @@ def trajectory_metrics(state_m_mps: np.ndarray, thrust_n: np.ndarray, params: Re
             "final_position": m.final_distance_m <= params.max_final_position_m,
             "final_velocity": m.final_speed_mps <= params.max_final_velocity_mps,
         },
+        # each check with its value and bound (what a "constraints satisfied NO" is about)
+        "constraints": [
+            {"name": name, "value": float(value), "bound": float(bound), "unit": unit,
+             "satisfied": bool(value <= bound + tol)}
+            for name, value, bound, tol, unit in (
+                ("max |x|, |z| position", m.max_abs_position_xz_m, params.max_abs_position_xz_m, POSITION_TOL_M, "m"),
+                ("max |y| position", m.max_abs_position_y_m, params.max_abs_position_y_m, POSITION_TOL_M, "m"),
+                ("max |thrust|", m.max_abs_thrust_n, params.max_abs_thrust_n, THRUST_TOL_N, "N"),
+                ("final position error", m.final_distance_m, params.max_final_position_m, 0.0, "m"),
+                ("final velocity error", m.final_speed_mps, params.max_final_velocity_mps, 0.0, "m/s"))],
         "steps": int(u.shape[0]),
     }

@@ -168,8 +168,18 @@ def _rendezvous_rows(metrics: dict) -> list[tuple[str, str]]:
         ("input cost J_u", f"{metrics['input_cost']:.3f} N^2"),
         ("fuel (L2)", f"{metrics['fuel_l2']:.1f} N s"),
         ("max |thrust|", f"{metrics['max_abs_thrust_N']:.3f} N"),
-        ("constraints satisfied", "yes" if metrics["constraints_satisfied"] else "NO"),
+        ("constraints satisfied", constraints_text(metrics)),
     ]
+
+
+def constraints_text(metrics: dict) -> str:
+    """'yes', or 'NO: ' and each check that failed with its value and bound."""
+    if metrics.get("constraints_satisfied"):
+        return "yes"
+    failed = [c for c in metrics.get("constraints") or [] if not c["satisfied"]]
+    if not failed:
+        return "NO"
+    return "NO: " + "; ".join(f"{c['name']} {c['value']:.4g} {c['unit']} > {c['bound']:.4g} {c['unit']}" for c in failed)
 
 
 def _bus_rows(bus: dict | None) -> list[tuple[str, str]]:
