@@ -148,7 +148,7 @@ def test_attitude_steps_and_can_frames_tables(attitude_run):
     for column, (name, axis) in {"omega_y_radps": ("att_omega_radps", 1),
                                  "dipole_commanded_z_am2": ("att_dipole_commanded_am2", 2),
                                  "dipole_applied_x_am2": ("att_dipole_applied_am2", 0),
-                                 "field_body_z_t": ("att_field_body_t", 2)}.items():
+                                 "field_body_z_T": ("att_field_body_t", 2)}.items():
         np.testing.assert_array_equal(steps[column].to_numpy(), arrays[name][:, axis], err_msg=column)
     np.testing.assert_array_equal(steps["stamp_sensed_ns"].to_numpy(), arrays["stamp_sensed_ns"])
     np.testing.assert_array_equal(steps["alive_counter"].to_numpy(), arrays["att_alive_counter"])

@@ -34,7 +34,7 @@ def _criterion_bounds(scenario, metrics: tuple[str, ...]) -> list[tuple[float, s
 
 def _shade(ax, windows) -> None:
     for i, (name, start, end) in enumerate(windows):
-        ax.axvspan(start, max(end, start + 0.1), color=f"C{i + 3}", alpha=0.25, label=f"fault: {name}")
+        ax.axvspan(start, max(end, start + 0.1), color=plots.fault_colour(i), alpha=0.25, label=f"fault: {name}")
 
 
 def loop_figure(trajectory: dict, scenario, windows, path: Path) -> Path:
@@ -161,7 +161,8 @@ def attitude_section(run, plot_dir: Path) -> tuple[Section | None, dict | None]:
         f"Law {scenario.attitude_control.law}, estimator {scenario.estimator.mode}, "
         f"{metrics['steps']} steps of {scenario.step_s:g} s; fault windows (simulated time) shaded."],
         [Table(["metric", "value"], [list(r) for r in summary_rows(metrics)])],
-        [Figure(Path(PLOTS_DIR) / loop.name, "Pointing error and body rate"),
+        [Figure(Path(PLOTS_DIR) / loop.name, "Pointing error and body rate" if pointing_error_deg(trajectory, scenario)
+                is not None else "Body rate"),
          Figure(Path(PLOTS_DIR) / dipole.name, "Dipole per axis against the limit (commanded, the board's telemetry "
                 "on the bus, applied), and the field along the orbit")])
     return section, metrics

@@ -122,13 +122,20 @@ def attitude_metrics(trajectory: dict, scenario: Scenario) -> dict:
     return metrics
 
 
+def is_detumble(law: str) -> bool:
+    """A law whose job is to detumble (B-dot and its kin), for which time to detumble means something."""
+    return "detumble" in law or "bdot" in law
+
+
 def summary_rows(metrics: dict) -> list[tuple[str, str]]:
     def fmt(value, unit, digits=3):
         return "-" if value is None else f"{value:.{digits}g} {unit}"
 
     rows = [("law", metrics["law"]),
-            ("body rate initial / final", f"{metrics['initial_rate_dps']:.3g} / {metrics['final_rate_dps']:.3g} deg/s"),
-            (f"time to detumble (< {metrics['detumble_threshold_dps']} deg/s)", fmt(metrics["time_to_detumble_s"], "s"))]
+            ("body rate initial / final", f"{metrics['initial_rate_dps']:.3g} / {metrics['final_rate_dps']:.3g} deg/s")]
+    if is_detumble(metrics["law"]):     # not for slews and holds: they do not detumble
+        rows.append((f"time to detumble (< {metrics['detumble_threshold_dps']} deg/s)",
+                     fmt(metrics["time_to_detumble_s"], "s")))
     if "final_pointing_error_deg" in metrics:
         rows += [("pointing error initial / final", f"{metrics['initial_pointing_error_deg']:.3g} / "
                                                      f"{metrics['final_pointing_error_deg']:.3g} deg"),

@@ -16,6 +16,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 from bench.report import plots
+from bench.report.attitude_metrics import is_detumble
 from bench.report.build import PLOTS_DIR, mission_metrics, trajectory_series
 from bench.report.deadlines import DeadlineResult, deadlines
 from bench.report.document import Document, Figure, Section, Table, fmt, write
@@ -115,7 +116,8 @@ ATTITUDE_ROWS = (
     ("bus faults", lambda r: faults_of(r.run.scenario)),
     ("steps", lambda r: r.mission.get("steps")),
     ("body rate final [deg/s]", lambda r: r.mission.get("final_rate_dps")),
-    ("time to detumble [s]", lambda r: r.mission.get("time_to_detumble_s")),
+    ("time to detumble [s]", lambda r: r.mission.get("time_to_detumble_s") if is_detumble(
+        r.run.scenario.attitude_control.law) else "n/a (not a detumbling law)"),
     ("pointing error final [deg]", lambda r: r.mission.get("final_pointing_error_deg")),
     ("saturation fraction", lambda r: r.mission.get("saturation_fraction")),
 )

@@ -254,6 +254,11 @@ def nis(sim_time_s: np.ndarray, nis_values: np.ndarray, dof: int, rejected: np.n
     return _save(fig, path)
 
 
+def fault_colour(i: int) -> str:
+    """The colour of the i-th fault window, the same in every plot of a report (C0-C2 are the lines)."""
+    return f"C{(i + 3) % 10}"
+
+
 def bus_load(window_start_s: np.ndarray, load: np.ndarray, fault_windows: list[tuple[str, float, float]],
              injections: list[tuple[float, str, str]], path: Path, xlabel: str = "simulated time [s]") -> Path:
     """CAN bus load per window, the scenario's fault windows shaded, the injector's actions marked."""
@@ -261,7 +266,7 @@ def bus_load(window_start_s: np.ndarray, load: np.ndarray, fault_windows: list[t
     ax.step(window_start_s, np.asarray(load) * 100, where="post", label="bus load")
     end_s = float(window_start_s[-1]) if len(window_start_s) else 1.0
     for i, (name, start_s, stop_s) in enumerate(fault_windows):
-        ax.axvspan(start_s, min(stop_s, end_s), color=f"C{i + 1}", alpha=0.25, label=f"fault: {name}")
+        ax.axvspan(start_s, min(stop_s, end_s), color=fault_colour(i), alpha=0.25, label=f"fault: {name}")
     for i, action in enumerate(sorted({a for _, _, a in injections})):
         t_s = [t for t, _, a in injections if a == action]
         ax.plot(t_s, np.zeros(len(t_s)), "|", color=f"C{i + 5}", markersize=14, label=f"injected: {action} ({len(t_s)})")

@@ -10,7 +10,8 @@ table's "bench" metadata with every column's unit and source array):
   empty (NaN for floats, -1 for integer stamps). The attitude plant keeps N of each: N rows.
 - Names: `state_m_mps` -> x_m, y_m, z_m, vx_mps, vy_mps, vz_mps; `att_q_wxyz` -> q_w .. q_z; an
   (N, 3) array `<what>_<unit>` -> `<what>_x_<unit>` .. `<what>_z_<unit>` (`att_omega_radps` ->
-  omega_x_radps); the `att_` prefix goes (every row is the plant's); `att_time_s` is `t_s`.
+  omega_x_radps); the `att_` prefix goes (every row is the plant's); `att_time_s` is `t_s`; tesla
+  is `_T` (`att_field_body_t` -> field_body_x_T).
 - Stamps `stamp_<stage>_ns` stay integers (monotonic ns, exact) with -1 where the stage is absent,
   as in trajectory.npz. The plant sizes its stamp arrays for the scenario's steps: a partial run's
   rows stop at the steps it ran.
@@ -60,6 +61,9 @@ ABSENT_INT = -1                             # trajectory.npz's mark of an absent
 # Unit suffixes of the bench's names (README: names carry their units) and what they mean.
 UNITS = {"s": "s", "ns": "ns", "m": "m", "mps": "m/s", "n": "N", "nm": "N m", "am2": "A m^2",
          "radps": "rad/s", "t": "T", "a": "A"}
+# A unit written otherwise in a column's name than in the bench's array names: tesla is T (`_t`
+# reads as time).
+COLUMN_SUFFIX = {"t": "T"}
 SPECIAL_COMPONENTS = {
     "state_m_mps": (("x_m", "m"), ("y_m", "m"), ("z_m", "m"), ("vx_mps", "m/s"), ("vy_mps", "m/s"), ("vz_mps", "m/s")),
     "att_q_wxyz": (("q_w", "1"), ("q_x", "1"), ("q_y", "1"), ("q_z", "1")),
@@ -103,13 +107,16 @@ def component_columns(name: str, array: np.ndarray) -> list[tuple[str, str, str,
     short = "t_s" if name in TIME_ARRAYS else name.removeprefix(DROPPED_PREFIX)
     if array.ndim == 1:
         _, suffix = _unit_of(short)
+        if suffix in COLUMN_SUFFIX:
+            short = short[: -len(suffix)] + COLUMN_SUFFIX[suffix]
         return [(short, UNITS.get(suffix, "1"), name, array)]
     flat = array.reshape(array.shape[0], -1)
     if name in SPECIAL_COMPONENTS and flat.shape[1] == len(SPECIAL_COMPONENTS[name]):
         return [(col, unit, f"{name}[:, {i}]", flat[:, i]) for i, (col, unit) in enumerate(SPECIAL_COMPONENTS[name])]
     base, suffix = _unit_of(short)
+    suffix = COLUMN_SUFFIX.get(suffix, suffix)
     labels = AXES if flat.shape[1] == 3 else tuple(str(i) for i in range(flat.shape[1]))
-    return [(f"{base}_{label}_{suffix}" if suffix else f"{base}_{label}", UNITS.get(suffix, "1"), f"{name}[:, {i}]",
+    return [(f"{base}_{label}_{suffix}" if suffix else f"{base}_{label}", UNITS.get(suffix.lower(), "1"), f"{name}[:, {i}]",
              flat[:, i]) for i, label in enumerate(labels)]
 
 
