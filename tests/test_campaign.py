@@ -169,6 +169,7 @@ def test_raising_and_timing_out_cases_become_failed_rows(tmp_path, tests_on_path
     assert rows[2]["final_position_error_m"] is None and rows[2]["scenario_json"]
     assert rows[3]["status"] == "timeout" and "5 s" in rows[3]["error"]
     report = write_report(tmp_path / "flaky.parquet", tmp_path / "report")
+    assert "<table>" in (tmp_path / "report" / "report.html").read_text()
     text = report.read_text()
     # 30 steps do not reach the target: 0 of 3, and the two failed runs count in n.
     assert "injected failure" in text and "0 % [0, 56] of 3" in text

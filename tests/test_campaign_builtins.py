@@ -88,6 +88,8 @@ def test_built_in_fault_spec_expands_and_a_slice_runs_end_to_end_with_its_matrix
     report = write_report(out, report_dir).read_text()
     matrix = (report_dir / "fault_matrix.md").read_text()
     assert (report_dir / "fault_matrix.png").is_file() and matrix in report
+    page = (report_dir / "report.html").read_text()     # the same report for a browser, its matrix picture in it
+    assert "<table>" in page and "<img src=\"fault_matrix.png\"" in page
     header = matrix.splitlines()[0]
     assert all(law in header for law in laws)
     assert all(f"| {row['fault']} |" in matrix for row in rows)

@@ -165,6 +165,12 @@ def attitude_section(run, plot_dir: Path) -> tuple[Section | None, dict | None]:
                 is not None else "Body rate"),
          Figure(Path(PLOTS_DIR) / dipole.name, "Dipole per axis against the limit (commanded, the board's telemetry "
                 "on the bus, applied), and the field along the orbit")])
+    from bench.report.attitude_plan import PLOT_FILE, plan_figure
+
+    plan = plan_figure(run, plot_dir / PLOT_FILE)      # a run of the MILQR planner: its plans against the flight
+    if plan is not None:
+        section.figures.append(Figure(Path(PLOTS_DIR) / plan.name, "MILQR plans (dashed, one colour each) against "
+                                      "the attitude flown and the dipole commanded (black)"))
     return section, metrics
 
 

@@ -223,4 +223,7 @@ def write_report(results: Path, out_dir: Path | None = None) -> Path:
         text += ["", "## Failed runs", ""] + [f"- `{r['case_id']}` {r['status']}: {r['error']}" for r in failures[:50]]
     path = out_dir / "report.md"
     path.write_text("\n".join(text) + "\n")
+    from bench.report.markdown_page import write_html_beside
+
+    write_html_beside(path)          # report.html: the same, for a browser
     return path

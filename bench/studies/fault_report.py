@@ -153,4 +153,7 @@ def write_fault_report(results: Path, rows: list[dict], out_dir: Path) -> Path:
         text += ["", "## Failed cases", ""] + [f"- `{r['case_id']}` {r['status']}: {r['error']}" for r in failures[:50]]
     path = out_dir / "report.md"
     path.write_text("\n".join(text) + "\n")
+    from bench.report.markdown_page import write_html_beside
+
+    write_html_beside(path)          # report.html with the matrix picture, for a browser
     return path
