@@ -73,6 +73,13 @@ def summary_section(run: RunData, mission: dict, judged: dict) -> Section:
         paragraphs.append("The constraints table: each of the mission's constraints with its value and bound"
                           + ("" if "constraints_satisfied" in judged_metrics else
                              " (information: the verdict judges the scenario's criteria, not these)") + ".")
+        from bench.gnc.cwh import RendezvousParams
+
+        full = RendezvousParams.from_reference(time_step_s=s.plant.time_step_s).n_steps
+        if s.run.steps is not None and s.run.steps < full:
+            paragraphs.append(f"This run stops after {s.run.steps} of the mission's {full} steps "
+                              f"({s.run.steps * s.step_s / 3600:.3g} h of {full * s.step_s / 3600:.3g} h): the final "
+                              "position and velocity checks judge a state the mission has not reached yet.")
         section_tables.append(Table(["constraint", "value", "bound", "holds"],
                                     [[c["name"], f"{fmt(c['value'])} {c['unit']}", f"≤ {fmt(c['bound'])} {c['unit']}",
                                       "yes" if c["satisfied"] else "NO"] for c in mission["constraints"]]))
