@@ -9,7 +9,11 @@ the run and shortened so that each one happens inside it. On the outputs:
   affected (the bus model's first and last, mapped by the run's own time base);
 - every report section of the run's loop is there and holds a table or a figure, the Deadlines
   section counts the controller's cycles;
-- the summary, metrics.json and the report carry a pass/fail verdict.
+- the summary, metrics.json and the report carry a pass/fail verdict;
+- (issue 46, the fault run in both modes and the runs with a smoother) every CAN frame on the run's
+  simulated time in can_frames.parquet, the report's telemetry trace and the MCAP's decoded CAN
+  topics; the Estimator section of an attitude run with a smoother; two latency names for two
+  quantities.
 """
 from __future__ import annotations
 
@@ -157,10 +161,11 @@ def test_a_short_run_of_every_builtin_scenario_reads_right(runs, name):
 
 
 @pytest.mark.skipif(CHROMIUM is None, reason="chromium not installed (tools/install-system-deps.sh)")
-@pytest.mark.parametrize("name", ["attitude_fault_all", "rendezvous_card"])
+@pytest.mark.parametrize("name", ["attitude_fault_all", "attitude_pointing_rt", "rendezvous_card"])
 def test_each_loops_report_renders_in_a_browser_with_no_empty_plot(runs, tmp_path, name):
-    """The attitude loop with bus faults and the rendezvous card, as Chromium shows them: every
-    figure loads, and no plot is empty (each holds coloured lines or fills)."""
+    """The attitude loop with bus faults, with the smoother (its Estimator section), and the
+    rendezvous card, as Chromium shows them: every figure loads, and no plot is empty (each holds
+    coloured lines or fills)."""
     assert short_run(runs, name).returncode == 0
     page = runs / name / "report.html"
     n_figures = page.read_text().count("<img ")
