@@ -66,15 +66,21 @@ def place_can_frames(run) -> dict | None:
     def log_ns(sim_s: float) -> int:
         return int(round(min(max(sim_s, lo), hi) * 1e9))
 
+    # What the file holds, from its summary (not its messages: a long run's recording is large; it
+    # is read once more below, streamed, to copy it).
     try:
         with open(path, "rb") as f:
             reader = make_reader(f)
-            records = list(reader.iter_messages(log_time_order=False))
+            summary = reader.get_summary()
             metadata = [(m.name, dict(m.metadata)) for m in reader.iter_metadata()]
     except Exception:   # noqa: BLE001 - a truncated or unreadable recording stays as it is
         return None
-    live = [(s, c, m) for s, c, m in records if s is not None and s.name == CAN_FRAME_SCHEMA_NAME
-            and c.metadata.get("source") != CAPTURE_SOURCE]
+    if summary is None:
+        return None
+    counts = summary.statistics.channel_message_counts if summary.statistics else {}
+    live = [c for c in summary.channels.values() if c.metadata.get("source") != CAPTURE_SOURCE
+            and summary.schemas.get(c.schema_id) is not None
+            and summary.schemas[c.schema_id].name == CAN_FRAME_SCHEMA_NAME and counts.get(c.id, 1)]
     retime = bool(live) and not sim_bus and clock is not None and wall_offset_s is not None
     captured = []
     if not live and run.can_log is not None:
@@ -96,7 +102,8 @@ def place_can_frames(run) -> dict | None:
 
     tmp = path.with_name(path.name + ".placing")
     retimed = 0
-    with open(tmp, "wb") as out:
+    with open(path, "rb") as source, open(tmp, "wb") as out:
+        records = make_reader(source).iter_messages(log_time_order=False)
         writer = Writer(out)
         writer.start(profile="", library="bench.report.recording_can")
         schema_ids: dict[int, int] = {}
