@@ -24,7 +24,9 @@ is the mission's (a 48 h rendezvous spans 48 h): the sim_time_s of its header, c
 run's t = 0. What has no simulated time of its own (a CAN frame, a malformed payload, the shutdown
 ProcessStats, the board's MtqApplied report, which carries 0.0) gets the simulated time of the
 newest step seen so far: it happened after that step's messages arrived. The publish time is the
-wall clock at which the recorder received the sample (time.time_ns), in arrival order.
+wall clock at which the recorder received the sample (time.time_ns), in arrival order. After the
+run, the report build places the CAN frames on their own simulated time and adds the decoded
+frames of a lock-step bus on simulated time from can.log (bench/report/recording_can.py).
 
 A CAN frame is recorded as JSON (schema CAN_FRAME_SCHEMA): identifier, data in hex, flags, the
 Zenoh channel and the DBC sender and receiver, the sender's timestamp, and the signals decoded
