@@ -14,6 +14,7 @@ import numpy as np
 from bench.controller.attitude_cycle import AttitudeCycle
 from bench.controller.config import PLANNED_LAWS
 from bench.controller.cycle import ControlCycle
+from bench.controller.fdir import event_arrays as fdir_event_arrays
 from bench.estimator.attitude_frontend import AttitudeEstimator
 from bench.estimator.frontend import StateEstimate, StateEstimator
 from bench.plant.attitude_plant import AttitudePlant
@@ -87,7 +88,8 @@ def _through_the_message(plan):
 
 def simulate_attitude_in_process(scenario: Scenario, coil_fault=None) -> dict[str, np.ndarray]:
     """Run an attitude scenario without processes; the arrays the plant process writes, and the
-    controller's cycle time per step (NaN when no law ran) and the planner's wall time per plan.
+    controller's cycle time per step (NaN when no law ran) and the planner's wall time per plan,
+    and the FDIR actuator monitor's detections (fdir_event_time_s, _axis, _class; simulated time).
     coil_fault(time_s, applied_am2) -> applied_am2: what a bus fault does to the coils (a study's
     fault model, bench.studies.attitude_comparison; the scenario's own faults are then not run);
     None: the scenario's [can] faults through the lock-step bus, or a fault-free bus without them.
@@ -120,7 +122,9 @@ def simulate_attitude_in_process(scenario: Scenario, coil_fault=None) -> dict[st
                 cycle.law.set_plan(_through_the_message(planned[0]))
                 planning_wall_s.append(planned[1]["wall_time_s"])
                 plan_records.append((plant.time_s, planned[1]["reason"], planned[0].arrival_time_s))
-        outcome = cycle.run(plant.time_s, estimate.valid, estimate.q_wxyz, estimate.omega_radps, estimate.field_body_t)
+        outcome = cycle.run(plant.time_s, estimate.valid, estimate.q_wxyz, estimate.omega_radps, estimate.field_body_t,
+                            gyro_bias_radps=estimate.gyro_bias_radps)
+        cycle.monitor_actuators()
         if bus is not None:     # the canbus process's report of the step, as the plant accepts it
             coils = bus.step(k, outcome.dipole_am2)
             dipole, _ = acceptance.accept(np.array(coils.dipole_am2.tolist()), None)
@@ -152,7 +156,7 @@ def simulate_attitude_in_process(scenario: Scenario, coil_fault=None) -> dict[st
         "planner_plan_time_s": np.array([r[0] for r in plan_records], dtype=float),
         "planner_plan_reason": np.array([r[1] for r in plan_records], dtype=str),
         "planner_arrival_time_s": np.array([r[2] for r in plan_records], dtype=float),
-    }
+    } | fdir_event_arrays(cycle.fdir.events if cycle.fdir is not None else [])
 
 
 def campaign_case(scenario: Scenario) -> dict:

@@ -4,6 +4,12 @@ controller process and the in-process loop (bench.sim) so the two cannot drift a
 The law picks the dipole (bench.controller.attitude_laws, from the scenario); the deadline monitor
 of the translational loop times it, and on a miss in real-time mode holds the last dipole. A law
 that needs an attitude gets no say until the estimate is valid: the cycle commands zero (coils off).
+
+The FDIR actuator monitor ([attitude_control.fdir], bench.controller.fdir) takes the estimate and
+the dipole commanded on it in `monitor_actuators`, called once the command is out (its fit must not
+delay the command: ~1.3 ms a simulated second at 1 Hz, ~10 ms at 10 Hz), and says when a
+coil does not give the torque it should, on the estimate's simulated time. With `accommodate` on,
+`run` adapts the law's dipole to the coils as the monitor has identified them.
 """
 from __future__ import annotations
 
@@ -14,6 +20,8 @@ import numpy as np
 from bench.controller.attitude_laws import build_attitude_law
 from bench.controller.config import ATTITUDE_FREE_LAWS
 from bench.controller.deadline import DeadlineMonitor
+from bench.controller.fdir import build_actuator_monitor
+from bench.gnc.actuator_monitor import FdirEvent, accommodate
 from bench.gnc.attitude_law import AttitudeControlInput
 from bench.runtime.deadline import CycleOutcome
 from bench.scenario import Scenario
@@ -41,16 +49,27 @@ class AttitudeCycle:
         self.weak_field_cycles = 0
         self.waiting_for_estimate_cycles = 0
         self.bad_estimate_cycles = 0
+        self.fdir = build_actuator_monitor(scenario)      # None: [attitude_control.fdir] enabled = false
+        self.accommodate = self.fdir is not None and scenario.attitude_control.fdir.accommodate
+        if self.accommodate:
+            from bench.controller.attitude_laws import dipole_limit_am2
+
+            self.dipole_limit_am2 = dipole_limit_am2(scenario)
+        self.accommodated_cycles = 0
+        self._fdir_input: tuple | None = None     # this cycle's data for the monitor; None: restart its window
 
     def run(self, time_s: float, valid: bool, q_wxyz, omega_radps, field_body_t,
-            start_ns: int | None = None) -> AttitudeCycleOutcome:
+            start_ns: int | None = None, gyro_bias_radps=None) -> AttitudeCycleOutcome:
+        """`gyro_bias_radps`: the estimate's bias, for the FDIR monitor (None: zero)."""
         if self.needs_attitude and not valid:
             self.waiting_for_estimate_cycles += 1
+            self._fdir_input = None
             return AttitudeCycleOutcome(np.zeros(3), None, False, False, None)
         q, omega, field_t = (np.asarray(v, float) for v in (q_wxyz, omega_radps, field_body_t))
         if not (np.all(np.isfinite(q)) and np.all(np.isfinite(omega)) and abs(np.linalg.norm(q) - 1.0) < 1e-6):
             # A schema-valid estimate with a NaN or non-unit attitude: coils off, counted, never fatal.
             self.bad_estimate_cycles += 1
+            self._fdir_input = None
             return AttitudeCycleOutcome(np.zeros(3), None, False, False, None)
         x = AttitudeControlInput(time_s, q, omega, field_t)
         outcome = self.monitor.run_cycle(x, self.law.eval, start_ns)
@@ -63,10 +82,29 @@ class AttitudeCycle:
         self.saturated_cycles += saturated
         self.weak_field_cycles += weak
         angle = info.get("error_angle_rad")
+        if self.fdir is not None:
+            if self.accommodate and any(b.fault is not None for b in self.fdir.beliefs):
+                dipole = accommodate(dipole, field_t, self.fdir.beliefs, self.dipole_limit_am2)
+                self.accommodated_cycles += 1
+            bias = np.zeros(3) if gyro_bias_radps is None else gyro_bias_radps
+            self._fdir_input = (time_s, q, omega, bias, field_t, dipole) if valid else None
         return AttitudeCycleOutcome(dipole, outcome, saturated, weak, None if angle is None else float(angle))
+
+    def monitor_actuators(self) -> list[FdirEvent]:
+        """The FDIR monitor's step on this cycle's estimate and command (after `run`, once the
+        command is out): the coil faults detected at this cycle, usually none."""
+        if self.fdir is None:
+            return []
+        pending, self._fdir_input = self._fdir_input, None
+        if pending is None:
+            self.fdir.reset()     # no valid estimate or no command this cycle: the window restarts
+            return []
+        return self.fdir.step(*pending)
 
     def summary(self) -> dict:
         return self.monitor.summary() | {"law": self.law_name, "saturated_cycles": self.saturated_cycles,
                                          "weak_field_cycles": self.weak_field_cycles,
                                          "waiting_for_estimate_cycles": self.waiting_for_estimate_cycles,
-                                         "bad_estimate_cycles": self.bad_estimate_cycles}
+                                         "bad_estimate_cycles": self.bad_estimate_cycles} | (
+            {} if self.fdir is None else {"fdir_events": len(self.fdir.events),
+                                          "fdir_accommodated_cycles": self.accommodated_cycles})

@@ -14,6 +14,10 @@ period, so the board never times out between plant steps; in the "mixed" transmi
 default) the law's dipole also goes out the moment the law gives it. In lock-step with the bus on
 simulated time (bench/bus/can/sim_window.py) the same frames go out at their simulated times, a
 step's worth at once (mtq_link.LockStepLink).
+The FDIR actuator monitor ([attitude_control.fdir], bench.controller.fdir) runs once each command
+is out; what it detects is logged, and written with the driver's events to can/driver.json (kind
+"fdir_<class>", frame "FDIR"; lock-step on simulated bus time: stamped with it) and, with the
+monitor's whole account on simulated time, to fdir.json.
 Summary: deadline_controller.json; the driver's view of the bus: can/driver.json.
 """
 from __future__ import annotations
@@ -25,10 +29,12 @@ import time
 import numpy as np
 
 from bench.bus import keys
-from bench.bus.can.sim_window import bus_on_simulated_time
+from bench.bus.can.bus_events import publish_bus_events
+from bench.bus.can.sim_window import bus_on_simulated_time, sim_ns
 from bench.bus.schemas import AttitudeEstimate, DipoleCommand
 from bench.controller.attitude_cycle import AttitudeCycle
 from bench.controller.config import PLANNED_LAWS
+from bench.controller import fdir
 from bench.controller.mtq_link import LockStepLink, MagnetorquerLink
 from bench.controller.newest import NewestEstimate
 from bench.runtime.node import NodeContext
@@ -106,6 +112,7 @@ def run(ctx: NodeContext) -> int:
     if link is not None:
         link.start()
     ctx.declare_ready([keys.COMMAND_DIPOLE])
+    fdir_events = []     # as the driver's FaultEvents, for can/driver.json
     for estimate in ctx.until_stopped(estimates):
         estimate = newest.take(estimates, estimate)
         if follower is not None:   # before the deadline clock starts: a lock-step wait is not the law's time
@@ -113,7 +120,7 @@ def run(ctx: NodeContext) -> int:
         received_ns = time.monotonic_ns()
         hdr = estimate.header.stamped("controller_received", received_ns)
         outcome = cycle.run(hdr.sim_time_s, estimate.valid, estimate.q_wxyz, estimate.omega_radps,
-                            estimate.field_body_t, start_ns=received_ns)
+                            estimate.field_body_t, start_ns=received_ns, gyro_bias_radps=estimate.gyro_bias_radps)
         hdr = hdr.stamped("commanded", time.monotonic_ns())
         counter = -1
         if sender is not None:
@@ -126,8 +133,14 @@ def run(ctx: NodeContext) -> int:
             monitored.fallback if monitored is not None else None))
         if monitored is not None and monitored.has_event:
             ctx.publish(keys.EVENT_DEADLINE, monitored.deadline_event(hdr))
+        for event in cycle.monitor_actuators():     # after the command: the fit must not delay it
+            ctx.log.warning("FDIR actuator monitor: %s", event.describe())
+            detected_ns = sim_ns(event.time_s) if isinstance(link, LockStepLink) else time.monotonic_ns()
+            fdir_events.append(fdir.fault_event(event, detected_ns))
+            publish_bus_events(ctx, fdir_events[-1:])    # event/can, as it comes (recorder, live view)
     if link is not None:
-        link.stop()
+        link.stop(extra_events=fdir_events)
+    fdir.write_report(ctx.run_dir, cycle.fdir)
     summary = (cycle.summary() | (follower.summary() if follower is not None else {})
                | {"stale_estimates_skipped": newest.skipped})
     (ctx.run_dir / "deadline_controller.json").write_text(json.dumps(summary, indent=2))

@@ -165,6 +165,23 @@ class AttitudePlannerConfig(msgspec.Struct, forbid_unknown_fields=True):
     hold_after_arrival_s: Annotated[float, msgspec.Meta(ge=0, le=86400.0)] = 600.0
 
 
+class FdirConfig(msgspec.Struct, forbid_unknown_fields=True):
+    """[attitude_control.fdir]: the FDIR actuator monitor (bench.gnc.actuator_monitor; docs/fdir.md
+    gives the calibration behind the defaults: 0 alarms on every fault-free built-in scenario)."""
+    enabled: bool = True
+    # Reaction on a detected coil fault: a reversed coil's command sign-flipped, an open or stuck
+    # coil's torque asked of the two coils left (bench.gnc.actuator_monitor.accommodate).
+    accommodate: bool = False
+    window_s: Annotated[float, msgspec.Meta(gt=0, le=3600.0)] = 60.0
+    min_window_s: Annotated[float, msgspec.Meta(gt=0, le=3600.0)] = 20.0
+    evaluate_every_s: Annotated[float, msgspec.Meta(gt=0, le=3600.0)] = 1.0
+    gain_tolerance: Annotated[float, msgspec.Meta(gt=0, le=10.0)] = 0.3
+    offset_tolerance_am2: Annotated[float, msgspec.Meta(gt=0, le=100.0)] = 0.01
+    threshold: Annotated[float, msgspec.Meta(gt=0, le=1e9)] = 40.0
+    persistence: Annotated[int, msgspec.Meta(ge=1, le=1000)] = 3
+    max_gain_std: Annotated[float, msgspec.Meta(gt=0, le=10.0)] = 0.08
+
+
 class AttitudeControlConfig(msgspec.Struct, forbid_unknown_fields=True):
     law: Annotated[str, msgspec.Meta(max_length=64)] = "bdot"   # a key of ATTITUDE_LAWS above
     # No lower bound here so that a zero or negative limit gets the scenario's own message; at most
@@ -197,3 +214,5 @@ class AttitudeControlConfig(msgspec.Struct, forbid_unknown_fields=True):
     kp_nm: PositiveGain = 1.0e-5
     kd_nms: PositiveGain = 5.0e-4
     planner: AttitudePlannerConfig = msgspec.field(default_factory=AttitudePlannerConfig)
+    # FDIR actuator monitor: coil faults from the dynamics (bench.gnc.actuator_monitor)
+    fdir: FdirConfig = msgspec.field(default_factory=FdirConfig)

@@ -76,10 +76,11 @@ class MagnetorquerLink:
         self.loop.run(self.ctx.stop)
         self.driver.nmt(p.NMT_ENTER_PRE_OPERATIONAL)
 
-    def stop(self) -> None:
-        """Join the command thread (ctx.stop is set by now) and write what the driver saw."""
+    def stop(self, extra_events: list[FaultEvent] = ()) -> None:
+        """Join the command thread (ctx.stop is set by now) and write what the driver saw (and
+        `extra_events`: the FDIR monitor's, bench.controller.fdir)."""
         self._thread.join(timeout=2.0)
-        _write_report(self.ctx, self.loop.health, self.driver)
+        _write_report(self.ctx, self.loop.health, self.driver, extra_events)
         self.bus.shutdown()
 
 
@@ -154,12 +155,12 @@ class LockStepLink:
             self.ctx.log.warning("lock-step CAN: answer to step %d while waiting for step %d: ignored", reply.step,
                                  sent.step)
 
-    def stop(self) -> None:
+    def stop(self, extra_events: list[FaultEvent] = ()) -> None:
         try:
             self._catch_up(stop_aware=False)   # the last step's frames count too (the bus may be gone)
         except TimeoutError:
             pass
-        _write_report(self.ctx, self.health, self.driver)
+        _write_report(self.ctx, self.health, self.driver, extra_events)
 
 
 def _log_events(ctx: NodeContext, events: list[FaultEvent]) -> None:
@@ -172,10 +173,12 @@ def _log_events(ctx: NodeContext, events: list[FaultEvent]) -> None:
     publish_bus_events(ctx, events)    # event/can, as they come (recorder, live view)
 
 
-def _write_report(ctx: NodeContext, health: BoardHealth, driver: MagnetorquerDriver) -> None:
+def _write_report(ctx: NodeContext, health: BoardHealth, driver: MagnetorquerDriver,
+                  extra_events: list[FaultEvent] = ()) -> None:
+    """can/driver.json; `extra_events` after the driver's own (the FDIR monitor's: frame "FDIR")."""
     report = {
         "health": asdict(health) | {"ok": health.ok},
-        "events": [asdict(e) for e in driver.events],
+        "events": [asdict(e) for e in driver.events] + [asdict(e) for e in extra_events],
         "realtime_priority": ctx.realtime_priority,
     }
     (can_dir(ctx.run_dir) / DRIVER_REPORT_NAME).write_text(json.dumps(report, indent=1))

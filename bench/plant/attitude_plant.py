@@ -21,6 +21,7 @@ from bench.plant.attitude import (
     AttitudeSample, AttitudeSensorSpec, AttitudeSimulation, CircularOrbit, TiltedDipole,
     magnetorquer_torque_nm, EARTH_RADIUS_M,
 )
+from bench.plant.coils import CoilModel
 from bench.plant.config import AttitudePlantConfig
 from bench.gnc.environment import (
     EARTH_MU_M3PS2, IgrfAlongOrbit, Sgp4Orbit, gravity_gradient_torque_nm, residual_dipole_torque_nm,
@@ -130,6 +131,7 @@ class AttitudePlant:
                                       np.deg2rad(config.initial_rate_dps), spec, self.orbit, self.field, seed=seed,
                                       magnetometer_due=magnetometer_due)
         self.residual_dipole_am2 = np.asarray(config.disturbances.residual_dipole_am2, float)
+        self.coils = CoilModel(config.coils)     # [attitude.coils]: what the coils make of the applied dipole
         self.log = StepLog.empty()
         self._sample = self.sim.measure(self.sim.omega_body_radps)
 
@@ -165,7 +167,7 @@ class AttitudePlant:
         dipole = np.asarray(dipole_applied_am2, dtype=float)
         field_inertial = self.field_inertial_t()
         field_body = qt.rotation_matrix(self.sim.q_wxyz).T @ field_inertial
-        control = magnetorquer_torque_nm(dipole, field_body)
+        control = magnetorquer_torque_nm(self.coils.dipole_am2(self.time_s, dipole), field_body)
         disturbance = self.disturbance_torque_nm(field_body)
         log = self.log
         log.time_s.append(self.time_s)

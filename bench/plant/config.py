@@ -135,6 +135,15 @@ class DisturbanceConfig(msgspec.Struct, forbid_unknown_fields=True):
     residual_dipole_am2: Dipole3 = msgspec.field(default_factory=lambda: [0.0, 0.0, 0.0])
 
 
+class CoilsConfig(msgspec.Struct, forbid_unknown_fields=True):
+    """[attitude.coils]: what each coil makes of the dipole its driver is set to (bench.plant.coils):
+    torque = (gain * applied) x B per coil from from_s (simulated s) on. 1 healthy, 0 open, -1
+    reversed (wired backwards after the current sensor), 0.5 weak. The board and its telemetry
+    know nothing of it: only the dynamics show it (the FDIR monitor's test case)."""
+    gain: _vector(3, 2.0) = msgspec.field(default_factory=lambda: [1.0, 1.0, 1.0])   # per coil, within +-2
+    from_s: Annotated[float, msgspec.Meta(ge=0, le=1e8)] = 0.0
+
+
 class AttitudeSensorsConfig(msgspec.Struct, forbid_unknown_fields=True):
     """Rates and true noise levels (bench.plant.attitude.AttitudeSensorSpec)."""
     # The plant's step rate; at most 1 kHz (a fast MEMS gyro), at least one step per 1000 s.
@@ -167,6 +176,7 @@ class AttitudePlantConfig(msgspec.Struct, forbid_unknown_fields=True):
     field: FieldConfig = msgspec.field(default_factory=FieldConfig)
     disturbances: DisturbanceConfig = msgspec.field(default_factory=DisturbanceConfig)
     sensors: AttitudeSensorsConfig = msgspec.field(default_factory=AttitudeSensorsConfig)
+    coils: CoilsConfig = msgspec.field(default_factory=CoilsConfig)
 
     def inertia_matrix(self) -> np.ndarray:
         return inertia_matrix(self.inertia_kgm2, "attitude.inertia_kgm2")
