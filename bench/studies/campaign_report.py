@@ -209,8 +209,6 @@ def write_report(results: Path, out_dir: Path | None = None) -> Path:
     out_dir = Path(out_dir) if out_dir else results.with_name(results.stem + "_report")
     out_dir.mkdir(parents=True, exist_ok=True)
     if "fault_kind" in rows[0]:          # a fault campaign's rows: its own report, found by name
-        import importlib
-
         return importlib.import_module(FAULT_REPORT).write_fault_report(results, rows, out_dir)
     summaries = summarise(rows)
     plots = box_plots(summaries, out_dir)
