@@ -7,7 +7,7 @@ that needs an attitude gets no say until the estimate is valid: the cycle comman
 
 The FDIR actuator monitor ([attitude_control.fdir], bench.controller.fdir) takes the estimate and
 the dipole commanded on it in `monitor_actuators`, called once the command is out (its fit must not
-delay the command: ~1.3 ms a simulated second at 1 Hz, ~10 ms at 10 Hz), and says when a
+delay the command: ~0.7 ms a simulated second at 1 Hz, ~5 ms at 10 Hz), and says when a
 coil does not give the torque it should, on the estimate's simulated time. With `accommodate` on,
 `run` adapts the law's dipole to the coils as the monitor has identified them.
 """

@@ -347,8 +347,8 @@ class ActuatorMonitor:
         field_t = rows[:, 7:10]
         known = rows[:, 10:13]
         # -omega x J omega over step i (held for the coil torques, which the board holds, it is
-        # not): at the step's middle. Measured on attitude_detumble_sgp4 (8 deg/s, 10 Hz) the
-        # term is ten times the coil torques, and taken at the step's start it biased a gain.
+        # not): at the step's middle, second-order in the step. At 8 deg/s (attitude_detumble_sgp4)
+        # it is about ten times the coil torques (omega^2 (J_max - J_min) against m |B|).
         gyroscopic = rows[:, 13:16]
         following = np.concatenate([gyroscopic[1:], gyroscopic[-1:]])
         if self.model.rate_sample == "mean":     # sample i+1 is the mean rate over step i
