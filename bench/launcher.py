@@ -666,10 +666,16 @@ class RunDirClaim:
 
 
 class SignalGuard:
-    """SIGINT and SIGTERM during a run. The first raises RunInterrupted where the launcher is, and
-    it stops the nodes in order and writes what the run left. A second one does not raise (an
-    exception in the middle of the cleanup is what used to leave the launcher hanging): it kills
-    every node at once and arms a hard exit HARD_EXIT_S later."""
+    """SIGINT and SIGTERM during a run. The first is noted, and the launcher's next look (`check`,
+    at most a few tenths of a second away in its waits) raises RunInterrupted there; it stops the
+    nodes in order and writes what the run left. A second one kills every node at once and arms a
+    hard exit HARD_EXIT_S later.
+
+    The handler itself never raises: Python runs it between any two bytecodes of the main thread,
+    and an exception raised there can land inside an import's module-lock bookkeeping (dropped as
+    "Exception ignored", CI105) or leave that lock half taken, after which the report's import
+    waited forever (CI2 of issue 44: "stopping all processes", "building the report", then no
+    exit for 120 s)."""
 
     def __init__(self, group: ProcessGroup):
         self.group = group
@@ -689,19 +695,16 @@ class SignalGuard:
             signal.signal(signum, handler)
 
     def check(self) -> None:
-        """Raise the first signal's RunInterrupted if it never reached the launcher. Python runs a
-        signal handler between any two bytecodes of the main thread, also inside a weakref callback
-        or a __del__, where what it raises is printed as "Exception ignored" and dropped (CI105: a
-        SIGINT inside an import's module-lock callback; the run went on). The launcher's waits call
-        this at every look."""
+        """Raise the first signal's RunInterrupted, once (the launcher's waits call this at every
+        look; the cleanup that follows is not interrupted again)."""
         if self.first is not None and not self.delivered:
             self.delivered = True
             raise RunInterrupted(self.first)
 
     def _handle(self, signum, _frame) -> None:
         if self.first is None:
-            self.first = signum
-            raise RunInterrupted(signum)
+            self.first = signum       # raised at the next look (check), never from here
+            return
         if not self.hurry:
             self.hurry = True
             self.group.kill()

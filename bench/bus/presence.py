@@ -41,6 +41,7 @@ from bench.bus import data_auth, keys
 
 PRESENCE = "presence"       # bench/<run_id>/presence/<process>
 NONCE_HEX = 32
+QUERY_DONE_GRACE_S = 30.0
 
 log = logging.getLogger("bench.presence")
 
@@ -147,7 +148,11 @@ class PresenceQuery:
         self.session.get(keys.key(self.run_id, f"{PRESENCE}/{names}"), zenoh.handlers.Callback(on_reply, done.set),
                          payload=nonce.encode(), target=zenoh.QueryTarget.ALL,
                          consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout_s)
-        done.wait(timeout_s + 1.0)
+        # Until Zenoh says the query is over (every answer in, or its timeout): a query still in
+        # flight when the session closes and the interpreter exits calls into Python from Zenoh's
+        # threads, which aborts the process (seen under load 18: "FATAL: exception not rethrown").
+        # The bound is only against a Zenoh that never calls back.
+        done.wait(timeout_s + QUERY_DONE_GRACE_S)
         return dict(found)
 
     def wait_ready(self, names: list[str], timeout_s: float, stop: threading.Event | None = None,
