@@ -90,21 +90,27 @@ def test_plain_and_forged_nmt_frames_on_both_channels_change_nothing(runs_dir):
     _, stderr = clean.communicate(timeout=300)
     assert clean.returncode == 0, stderr[-2000:]
 
-    port = free_loopback_port()
-    attacked = start(runs_dir, "nmt-attack", port)
-    try:
-        wait_for(lambda: (runs_dir / "nmt-attack" / "bus.key").is_file(), attacked, "the launcher's session")
-        plant_log = runs_dir / "nmt-attack" / "logs" / "plant.log"
-        wait_for(lambda: plant_log.exists() and "peers ready" in plant_log.read_text(), attacked, "the loop")
-        nmt_attack("nmt-attack", loopback_endpoint(port))
-        # Before: no end in 300 s in 3 of 25 runs (the plant waiting 11 s for each step's report).
-        _, stderr = attacked.communicate(timeout=300)
-    finally:
-        if attacked.poll() is None:
-            attacked.kill()
-            attacked.communicate()
-    assert attacked.returncode == 0, stderr[-2000:]
-    before, after = results(runs_dir, "nmt-clean"), results(runs_dir, "nmt-attack")
+    # At most twice: on the wall clock a loaded host can hold a command up between the processes
+    # past its freshness (the board refuses it as STALE, as test_no_false_alarms allows once); that
+    # is the host, not the attack, and a rerun tells them apart. Anything else fails at once.
+    for attempt in ("nmt-attack", "nmt-attack-again"):
+        port = free_loopback_port()
+        attacked = start(runs_dir, attempt, port)
+        try:
+            wait_for(lambda: (runs_dir / attempt / "bus.key").is_file(), attacked, "the launcher's session")
+            plant_log = runs_dir / attempt / "logs" / "plant.log"
+            wait_for(lambda: plant_log.exists() and "peers ready" in plant_log.read_text(), attacked, "the loop")
+            nmt_attack(attempt, loopback_endpoint(port))
+            # Before: no end in 300 s in 3 of 25 runs (the plant waiting 11 s for each step's report).
+            _, stderr = attacked.communicate(timeout=300)
+        finally:
+            if attacked.poll() is None:
+                attacked.kill()
+                attacked.communicate()
+        assert attacked.returncode == 0, stderr[-2000:]
+        before, after = results(runs_dir, "nmt-clean"), results(runs_dir, attempt)
+        if set(after["board"]["rejected"]) - {"NMT_NOT_AUTHENTICATED", "NMT_WRONG_MAC"} != {"STALE"}:
+            break
 
     # The attack landed during the loop, and the board refused every frame (heard on its own channel
     # and, through the bus model, from the flight side's).
