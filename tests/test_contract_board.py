@@ -163,3 +163,46 @@ def test_a_broken_board_fails_the_check_naming_the_problem(runs_dir, mode):
     assert result.stdout.startswith("contract check board: FAIL (")
     assert any(problem.startswith(BROKEN[mode]) for problem in verdict["problems"]), result.stdout
     assert f"  - {BROKEN[mode]}" in result.stdout
+
+
+class _HoldsUpOneNmtReset:
+    """The check's bus, as a loaded host makes it once: the first NMT reset node leaves 0.2 s after
+    the check stamped it (its freshness value), four freshness windows late."""
+    HOLD_S = 0.2
+
+    def __init__(self, bus, protocol: p.Protocol):
+        self.bus, self.protocol, self.held = bus, protocol, 0
+
+    def send(self, msg, timeout=None):
+        frame = self.protocol.decode(msg)
+        if frame is not None and frame.name == p.NMT_AUTH and frame.signals["Command"] == p.NMT_RESET_NODE \
+                and not self.held:
+            self.held += 1
+            time.sleep(self.HOLD_S)
+        self.bus.send(msg, timeout)
+
+    def __getattr__(self, name):
+        return getattr(self.bus, name)
+
+
+def test_an_nmt_frame_this_host_delivered_stale_is_sent_again_not_blamed_on_the_board(tmp_path, monkeypatch):
+    """The board refuses the late NMT reset (EMCY 0x8100 STALE, counter 0) as it must; the check
+    sees the refusal came back after the freshness window, sends the reset again, and passes."""
+    import bench.contract.board_check as board_check
+    scenario = run_key.with_run_key(board_scenario(None))
+    contract = BoardContract.of(scenario.can, 0.03, None, real_time_only=False)
+    held = []
+
+    def open_held_bus(spec, **kwargs):
+        held.append(_HoldsUpOneNmtReset(open_bus(spec, **kwargs), p.Protocol(contract.node_id, "secoc",
+                                                                              scenario.can.security.key)))
+        return held[-1]
+
+    monkeypatch.setattr(board_check, "open_bus", open_held_bus)
+    verdict = run_board_check(scenario, "late-nmt", tmp_path / "check", _board_command(), None, None, None)
+    assert verdict.passed, verdict.text("board")
+    assert held[0].held == 1
+    measured = json.loads((tmp_path / "check" / "contract_check.json").read_text())["measured"]
+    assert measured["late_on_arrival"]["nmt"] == 1
+    assert "1 NMT frame(s)" in verdict.summary
+    assert measured["heartbeat"]["states"][-2:] == ["boot-up", "pre-operational"]

@@ -31,7 +31,11 @@ In order, each step measured on the check's clock (CLOCK_MONOTONIC, the SecOC ti
 Throughout: the heartbeat period (median) and its longest gap, the telemetry period, the E2E
 check of every protected frame the board sends, each applied command acknowledged by
 MTQ_TLM_SETPOINT with its alive counter (what lock-step pairs by; `--real-time-only` for a board
-without it), and no EMCY for a genuine command.
+without it), and no EMCY for a genuine command. On secoc a genuine frame the board refused as
+stale is the board's fault only if its refusal (or the next answer) came back within the freshness
+window; later than that, this host may have held it up (bench/contract/late_arrivals.py): the
+frame is excused and counted (an NMT frame is sent again), and more than a tenth of the commands
+so excused is a problem of its own (the host too busy to judge).
 
 It prints one line on a pass, or FAIL and each problem, and writes the verdict with the contract's
 numbers and the measured ones to <run_dir>/contract_check.json; every frame sent and heard goes to
@@ -63,6 +67,7 @@ from bench.bus.can.transport import TransportUnavailable, open_bus
 from bench.bus.schemas import SCHEMA_VERSION
 from bench.bus.session import SessionOptions, free_loopback_port, loopback_endpoint, open_session
 from bench.contract.check import OUTSIDE_LOG, Verdict
+from bench.contract.late_arrivals import explained_emcys, may_have_arrived_stale
 from bench.runtime.priority import set_realtime_priority
 from bench.scenario import Scenario, ScenarioError, load_scenario, parse_scenario
 
@@ -71,6 +76,8 @@ DEFAULT_MARGIN_S = 0.03       # beyond a period or a timeout, for the board's re
 HOLD_S = 0.25                 # each commanded dipole is held this long
 PROBE_LEAD_S = 0.1            # steady commands before each refused frame
 EXIT_TIMEOUT_S = 10.0
+LATE_NMT_RETRIES = 2          # an NMT frame refused only because this host delivered it stale: sent again
+LATE_SHARE_LIMIT = 0.1        # more genuine commands than this share late on arrival: the host is too busy to judge
 CAPTURE_NAME = "can.log"
 VERDICT_NAME = "contract_check.json"
 # The default contract: the bench's board with its set-point echo, which lock-step needs.
@@ -344,6 +351,7 @@ class BoardCheck:
     probe_windows: list[tuple[float, float]] = field(default_factory=list)   # EMCYs expected in these
     timeout_window: tuple[float, float] | None = None                        # the command timeout's
     echo_free: list[tuple[float, float]] = field(default_factory=list)      # no echo expected here
+    late: list[Sent] = field(default_factory=list)   # genuine frames this host may have delivered stale
 
     def problem(self, text: str) -> None:
         self.problems.append(text)
@@ -408,10 +416,8 @@ class BoardCheck:
     def start_operational(self, what: str) -> bool:
         """NMT start; the heartbeat says operational, telemetry starts, coils off. False if it did not."""
         c, f = self.contract, self.flight
-        sent = f.nmt(p.NMT_START)
+        sent, beat = self.nmt(p.NMT_START, p.NMT_OPERATIONAL, 3 * c.heartbeat_period_s + c.margin_s)
         bound = c.heartbeat_period_s + c.margin_s
-        beat = f.wait_for(p.HEARTBEAT, sent.t_s, 3 * c.heartbeat_period_s + c.margin_s,
-                          lambda h: h.signals["NmtState"] == p.NMT_OPERATIONAL)
         tlm = f.wait_for(p.TLM_DIPOLE, sent.t_s, c.telemetry_period_s + c.margin_s + c.heartbeat_period_s)
         entry = {"operational_heartbeat_after_s": _after(beat, sent), "first_telemetry_after_s": _after(tlm, sent)}
         self.measured.setdefault("nmt", {}).setdefault(what, []).append(entry)
@@ -597,10 +603,8 @@ class BoardCheck:
         for command, state, what in ((p.NMT_ENTER_PRE_OPERATIONAL, p.NMT_PRE_OPERATIONAL, "NMT enter pre-operational"),
                                      (p.NMT_STOP, p.NMT_STOPPED, "NMT stop")):
             f.command_for(HOLD_S, steady)
-            sent = f.nmt(command)
+            sent, beat = self.nmt(command, state, 3 * c.heartbeat_period_s)
             bound = c.heartbeat_period_s + c.margin_s
-            beat = f.wait_for(p.HEARTBEAT, sent.t_s, 3 * c.heartbeat_period_s,
-                              lambda h, s=state: h.signals["NmtState"] == s)
             entry = {"heartbeat_after_s": _after(beat, sent)}
             self.measured.setdefault("nmt", {}).setdefault(what, []).append(entry)
             if beat is None:
@@ -630,10 +634,8 @@ class BoardCheck:
 
     def reset_node(self, at_start: bool = False) -> bool:
         c, f = self.contract, self.flight
-        sent = f.nmt(p.NMT_RESET_NODE)
+        sent, boot = self.nmt(p.NMT_RESET_NODE, p.NMT_BOOT_UP, 3 * c.heartbeat_period_s)
         bound = c.heartbeat_period_s + c.margin_s
-        boot = f.wait_for(p.HEARTBEAT, sent.t_s, 3 * c.heartbeat_period_s,
-                          lambda h: h.signals["NmtState"] == p.NMT_BOOT_UP)
         pre = f.wait_for(p.HEARTBEAT, boot.t_s if boot else sent.t_s, 3 * c.heartbeat_period_s,
                          lambda h: h.signals["NmtState"] == p.NMT_PRE_OPERATIONAL)
         self.measured.setdefault("nmt", {})["NMT reset node"] = {"boot_up_after_s": _after(boot, sent),
@@ -649,9 +651,31 @@ class BoardCheck:
             sleep_until(time.monotonic() + c.heartbeat_period_s)
         return True
 
+    def nmt(self, command: int, state: int, within_s: float) -> tuple[Sent, Heard | None]:
+        """Send an NMT command; the first heartbeat saying `state` within within_s, or None. A frame
+        the board refused as stale that this host may have delivered late (late_arrivals) is not the
+        board's fault: it is sent again, at most LATE_NMT_RETRIES times, and noted."""
+        f = self.flight
+        for _ in range(LATE_NMT_RETRIES + 1):
+            sent = f.nmt(command)
+            beat = f.wait_for(p.HEARTBEAT, sent.t_s, within_s, lambda h: h.signals["NmtState"] == state)
+            if beat is not None or not self._arrived_stale(sent):
+                break
+            self.late.append(sent)
+        return sent, beat
+
+    def _arrived_stale(self, sent: Sent) -> bool:
+        f = self.flight
+        if self.contract.profile != "secoc":
+            return False                 # no freshness window on e2e
+        frames = f.frames()
+        index = next(i for i, s in enumerate(f.sent) if s is sent)
+        return may_have_arrived_stale(index, f.sent, frames, self.contract.freshness_max_age_s)
+
     # --- over the whole check ----------------------------------------------------------------
     def throughout(self) -> None:
         c, f = self.contract, self.flight
+        self._late_commands()
         beats = f.frames(p.HEARTBEAT)
         gaps = [b.t_s - a.t_s for a, b in zip(beats, beats[1:]) if b.signals["NmtState"] != p.NMT_BOOT_UP]
         hb = {"count": len(beats), "states": [state_name(s) for s in _runs(int(b.signals["NmtState"]) for b in beats)]}
@@ -683,6 +707,36 @@ class BoardCheck:
         self._echoes()
         self._unexpected_emcys()
 
+    def _late_commands(self) -> None:
+        """Genuine commands the board did not apply (no echo) or refused as stale, that this host
+        may have delivered past the freshness window: excused, counted, and too many of them is a
+        problem of its own (the check cannot judge the board on a host this busy)."""
+        c, f = self.contract, self.flight
+        if c.profile != "secoc":
+            return
+        heard = f.frames()
+        answers: dict[str, dict[int, list[float]]] = {"echo": {}, "stale": {}}   # counter -> times heard
+        for h in heard:
+            if h.name == p.TLM_SETPOINT and h.signals["CommandApplied"]:
+                answers["echo"].setdefault(int(h.signals["CommandCounter"]), []).append(h.t_s)
+            elif (h.name == p.EMCY and h.signals["ErrorCode"] == p.EMCY_E2E_CHECK_FAILED
+                  and h.signals["E2eStatus"] == p.E2EStatus.STALE):
+                answers["stale"].setdefault(int(h.signals["RejectedCounter"]), []).append(h.t_s)
+        judged = [(i, s) for i, s in enumerate(f.sent) if s.judged]
+        for i, s in judged:
+            later = next((t.t_s for t in f.sent[i + 1:] if t.counter == s.counter), float("inf"))
+            named = {kind: any(s.t_s < t < later for t in times.get(s.counter, ())) for kind, times in answers.items()}
+            if ((named["stale"] or (c.setpoint_echo and not named["echo"]))
+                    and may_have_arrived_stale(i, f.sent, heard, c.freshness_max_age_s)):
+                self.late.append(s)
+        commands = [s for s in self.late if s.kind == "command"]
+        self.measured["late_on_arrival"] = {"commands": len(commands), "nmt": len(self.late) - len(commands),
+                                            "freshness_window_s": c.freshness_max_age_s}
+        if len(commands) > LATE_SHARE_LIMIT * max(1, len(judged)):
+            self.problem(f"this host held {len(commands)} of {len(judged)} commands past the freshness window "
+                         f"({ms(c.freshness_max_age_s)}) before the board had them: too many to judge the board; "
+                         f"run the check on a less loaded host")
+
     def _e2e_of_board_frames(self) -> None:
         f = self.flight
         receivers = {name: p.E2EReceiver() for name in PROTECTED}
@@ -709,8 +763,9 @@ class BoardCheck:
         judged = [s for s in f.sent if s.judged]
         echoes = [h for h in f.frames(p.TLM_SETPOINT) if h.signals["CommandApplied"]]
         latencies, missing, wrong = [], [], []
+        late = {id(s) for s in self.late}
         for i, s in enumerate(f.sent):
-            if not s.judged:
+            if not s.judged or id(s) in late:
                 continue
             later = next((t.t_s for t in f.sent[i + 1:] if t.counter == s.counter), float("inf"))
             echo = next((h for h in echoes if s.t_s <= h.t_s < later and h.signals["CommandCounter"] == s.counter),
@@ -750,8 +805,10 @@ class BoardCheck:
         windows = list(self.probe_windows)
         if self.timeout_window:
             windows.append(self.timeout_window)
+        explained = {id(h) for h in explained_emcys(self.late, f.sent, f.frames())}
         odd = [h for h in f.frames(p.EMCY)
-               if h.signals["ErrorCode"] != p.EMCY_NO_ERROR and not any(a <= h.t_s < b for a, b in windows)]
+               if h.signals["ErrorCode"] != p.EMCY_NO_ERROR and not any(a <= h.t_s < b for a, b in windows)
+               and id(h) not in explained]
         self.measured["unexpected_emcys"] = [_emcy_words(h) for h in odd]
         self.measured["check_max_command_gap_s"] = round(f.max_gap_s, 5)
         if odd:
@@ -960,6 +1017,10 @@ def summary(check: BoardCheck, c: BoardContract, spec: BusSpec, flight: FlightSi
     refused = [r["probe"] for r in m.get("refusals", []) if r["emcy_after_s"] is not None and not r["moved"]]
     if refused:
         parts.append(f"refused with EMCY 0x8100: {', '.join(refused)}")
+    late = m.get("late_on_arrival", {})
+    if late.get("commands") or late.get("nmt"):
+        parts.append(f"excused as late on arrival (this host, over the {ms(late['freshness_window_s'])} freshness "
+                     f"window): {late['commands']} command(s), {late['nmt']} NMT frame(s)")
     return "; ".join(parts)
 
 
