@@ -86,13 +86,14 @@ def _through_the_message(plan):
     return from_message(decode(encode(message), AttitudePlanMessage))
 
 
-def simulate_attitude_in_process(scenario: Scenario, coil_fault=None) -> dict[str, np.ndarray]:
+def simulate_attitude_in_process(scenario: Scenario, coil_fault=None, with_bus: bool | None = None) -> dict[str, np.ndarray]:
     """Run an attitude scenario without processes; the arrays the plant process writes, and the
     controller's cycle time per step (NaN when no law ran) and the planner's wall time per plan,
     and the FDIR actuator monitor's detections (fdir_event_time_s, _axis, _class; simulated time).
     coil_fault(time_s, applied_am2) -> applied_am2: what a bus fault does to the coils (a study's
     fault model, bench.studies.attitude_comparison; the scenario's own faults are then not run);
     None: the scenario's [can] faults through the lock-step bus, or a fault-free bus without them.
+    with_bus: the lock-step bus even without faults (a clean run's false alarms); None: with faults.
     With the bus also: `can_driver_events` (the driver's events as (mission s, kind)), the part of
     each step the coils were off (`att_coils_off_fraction`) and the board's `can_board_power_log`."""
     n_steps = scenario.n_steps
@@ -109,7 +110,7 @@ def simulate_attitude_in_process(scenario: Scenario, coil_fault=None) -> dict[st
     # The board model goes through the DBC encoder (~0.3 ms); a saturating or zero command repeats.
     board_dipoles: dict[bytes, np.ndarray] = {}
     bus = None
-    if coil_fault is None and scenario.can is not None and scenario.can.faults:
+    if coil_fault is None and scenario.can is not None and (scenario.can.faults if with_bus is None else with_bus):
         from bench.bus.can.lockstep_loop import LockStepLoopBus
 
         bus = LockStepLoopBus(scenario.can, scenario.step_s, scenario.run.seed)
@@ -156,7 +157,7 @@ def simulate_attitude_in_process(scenario: Scenario, coil_fault=None) -> dict[st
         "planner_plan_time_s": np.array([r[0] for r in plan_records], dtype=float),
         "planner_plan_reason": np.array([r[1] for r in plan_records], dtype=str),
         "planner_arrival_time_s": np.array([r[2] for r in plan_records], dtype=float),
-    } | fdir_event_arrays(cycle.fdir.events if cycle.fdir is not None else [])
+    } | fdir_event_arrays(cycle.fdir_events())
 
 
 def campaign_case(scenario: Scenario) -> dict:

@@ -334,3 +334,15 @@ def test_latency_histograms_put_every_hop_in_its_row_with_its_percentiles(tmp_pa
     marks = [line.get_xdata()[0] for line in ax.get_lines()]
     expected = [np.percentile(ms * 1e3, q) for ms in hops.values() for q in (50, 99)]
     np.testing.assert_allclose(marks, expected)
+
+
+def test_the_summary_tells_the_fdir_detections_apart_from_the_drivers():
+    from bench.report.summary import summary_rows
+
+    metrics = {"scenario": {"kind": "attitude"}, "can_bus": {"driver": {
+        "events": {"actuator_mismatch": 2, "fdir_reversed": 1, "fdir_pointing": 1, "host_overrun": 3},
+        "board_ok_at_end": True}}}
+    rows = dict(summary_rows(metrics))
+    assert rows["faults the driver detected"] == "actuator_mismatch 2"
+    assert rows["faults the FDIR detected (from the dynamics)"] == "fdir_pointing 1, fdir_reversed 1"
+    assert rows["host overruns (flight side late, not a fault)"] == "3"

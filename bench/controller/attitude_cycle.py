@@ -8,7 +8,8 @@ that needs an attitude gets no say until the estimate is valid: the cycle comman
 The FDIR actuator monitor ([attitude_control.fdir], bench.controller.fdir) takes the estimate and
 the dipole commanded on it in `monitor_actuators`, called once the command is out (its fit must not
 delay the command: ~0.7 ms a simulated second at 1 Hz, ~5 ms at 10 Hz), and says when a
-coil does not give the torque it should, on the estimate's simulated time. With `accommodate` on,
+coil does not give the torque it should, on the estimate's simulated time; with a pointing limit,
+the pointing envelope (bench.gnc.pointing_envelope) says when the law's error stays outside it. With `accommodate` on,
 `run` adapts the law's dipole to the coils as the monitor has identified them.
 """
 from __future__ import annotations
@@ -20,7 +21,7 @@ import numpy as np
 from bench.controller.attitude_laws import build_attitude_law
 from bench.controller.config import ATTITUDE_FREE_LAWS
 from bench.controller.deadline import DeadlineMonitor
-from bench.controller.fdir import build_actuator_monitor
+from bench.controller.fdir import build_actuator_monitor, build_pointing_envelope
 from bench.gnc.actuator_monitor import FdirEvent, accommodate
 from bench.gnc.attitude_law import AttitudeControlInput
 from bench.runtime.deadline import CycleOutcome
@@ -50,6 +51,8 @@ class AttitudeCycle:
         self.waiting_for_estimate_cycles = 0
         self.bad_estimate_cycles = 0
         self.fdir = build_actuator_monitor(scenario)      # None: [attitude_control.fdir] enabled = false
+        self.envelope = build_pointing_envelope(scenario)  # None: no pointing_error_limit_deg
+        self._envelope_input: tuple[float, float | None] | None = None
         self.accommodate = self.fdir is not None and scenario.attitude_control.fdir.accommodate
         if self.accommodate:
             from bench.controller.attitude_laws import dipole_limit_am2
@@ -82,6 +85,7 @@ class AttitudeCycle:
         self.saturated_cycles += saturated
         self.weak_field_cycles += weak
         angle = info.get("error_angle_rad")
+        self._envelope_input = (time_s, None if angle is None else float(angle))
         if self.fdir is not None:
             if self.accommodate and any(b.fault is not None for b in self.fdir.beliefs):
                 dipole = accommodate(dipole, field_t, self.fdir.beliefs, self.dipole_limit_am2)
@@ -93,18 +97,27 @@ class AttitudeCycle:
     def monitor_actuators(self) -> list[FdirEvent]:
         """The FDIR monitor's step on this cycle's estimate and command (after `run`, once the
         command is out): the coil faults detected at this cycle, usually none."""
+        events = []
+        if self.envelope is not None and self._envelope_input is not None:
+            events += self.envelope.step(*self._envelope_input)
+        self._envelope_input = None
         if self.fdir is None:
-            return []
+            return events
         pending, self._fdir_input = self._fdir_input, None
         if pending is None:
             self.fdir.reset()     # no valid estimate or no command this cycle: the window restarts
-            return []
-        return self.fdir.step(*pending)
+            return events
+        return self.fdir.step(*pending) + events
+
+    def fdir_events(self) -> list:
+        """Every FDIR detection so far: the coils' (actuator monitor), then the pointing envelope's."""
+        return ((self.fdir.events if self.fdir is not None else [])
+                + (self.envelope.events if self.envelope is not None else []))
 
     def summary(self) -> dict:
         return self.monitor.summary() | {"law": self.law_name, "saturated_cycles": self.saturated_cycles,
                                          "weak_field_cycles": self.weak_field_cycles,
                                          "waiting_for_estimate_cycles": self.waiting_for_estimate_cycles,
                                          "bad_estimate_cycles": self.bad_estimate_cycles} | (
-            {} if self.fdir is None else {"fdir_events": len(self.fdir.events),
+            {} if self.fdir is None else {"fdir_events": len(self.fdir_events()),
                                           "fdir_accommodated_cycles": self.accommodated_cycles})

@@ -134,13 +134,13 @@ def run(ctx: NodeContext) -> int:
         if monitored is not None and monitored.has_event:
             ctx.publish(keys.EVENT_DEADLINE, monitored.deadline_event(hdr))
         for event in cycle.monitor_actuators():     # after the command: the fit must not delay it
-            ctx.log.warning("FDIR actuator monitor: %s", event.describe())
+            ctx.log.warning("FDIR: %s", event.describe())
             detected_ns = sim_ns(event.time_s) if isinstance(link, LockStepLink) else time.monotonic_ns()
             fdir_events.append(fdir.fault_event(event, detected_ns))
             publish_bus_events(ctx, fdir_events[-1:])    # event/can, as it comes (recorder, live view)
     if link is not None:
         link.stop(extra_events=fdir_events)
-    fdir.write_report(ctx.run_dir, cycle.fdir)
+    fdir.write_report(ctx.run_dir, cycle.fdir, cycle.envelope)
     summary = (cycle.summary() | (follower.summary() if follower is not None else {})
                | {"stale_estimates_skipped": newest.skipped})
     (ctx.run_dir / "deadline_controller.json").write_text(json.dumps(summary, indent=2))

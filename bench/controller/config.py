@@ -180,6 +180,11 @@ class FdirConfig(msgspec.Struct, forbid_unknown_fields=True):
     threshold: Annotated[float, msgspec.Meta(gt=0, le=1e9)] = 40.0
     persistence: Annotated[int, msgspec.Meta(ge=1, le=1000)] = 3
     max_gain_std: Annotated[float, msgspec.Meta(gt=0, le=10.0)] = 0.08
+    # The system-level check (bench.gnc.pointing_envelope): an event when the law's pointing error
+    # stays above this many degrees for pointing_persistence_s (a hold's pointing requirement);
+    # None: not watched (a slew's error to its final target is large by design, a detumble has none).
+    pointing_error_limit_deg: Annotated[float, msgspec.Meta(gt=0, le=180.0)] | None = None
+    pointing_persistence_s: Annotated[float, msgspec.Meta(ge=0, le=3600.0)] = 10.0
 
 
 class AttitudeControlConfig(msgspec.Struct, forbid_unknown_fields=True):

@@ -12,6 +12,9 @@ The algorithm is bench.gnc.actuator_monitor (pure); this module only reads the s
   sample; a mean-rate sample with the smoother (the integrating gyro), an instant one with `truth`.
 Its settings are [attitude_control.fdir] (bench.controller.config.FdirConfig).
 
+With `pointing_error_limit_deg` set, the system-level check (bench.gnc.pointing_envelope) runs
+beside it: kind "fdir_pointing", no coil named.
+
 Detections become FaultEvents of kind "fdir_<class>" with frame "FDIR" beside the driver's own in
 can/driver.json (so metrics.json's can_bus.driver.events and the report's CAN table count them),
 and the monitor's whole account, with simulated detection times, is the run's fdir.json.
@@ -24,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.gnc.actuator_monitor import ActuatorMonitor, FdirEvent, MonitorSettings, OnboardActuatorModel
+from bench.gnc.pointing_envelope import PointingEnvelope
 from bench.scenario import Scenario
 
 FDIR_REPORT_NAME = "fdir.json"
@@ -92,6 +96,14 @@ def build_actuator_monitor(scenario: Scenario) -> ActuatorMonitor | None:
     return ActuatorMonitor(onboard_actuator_model(scenario), monitor_settings(scenario))
 
 
+def build_pointing_envelope(scenario: Scenario) -> PointingEnvelope | None:
+    """The system-level check, or None when the FDIR is off or no pointing limit is set."""
+    c = scenario.attitude_control.fdir
+    if scenario.kind != "attitude" or not c.enabled or c.pointing_error_limit_deg is None:
+        return None
+    return PointingEnvelope(float(np.deg2rad(c.pointing_error_limit_deg)), c.pointing_persistence_s)
+
+
 def fault_event(event: FdirEvent, detected_ns: int):
     """The detection as the driver's FaultEvent (can/driver.json): kind fdir_<class>, frame FDIR,
     the latency the span of evidence it took (the monitor cannot know the onset)."""
@@ -100,13 +112,14 @@ def fault_event(event: FdirEvent, detected_ns: int):
     return FaultEvent(event.kind, detected_ns, event.window_s, MONITOR_NAME, event.describe())
 
 
-def write_report(run_dir: Path, monitor: ActuatorMonitor | None) -> None:
+def write_report(run_dir: Path, monitor: ActuatorMonitor | None, envelope: PointingEnvelope | None = None) -> None:
     if monitor is None:
         return
-    (Path(run_dir) / FDIR_REPORT_NAME).write_text(json.dumps(monitor.summary(), indent=1))
+    summary = monitor.summary() | ({} if envelope is None else {"pointing_envelope": envelope.summary()})
+    (Path(run_dir) / FDIR_REPORT_NAME).write_text(json.dumps(summary, indent=1))
 
 
-def event_arrays(events: list[FdirEvent]) -> dict[str, np.ndarray]:
+def event_arrays(events: list) -> dict[str, np.ndarray]:
     """The detections as columns (the in-process loop's trajectory, a campaign's row)."""
     return {"fdir_event_time_s": np.array([e.time_s for e in events], float),
             "fdir_event_axis": np.array([e.axis_name for e in events], dtype=str),

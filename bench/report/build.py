@@ -245,8 +245,10 @@ def can_section(run: RunData, plot_dir: Path) -> tuple[Section | None, dict | No
     driver_table = None if driver_rows is None else Table(
         ["driver event", "count", "first latency [ms]", "worst latency [ms]"], driver_rows)
     if driver_table is not None:
-        section.paragraphs.append("What the flight-side driver detected (can/driver.json), with the latency from "
-                                  "the fault's evidence on the bus to its detection.")
+        section.paragraphs.append("What the flight side detected (can/driver.json), with the latency from the "
+                                  "fault's evidence to its detection: the CAN driver's events from the bus, and the "
+                                  "FDIR's (fdir_*, docs/fdir.md) from the dynamics, whose latency is the span of "
+                                  "simulated data the monitor judged.")
         if run.scenario is not None and "controller" in run.scenario.run.external:
             section.paragraphs.append("The flight software (controller and driver) was provided from outside: "
                                       "can/driver.json is its own account, if it wrote one, not the bench's measurement.")

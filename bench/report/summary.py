@@ -203,7 +203,11 @@ def _bus_rows(bus: dict | None) -> list[tuple[str, str]]:
         events = dict(driver.get("events", {}))
         # The driver's own command thread woken late is the host's doing, not a fault: apart.
         overruns = events.pop("host_overrun", 0)
+        # The FDIR's detections (kinds fdir_*, from the dynamics) travel with the driver's: apart.
+        fdir = {k: events.pop(k) for k in [k for k in events if k.startswith("fdir_")]}
         rows.append(("faults the driver detected", ", ".join(f"{k} {v}" for k, v in sorted(events.items())) or "none"))
+        rows.append(("faults the FDIR detected (from the dynamics)",
+                     ", ".join(f"{k} {v}" for k, v in sorted(fdir.items())) or "none"))
         if overruns:
             rows.append(("host overruns (flight side late, not a fault)", str(overruns)))
         rows.append(("board healthy at the end", "yes" if driver.get("board_ok_at_end") else "NO"))
