@@ -22,7 +22,8 @@ from bench.bus.can import run_key
 from bench.bus.can.config import BusSpec
 from bench.bus.can.transport import open_bus
 from bench.bus.session import SessionOptions, free_loopback_port, loopback_endpoint, open_session
-from bench.contract.board_check import BoardContract, board_scenario, run_board_check
+from bench.contract.board_flight import BoardContract
+from bench.contract.board_run import board_scenario, run_board_check
 from bench.runtime.priority import set_realtime_priority
 from conftest import REPO, run_bench_cli
 
@@ -188,7 +189,7 @@ class _HoldsUpOneNmtReset:
 def test_an_nmt_frame_this_host_delivered_stale_is_sent_again_not_blamed_on_the_board(tmp_path, monkeypatch):
     """The board refuses the late NMT reset (EMCY 0x8100 STALE, counter 0) as it must; the check
     sees the refusal came back after the freshness window, sends the reset again, and passes."""
-    import bench.contract.board_check as board_check
+    import bench.contract.board_run as board_run
     scenario = run_key.with_run_key(board_scenario(None))
     contract = BoardContract.of(scenario.can, 0.03, None, real_time_only=False)
     held = []
@@ -198,7 +199,7 @@ def test_an_nmt_frame_this_host_delivered_stale_is_sent_again_not_blamed_on_the_
                                                                               scenario.can.security.key)))
         return held[-1]
 
-    monkeypatch.setattr(board_check, "open_bus", open_held_bus)
+    monkeypatch.setattr(board_run, "open_bus", open_held_bus)
     verdict = run_board_check(scenario, "late-nmt", tmp_path / "check", _board_command(), None, None, None)
     assert verdict.passed, verdict.text("board")
     assert held[0].held == 1

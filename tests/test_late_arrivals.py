@@ -3,7 +3,9 @@ timelines: a stale refusal the host can explain is excused, one it cannot is the
 import numpy as np
 
 from bench.bus.can import protocol as p
-from bench.contract.board_check import BoardCheck, BoardContract, Heard, Sent, board_scenario
+from bench.contract.board_check import BoardCheck
+from bench.contract.board_flight import BoardContract, Heard, Sent
+from bench.contract.board_run import board_scenario
 from bench.contract.late_arrivals import answered_at_s, explained_emcys, may_have_arrived_stale
 
 WINDOW_S = 0.13        # freshness window: command period 0.1 s + margin 0.03 s

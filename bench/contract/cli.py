@@ -29,7 +29,7 @@ def cmd_export(args) -> int:
 
 def cmd_check(args) -> int:
     if args.node == "board":
-        from bench.contract.board_check import cmd_check_board
+        from bench.contract.board_run import cmd_check_board
         return cmd_check_board(args)
     from bench.contract.check import load_check_scenario, run_check, write_verdict
 
