@@ -18,6 +18,10 @@ prior and the first fix), which is what keeps the incremental solver away from i
 systems. A failed gtsam update is logged, counted, and the smoother restarts from its last good
 estimate propagated to the current step; it never raises on numerical trouble. Bad input (wrong
 shape, non-finite numbers, seq not increasing) raises ValueError naming the problem.
+
+The parts: the fixes (translation_measurement.py), the innovation gate and re-acquisition
+(translation_gate.py), the states in time and their motion (translation_motion.py); here the
+smoother itself, its gtsam updates, starts and restarts.
 """
 from __future__ import annotations
 
@@ -26,28 +30,28 @@ from dataclasses import dataclass
 
 import gtsam
 import numpy as np
-import scipy.linalg
 
 from bench.estimator import factors
 from bench.estimator.config import TranslationSmootherConfig
 from bench.estimator.gating import nis_gate
-from bench.estimator.kalman import POSITION_MATRIX, Gaussian, predict
+from bench.estimator.kalman import POSITION_MATRIX, Gaussian
 from bench.estimator.motion_model import CwhMotionModel
+from bench.estimator.translation_gate import InnovationGate, RejectionRun
+from bench.estimator.translation_measurement import (_MAX_EXTRA_GAUSS_NEWTON_STEPS, _STATE_RELINEARISE, Measurement,
+                                                     range_bearing_residual, relpos_residual)
+from bench.estimator.translation_motion import MEAN_MOTION_KEY, RelativeMotion, state_key
 from bench.estimator.two_body_model import TwoBodyRelativeModel
 from bench.gnc.cwh import RendezvousParams
-from bench.gnc.range_bearing import position_from_range_bearing, wrap_angle_rad
+from bench.gnc.range_bearing import position_from_range_bearing
 from bench.plant.config import RangeBearingSensorConfig, RelativePositionSensorConfig
 
 log = logging.getLogger(__name__)
 
-MEAN_MOTION_KEY = gtsam.symbol("n", 0)
-
-# Nonlinear variants (joint mean motion, range/bearing): relinearise a state that moved by more
-# than 0.1 m or 0.1 mm/s, delta by more than 1e-4. A bearing linearised 0.1 m off at range r errs
-# by ~(0.1 m)^2 / r, a millimetre at the 100 m terminal distance. delta enters the motion model
-# smoothly: a 1e-4 step leaves a second-order residual error of millimetres, while relinearising
-# delta relinearises every motion factor in the window (a Python callback each).
-_STATE_RELINEARISE = np.array([0.1, 0.1, 0.1, 1e-4, 1e-4, 1e-4])
+# Nonlinear variants (joint mean motion, range/bearing): relinearise a state as the fixes do
+# (translation_measurement._STATE_RELINEARISE), delta when it moved by more than 1e-4. delta
+# enters the motion model smoothly: a 1e-4 step leaves a second-order residual error of
+# millimetres, while relinearising delta relinearises every motion factor in the window (a Python
+# callback each).
 _DELTA_RELINEARISE = np.array([1e-4])
 # When every measurement factor is linear in the state (relative position, or range/bearing
 # linearised about its prediction), the state enters the joint model only through the motion
@@ -57,19 +61,9 @@ _DELTA_RELINEARISE = np.array([1e-4])
 # factors per update for nothing: measured on bench_estimator's data, 10 m moves the estimates by
 # at most 0.02 sigma (state) and 0.004 sigma (mean motion) and cuts the median CPU time 1.5-2.7x.
 _STATE_RELINEARISE_LINEAR_MEASUREMENTS = 100.0 * _STATE_RELINEARISE
-_MAX_EXTRA_GAUSS_NEWTON_STEPS = 3
 # A robust loss is iteratively reweighted least squares: each relinearisation recomputes the
 # weights, and a fix a few sigma out needs more steps than a smooth nonlinearity to settle.
 _MAX_EXTRA_ROBUST_STEPS = 10
-# Position sigma of the prior a track of rejected fixes starts from: far wider than any fix, so
-# the track is the fixes' own (its velocity prior is the smoother's initial one).
-_TRACK_SEED_POSITION_STD_M = 1.0e4
-# Prior of a burst's measurement bias, in measurement sigmas: uninformative next to any burst.
-_BURST_BIAS_PRIOR_SIGMAS = 1.0e4
-
-
-def state_key(seq: int) -> int:
-    return gtsam.symbol("x", seq)
 
 
 @dataclass(frozen=True)
@@ -125,7 +119,7 @@ class _GoodEstimate:
         return float(self.joint.covariance[6, 6]) if self.joint.mean.size == 7 else 0.0
 
 
-class TranslationSmoother:
+class TranslationSmoother(InnovationGate, RelativeMotion):
     """update(seq, sim_time_s, position_m | None, thrust_applied_n) -> TranslationEstimateResult | None.
 
     `params` are what the flight side believes (`Scenario.onboard_params()`): the smoother's
@@ -147,7 +141,7 @@ class TranslationSmoother:
         self.failed_updates = 0
         self.rejected_measurements = 0
         self.reacquisitions = 0
-        self._run = _RejectionRun()
+        self._run = RejectionRun()
         self.late_measurements_applied = 0
         self.late_measurements_dropped = 0     # older than the window: too late to use
         self._gate = (None if config.gate_probability is None
@@ -183,7 +177,7 @@ class TranslationSmoother:
         return (self.config.estimate_mean_motion or self.config.robust_loss != "none"
                 or (self.config.sensor == "range_bearing" and not self.linearises_measurements))
 
-    def _measurement_factor(self, measurement: "_Measurement", key: int, about: Gaussian):
+    def _measurement_factor(self, measurement: "Measurement", key: int, about: Gaussian):
         """The measurement's factor on `key`: linearised about `about` (the state's prediction or
         smoothed estimate) when the smoother linearises measurements, else gtsam's nonlinear one."""
         if self.linearises_measurements:
@@ -309,7 +303,7 @@ class TranslationSmoother:
             else:
                 noise = gtsam.noiseModel.Robust.Create(self._robust_loss(), gtsam.noiseModel.Isotropic.Sigma(3, std))
                 factor = lambda key: factors.position_factor(key, position, noise)  # noqa: E731
-            return _Measurement(factor, position, _relpos_residual(position), np.full(3, std**2))
+            return Measurement(factor, position, relpos_residual(position), np.full(3, std**2))
         rb = _vector("range_bearing", range_bearing, 3)
         if rb[0] <= 0:
             raise ValueError(f"range_bearing range must be positive, got {rb[0]} m")
@@ -317,8 +311,8 @@ class TranslationSmoother:
         noise = gtsam.noiseModel.Diagonal.Sigmas(sigmas)
         if self._robust_loss() is not None:
             noise = gtsam.noiseModel.Robust.Create(self._robust_loss(), noise)
-        return _Measurement(lambda key: factors.range_bearing_factor(key, rb, noise),
-                            position_from_range_bearing(rb), _range_bearing_residual(rb), sigmas**2)
+        return Measurement(lambda key: factors.range_bearing_factor(key, rb, noise),
+                            position_from_range_bearing(rb), range_bearing_residual(rb), sigmas**2)
 
     def _robust_loss(self):
         """gtsam's m-estimator for the measurement factors, or None for plain least squares.
@@ -333,51 +327,7 @@ class TranslationSmoother:
             return gtsam.noiseModel.mEstimator.Cauchy.Create(k)
         return None
 
-    def _two_body_model(self, mean_motion_radps: float) -> TwoBodyRelativeModel:
-        """The two-body model of the orbit whose mean motion is given (R = (mu / n^2)^(1/3)); the
-        last one is kept, as every factor of a step and its prediction share one mean motion."""
-        model = self._two_body
-        if model is not None and model.mean_motion_radps == mean_motion_radps:
-            return model
-        mu = self.believed_params.gravitational_parameter_m3ps2
-        radius_m = self.believed_params.target_radius_m if mean_motion_radps == self.believed_mean_motion_radps \
-            else (mu / mean_motion_radps**2) ** (1.0 / 3.0)
-        frame = "cartesian" if self.config.motion_model == "two_body_cartesian" else "curvilinear"
-        model = TwoBodyRelativeModel(mu, radius_m, self.believed_params.mass_kg, self.believed_params.time_step_s, frame)
-        model.mean_motion_radps = mean_motion_radps     # the very number asked for (cache key)
-        self._two_body = model
-        return model
-
-    def _two_body_linearised(self, state: np.ndarray, thrust: np.ndarray, n_steps: int,
-                             delta: float) -> tuple[np.ndarray, np.ndarray]:
-        """(f(x*, u), df/dx at x*) of the two-body model at the mean motion n_believed (1 + delta)."""
-        return self._two_body_model(self._mean_motion(delta)).linearise(state, thrust, n_steps)
-
-    def _motion_factor(self, seq: int, n_steps: int, thrust: np.ndarray):
-        previous, key = state_key(seq - n_steps), state_key(seq)
-        if self._two_body is not None:
-            # Linearised about the previous step's estimate (self._last is that step).
-            about = self._last.state.mean
-            propagated, jacobian = self._two_body_linearised(about, thrust, n_steps, self._last.delta)
-            if not self.estimates_mean_motion:
-                m = self.model.discrete(self.believed_mean_motion_radps, n_steps)
-                return factors.linear_factor([(previous, -jacobian), (key, np.eye(6))],
-                                             propagated - jacobian @ about, whiten=m.process_whitening)
-            # The CWH factor in delta plus the two-body model's difference from CWH at the estimated
-            # mean motion (its own dependence on delta is second order: a few % of a small term).
-            mean_motion = self._mean_motion(self._last.delta)
-            transition, input_matrix = self.model.transition_and_input(mean_motion, n_steps)
-            correction = (propagated - transition @ about - input_matrix @ thrust, jacobian - transition, about)
-            return factors.cwh_motion_factor_unknown_mean_motion(
-                previous, key, MEAN_MOTION_KEY, thrust, n_steps, self.model, self.believed_mean_motion_radps,
-                nonlinear_correction=correction)
-        if self.estimates_mean_motion:
-            return factors.cwh_motion_factor_unknown_mean_motion(
-                previous, key, MEAN_MOTION_KEY, thrust, n_steps, self.model, self.believed_mean_motion_radps)
-        m = self.model.discrete(self.believed_mean_motion_radps, n_steps)
-        return factors.cwh_motion_factor(previous, key, thrust, m)
-
-    def _step_factors(self, seq: int, thrust: np.ndarray, measurement: "_Measurement | None", predicted: Gaussian):
+    def _step_factors(self, seq: int, thrust: np.ndarray, measurement: "Measurement | None", predicted: Gaussian):
         n_steps = seq - self._last.seq
         graph = gtsam.NonlinearFactorGraph()
         graph.add(self._motion_factor(seq, n_steps, thrust))
@@ -385,77 +335,7 @@ class TranslationSmoother:
             graph.add(self._measurement_factor(measurement, state_key(seq), predicted))
         return graph, predicted.mean[:6]
 
-    def _screen(self, seq: int, measurement: "_Measurement | None",
-                predicted: Gaussian) -> tuple["_Measurement | None", Gaussian | None]:
-        """The gate of an on-time fix, which a run of outliers cannot walk open.
-
-        Returns (the measurement, or None when rejected; the track to restart from when this fix
-        re-acquires). A fix is rejected when its NIS against the prediction exceeds the gate, or,
-        during a run of rejected fixes, when the track of those rejected fixes explains it better
-        than the prediction by more than gate_burst_likelihood_ratio (it looks like the burst's
-        next fix, however wide the prediction has grown). After reacquire_after_rejections
-        rejected fixes, reacquire_consistent_fixes that agree with each other re-acquire.
-        """
-        if measurement is None:
-            return None, None
-        nis, innovation_cov = measurement.innovation(predicted)
-        dof = measurement.dof
-        if self._gate is None:
-            self._innovation = (nis, dof, False)
-            return measurement, None
-        gate, run, config = self._gate[dof], self._run, self.config
-        rejected = nis > gate
-        if run.candidate is not None and not rejected:
-            candidate_nis, candidate_cov = measurement.innovation(run.candidate, bias=True)
-            # log of p(fix | it is offset like the run's rejected fixes) / p(fix | it is good)
-            log_ratio = 0.5 * (nis - candidate_nis) + 0.5 * (_log_det(innovation_cov) - _log_det(candidate_cov))
-            rejected = log_ratio > np.log(config.gate_burst_likelihood_ratio)
-        if not rejected:
-            if run.length >= config.reacquire_after_rejections:
-                self.reacquisitions += 1
-                self._reacquired = True
-            self._run = _RejectionRun()
-            self._innovation = (nis, dof, False)
-            return measurement, None
-        # Rejected. The hypothesis that the run's fixes are all offset by one unknown bias b (a
-        # burst): the prediction with b appended (diffuse), corrected by them.
-        if run.candidate is None:
-            bias_var = (_BURST_BIAS_PRIOR_SIGMAS * np.sqrt(measurement.variances))**2
-            run.candidate = Gaussian(np.concatenate([predicted.mean, np.zeros(dof)]),
-                                     scipy.linalg.block_diag(predicted.covariance, np.diag(bias_var)))
-        run.candidate = measurement.update(run.candidate, bias=True)
-        # The track of the fixes alone: extended, or started anew from this fix when it does not
-        # fit the track (the run's first fix, or an isolated outlier inside a run).
-        track_nis = None if run.track is None else measurement.innovation(run.track)[0]
-        if run.track is None or track_nis > gate:
-            run.track = measurement.update(self._track_seed(measurement, predicted))
-            run.fixes, run.track_seq = 1, seq
-        else:
-            run.track = measurement.update(run.track)
-            run.fixes += 1
-        if run.length >= config.reacquire_after_rejections and run.fixes >= config.reacquire_consistent_fixes:
-            self.reacquisitions += 1
-            self._reacquired = True
-            self._innovation = (nis, dof, False)
-            track, self._run = run.track, _RejectionRun()
-            log.warning("step %d: %d fixes rejected in a row; re-acquired on the last %d, which agree with "
-                        "each other", seq, run.length, run.fixes)
-            return None, track
-        run.length += 1
-        self.rejected_measurements += 1
-        self._innovation = (nis, dof, True)
-        log.info("measurement of step %d rejected (NIS %.1f, gate %.1f, %d rejected in a row)", seq, nis, gate, run.length)
-        return None, None
-
-    def _track_seed(self, measurement: "_Measurement", predicted: Gaussian) -> Gaussian:
-        """Where a track of rejected fixes starts: the fix alone (a position prior far wider than
-        any fix, the smoother's initial velocity prior), the mean motion as predicted."""
-        mean = predicted.mean.copy()
-        mean[:3] = measurement.position_guess_m
-        variances = [_TRACK_SEED_POSITION_STD_M**2] * 3 + [self.config.initial_velocity_std_mps**2] * 3
-        if mean.size == 7:
-            variances.append(predicted.covariance[6, 6])
-        return Gaussian(mean, np.diag(variances))
+    # ---- starting and restarting --------------------------------------------------------------
 
     def _reacquire(self, seq: int, sim_time_s: float, track: Gaussian) -> TranslationEstimateResult:
         """The smoother restarted from the track of the consistent rejected fixes (this one included):
@@ -470,79 +350,7 @@ class TranslationSmoother:
             self._last = _GoodEstimate(seq, track)
             return self._result(seq, sim_time_s, self._last, reinitialised=True)
 
-    def _check_innovation(self, measurement: "_Measurement | None", predicted: Gaussian) -> "_Measurement | None":
-        """NIS of a late measurement against its step's estimate; None in its place if the gate rejects it."""
-        if measurement is None:
-            return None
-        nis = measurement.nis(predicted.mean[:6], predicted.covariance[:6, :6])
-        dof = measurement.dof
-        rejected = self._gate is not None and nis > self._gate[dof]
-        self._innovation = (nis, dof, rejected)
-        if rejected:
-            self.rejected_measurements += 1
-            log.info("measurement of step rejected by the innovation gate: NIS %.1f > %.1f", nis, self._gate[dof])
-            return None
-        return measurement
-
-    def _predict_last(self, seq: int, thrust: np.ndarray) -> Gaussian:
-        """The last good joint estimate ([x] or [x; delta]) carried to step `seq` (first order in delta)."""
-        return self._propagate(self._last.joint, seq - self._last.seq, thrust)
-
-    def _propagate(self, joint: Gaussian, n_steps: int, thrust: np.ndarray) -> Gaussian:
-        """A joint belief ([x] or [x; delta], then any constant states) carried n_steps with the
-        thrust held (first order in delta)."""
-        process_cov = self.model.discrete(self.believed_mean_motion_radps, n_steps).process_cov
-        if self._two_body is not None:
-            return self._propagate_two_body(joint, n_steps, thrust, process_cov)
-        if not self.estimates_mean_motion:
-            m = self.model.discrete(self.believed_mean_motion_radps, n_steps)
-            if joint.mean.size == 6:
-                return predict(joint, m.transition, m.input_matrix, thrust, process_cov)
-            jacobian = np.eye(joint.mean.size)
-            jacobian[:6, :6] = m.transition
-            mean = joint.mean.copy()
-            mean[:6] = m.transition @ joint.mean[:6] + m.input_matrix @ thrust
-            cov = jacobian @ joint.covariance @ jacobian.T
-            cov[:6, :6] += process_cov
-            return Gaussian(mean, 0.5 * (cov + cov.T))
-        delta = float(joint.mean[6])
-        mean_motion = self._mean_motion(delta)
-        transition, input_matrix = self.model.transition_and_input(mean_motion, n_steps)
-        d_transition, d_input = self.model.derivative(mean_motion, n_steps)
-        x = joint.mean[:6]
-        # x_k = Ad(n) x + Bd(n) u, n = n_b (1 + delta): d x_k / d delta = (dAd/dn x + dBd/dn u) n_b.
-        jacobian = np.eye(joint.mean.size)
-        jacobian[:6, :6] = transition
-        jacobian[:6, 6] = (d_transition @ x + d_input @ thrust) * self.believed_mean_motion_radps
-        mean = joint.mean.copy()
-        mean[:6] = transition @ x + input_matrix @ thrust
-        cov = jacobian @ joint.covariance @ jacobian.T
-        cov[:6, :6] += process_cov
-        return Gaussian(mean, 0.5 * (cov + cov.T))
-
-    def _propagate_two_body(self, joint: Gaussian, n_steps: int, thrust: np.ndarray, process_cov) -> Gaussian:
-        """`_propagate` with the two-body model: the mean through the model, the covariance through
-        its Jacobian (and, with the mean motion estimated, the CWH model's derivative in delta)."""
-        delta = float(joint.mean[6]) if self.estimates_mean_motion else 0.0
-        x = joint.mean[:6]
-        propagated, transition = self._two_body_linearised(x, thrust, n_steps, delta)
-        jacobian = np.eye(joint.mean.size)
-        jacobian[:6, :6] = transition
-        if self.estimates_mean_motion:
-            d_transition, d_input = self.model.derivative(self._mean_motion(delta), n_steps)
-            jacobian[:6, 6] = (d_transition @ x + d_input @ thrust) * self.believed_mean_motion_radps
-        mean = joint.mean.copy()
-        mean[:6] = propagated
-        cov = jacobian @ joint.covariance @ jacobian.T
-        cov[:6, :6] += process_cov
-        return Gaussian(mean, 0.5 * (cov + cov.T))
-
-    def _mean_motion(self, delta: float) -> float:
-        return self.believed_mean_motion_radps * (1.0 + delta)
-
-    # ---- starting and restarting --------------------------------------------------------------
-
-    def _start_from_first_fix(self, seq: int, sim_time_s: float, measurement: "_Measurement"):
+    def _start_from_first_fix(self, seq: int, sim_time_s: float, measurement: "Measurement"):
         # The first fix gives the position; the prior the velocity (and delta, around zero). The
         # prior's position is left free: an information-form prior with zero weight there.
         key = state_key(seq)
@@ -689,117 +497,6 @@ class TranslationSmoother:
         )
 
 
-class _RejectionRun:
-    """The current run of consecutive rejected fixes: the estimate had they been used, and the
-    track the latest mutually consistent ones make on their own."""
-
-    def __init__(self):
-        self.length = 0                      # consecutive rejected fixes
-        # [x (; delta); b]: the prediction corrected by the run's fixes, each offset by the bias b
-        self.candidate: Gaussian | None = None
-        self.track: Gaussian | None = None   # joint belief from the rejected fixes alone, at track_seq
-        self.track_seq = 0
-        self.fixes = 0                       # fixes in the track (each within the gate of the ones before)
-
-    def propagate(self, smoother: "TranslationSmoother", seq: int, thrust: np.ndarray) -> None:
-        """Carry the track to step `seq` with the smoother's model (the thrust held since its step)."""
-        if self.track is not None and seq > self.track_seq:
-            n_steps = seq - self.track_seq
-            self.track = smoother._propagate(self.track, n_steps, thrust)
-            self.candidate = smoother._propagate(self.candidate, n_steps, thrust)
-            self.track_seq = seq
-
-
-@dataclass(frozen=True)
-class _Measurement:
-    factor: object                 # key -> gtsam factor
-    position_guess_m: np.ndarray   # where the measurement puts the chaser (initial guess only)
-    residual: object               # state -> (measured - predicted measurement, d h / d state)
-    variances: np.ndarray          # the measurement noise variances believed (diagonal)
-
-    @property
-    def dof(self) -> int:
-        return self.variances.size
-
-    def linearised_factor(self, key: int, about: Gaussian) -> gtsam.LinearContainerFactor:
-        """A linear factor H x = z - h(x*) + H x*, x* the iterated-EKF estimate from `about`.
-
-        x* is where the newest state will end up given the prior and this measurement (Gauss-
-        Newton on the two, iterated until it moves less than the relinearisation thresholds), so
-        the factor is linearised where the smoother needs it, once, without a Python callback
-        per relinearisation. Measured against relinearising every update: see docs/estimation.md.
-        """
-        prior_mean, p = about.mean[:6], about.covariance[:6, :6]
-        r = np.diag(self.variances)
-        x = prior_mean
-        for _ in range(_MAX_EXTRA_GAUSS_NEWTON_STEPS + 1):
-            innovation, h = self.residual(x)
-            s = h @ p @ h.T + r
-            x_next = prior_mean + p @ h.T @ np.linalg.solve(s, innovation + h @ (x - prior_mean))
-            converged = np.all(np.abs(x_next - x) <= _STATE_RELINEARISE)
-            x = x_next
-            if converged:
-                break
-        innovation, h = self.residual(x)
-        return factors.linear_factor([(key, h)], innovation + h @ x, whiten=np.diag(1.0 / np.sqrt(self.variances)))
-
-    def _jacobian(self, state: np.ndarray, bias: bool) -> tuple[np.ndarray, np.ndarray]:
-        """Innovation at a joint state [x (; delta) (; b)] and its Jacobian (delta does not enter
-        the measurement; b, when `bias`, is an offset added to it)."""
-        innovation, h = self.residual(state[:6])
-        size, dof = state.size, self.dof
-        jacobian = np.zeros((dof, size))
-        jacobian[:, :6] = h
-        if bias:
-            innovation = innovation - state[-dof:]
-            jacobian[:, -dof:] = np.eye(dof)
-        return innovation, jacobian
-
-    def innovation(self, belief: Gaussian, bias: bool = False) -> tuple[float, np.ndarray]:
-        """NIS of this measurement against a joint belief, and the innovation covariance S."""
-        innovation, h = self._jacobian(belief.mean, bias)
-        s = h @ belief.covariance @ h.T + np.diag(self.variances)
-        return float(innovation @ np.linalg.solve(s, innovation)), s
-
-    def update(self, belief: Gaussian, bias: bool = False) -> Gaussian:
-        """The joint belief corrected by this measurement: an iterated EKF (exact for a position
-        fix), covariance in Joseph form at the final linearisation."""
-        prior_mean, p, size = belief.mean, belief.covariance, belief.mean.size
-        r = np.diag(self.variances)
-        x = prior_mean
-        for _ in range(_MAX_EXTRA_GAUSS_NEWTON_STEPS + 1):
-            innovation, h = self._jacobian(x, bias)
-            s = h @ p @ h.T + r
-            x_next = prior_mean + p @ h.T @ np.linalg.solve(s, innovation + h @ (x - prior_mean))
-            converged = np.all(np.abs(x_next[:6] - x[:6]) <= _STATE_RELINEARISE)
-            x = x_next
-            if converged:
-                break
-        _, h = self._jacobian(x, bias)
-        gain = np.linalg.solve(h @ p @ h.T + r, h @ p).T
-        i_kh = np.eye(size) - gain @ h
-        cov = i_kh @ p @ i_kh.T + gain @ r @ gain.T
-        return Gaussian(x, 0.5 * (cov + cov.T))
-
-    def nis(self, state: np.ndarray, covariance: np.ndarray) -> float:
-        """Normalised innovation squared nu' S^-1 nu, S = H P H' + R (first order in h)."""
-        innovation, h = self.residual(state)
-        s = h @ covariance @ h.T + np.diag(self.variances)
-        return float(innovation @ np.linalg.solve(s, innovation))
-
-
-def _relpos_residual(position: np.ndarray):
-    return lambda state: (position - state[:3], POSITION_MATRIX)
-
-
-def _range_bearing_residual(rb: np.ndarray):
-    def residual(state):
-        nu = rb - factors.range_bearing(state[:3])
-        nu[1] = wrap_angle_rad(nu[1])    # azimuth wraps
-        return nu, np.hstack([factors.range_bearing_jacobian(state[:3]), np.zeros((3, 3))])
-    return residual
-
-
 def _vector(name: str, value, size: int) -> np.ndarray:
     try:
         v = np.asarray(value, dtype=float).reshape(-1)
@@ -810,11 +507,6 @@ def _vector(name: str, value, size: int) -> np.ndarray:
     if not np.all(np.isfinite(v)):
         raise ValueError(f"{name} has non-finite entries: {v}")
     return v
-
-
-def _log_det(matrix: np.ndarray) -> float:
-    sign, value = np.linalg.slogdet(matrix)
-    return float(value) if sign > 0 else np.inf
 
 
 def _or(value, default):
