@@ -256,6 +256,12 @@ class AttitudeEstimate(Message, tag="estimate_attitude"):
     gyro_bias_radps: Vec3
     field_body_t: Vec3                # the field the law should use: magnetometer, else model rotated
     attitude_covariance_rad2: Cov3 | None = None
+    # The magnetometer calibration the smoother estimates ([estimator.attitude]
+    # estimate_magnetometer_calibration; measured = scale * B_body + bias): None when it is not
+    # estimated or before the first fix, and an outside estimator may leave both out. Carried here
+    # because the report compares it with the plant's, and the estimate lives only in this process.
+    magnetometer_bias_t: Vec3 | None = None     # body axes, T
+    magnetometer_scale: float | None = None     # dimensionless, 1 = no scale error
 
 
 class DipoleCommand(Message, tag="dipole_command"):

@@ -290,6 +290,12 @@ FIELDS: dict[str, dict[str, Field]] = {
                               "body.", unit="T", frame="body"),
         "attitude_covariance_rad2": Field("Covariance of the body-frame attitude error e (R_true = R_est Exp(e)), "
                                           "3x3 row-major; null if none.", unit="rad^2", frame="body"),
+        "magnetometer_bias_t": Field("Estimated magnetometer bias (measured = scale * B_body + bias), when the "
+                                     "estimator estimates the magnetometer's calibration; null (or left out) "
+                                     "otherwise. Read by the report only, not by the controller.", unit="T",
+                                     frame="body"),
+        "magnetometer_scale": Field("Estimated magnetometer scale factor, dimensionless (1: none), with "
+                                    "magnetometer_bias_t; null (or left out) otherwise."),
     },
     "AttitudePlanMessage": {
         "plan_id": Field("The plan's number (increasing)."),

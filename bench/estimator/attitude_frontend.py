@@ -29,6 +29,10 @@ class AttitudeEstimateOut:
     gyro_bias_radps: np.ndarray
     field_body_t: np.ndarray
     attitude_covariance_rad2: np.ndarray | None = None
+    # The smoother's magnetometer calibration (estimate_magnetometer_calibration): bias (body
+    # axes, T) and scale; None when it is not estimated or before the first fix.
+    magnetometer_bias_t: np.ndarray | None = None
+    magnetometer_scale: float | None = None
 
 
 class AttitudeEstimator:
@@ -39,6 +43,8 @@ class AttitudeEstimator:
         self._q = qt.IDENTITY_WXYZ.copy()
         self._bias = np.zeros(3)
         self._covariance: np.ndarray | None = None
+        self._magnetometer_bias_t: np.ndarray | None = None   # held between keyframes, as the gyro bias
+        self._magnetometer_scale: float | None = None
         self._valid = False
         self._last_gyro = np.zeros(3)
         self._field_model_inertial_t = np.zeros(3)    # none until the first magnetometer sample
@@ -81,6 +87,8 @@ class AttitudeEstimator:
             if result is not None:
                 self._q, self._bias = result.q_wxyz, result.gyro_bias_radps
                 self._covariance = result.attitude_covariance_rad2
+                self._magnetometer_bias_t = result.magnetometer_bias_t
+                self._magnetometer_scale = result.magnetometer_scale
                 self._valid = True
         if mag is not None:
             field_body = mag
@@ -89,4 +97,6 @@ class AttitudeEstimator:
             # field turns at about twice the orbit rate, ~0.13 deg/s in LEO) in today's body axes.
             field_body = qt.rotation_matrix(self._q).T @ self._field_model_inertial_t
         return AttitudeEstimateOut(self._valid, self._q.copy(), gyro - self._bias, self._bias.copy(), field_body,
-                                   None if self._covariance is None else self._covariance.copy())
+                                   None if self._covariance is None else self._covariance.copy(),
+                                   None if self._magnetometer_bias_t is None else self._magnetometer_bias_t.copy(),
+                                   self._magnetometer_scale)

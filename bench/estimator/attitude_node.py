@@ -71,6 +71,11 @@ def _run_truth(ctx: NodeContext, estimator: AttitudeEstimator) -> int:
 
 def _publish(ctx: NodeContext, hdr, estimate) -> None:
     covariance = None if estimate.attitude_covariance_rad2 is None else estimate.attitude_covariance_rad2.ravel().tolist()
+    # The magnetometer calibration goes out only when the smoother estimates it (None otherwise):
+    # the report compares it with the plant's.
+    mag_bias = None if estimate.magnetometer_bias_t is None else [float(v) for v in estimate.magnetometer_bias_t]
+    mag_scale = None if estimate.magnetometer_scale is None else float(estimate.magnetometer_scale)
     ctx.publish(keys.ESTIMATE_ATTITUDE, AttitudeEstimate(
         hdr.stamped("estimated", time.monotonic_ns()), estimate.valid, estimate.q_wxyz.tolist(),
-        estimate.omega_radps.tolist(), estimate.gyro_bias_radps.tolist(), estimate.field_body_t.tolist(), covariance))
+        estimate.omega_radps.tolist(), estimate.gyro_bias_radps.tolist(), estimate.field_body_t.tolist(), covariance,
+        magnetometer_bias_t=mag_bias, magnetometer_scale=mag_scale))
