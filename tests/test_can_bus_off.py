@@ -252,7 +252,7 @@ def test_the_real_time_bridge_lets_frames_sent_at_one_time_by_both_ends_collide(
     import threading
     import time
 
-    from bench.bus.can.busmodel import RealTimeBridge
+    from bench.bus.can.realtime_bridge import RealTimeBridge
 
     bus = BusModel(FaultInjector([], PROTO, seed=1), PROTO, time.monotonic_ns(), nodes=(FLIGHT, BOARD))
     ends = {FLIGHT: can.Bus(interface="virtual", channel="bridge-collision-flight"),

@@ -138,7 +138,8 @@ def bridge_run(frames) -> "BusModel":
 
     import can
 
-    from bench.bus.can.busmodel import BOARD, FLIGHT, BusModel, RealTimeBridge
+    from bench.bus.can.busmodel import BOARD, FLIGHT, BusModel
+    from bench.bus.can.realtime_bridge import RealTimeBridge
     from bench.bus.can.injector import FaultInjector
 
     protocol = p.Protocol()
@@ -186,7 +187,8 @@ def test_the_bridge_takes_a_frame_on_both_channels_from_another_sender_for_a_thi
 
 
 def test_other_senders_are_bounded():
-    from bench.bus.can.busmodel import FLIGHT, RealTimeBridge
+    from bench.bus.can.busmodel import FLIGHT
+    from bench.bus.can.realtime_bridge import RealTimeBridge
 
     nmt = p.Protocol().encode(p.NMT, {"Command": p.NMT_STOP, "NodeId": 0})
     model = bridge_run([(FLIGHT, nmt, sender) for sender in range(1, 40)])

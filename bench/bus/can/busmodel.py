@@ -14,12 +14,13 @@ Everything that happens to a frame goes to `capture` (a callable taking a can.Me
 candump Logger's on_message_received) on a channel naming what happened: "bus" (on the wire),
 "dropped", "replaced" (the original of an altered frame). Fault times count from the first
 command frame (see FaultInjector.arm).
+
+The parts: the frames and nodes they share (bus_frames.py), fault confinement with bus-off and
+recovery (confinement.py); the model on the wall clock is RealTimeBridge (realtime_bridge.py).
 """
 from __future__ import annotations
 
-import queue
 import statistics
-import time
 from collections import Counter, deque
 from dataclasses import dataclass, field
 from typing import Callable
@@ -29,55 +30,15 @@ import numpy as np
 
 from bench.bus.can import bittiming, errors
 from bench.bus.can import protocol as p
-from bench.bus.can.host_lateness import HostLateLog
+from bench.bus.can.bus_frames import (BOARD, CHANNEL_BUS, CHANNEL_DROPPED, CHANNEL_REPLACED, FLIGHT, NODES, Delivery,
+                                      InFlight, stamped_frame)
+from bench.bus.can.confinement import FaultConfinement, Recovery
 from bench.bus.can.injector import SOURCE_INJECTOR, FaultInjector, Flood, Transmission
 from bench.bus.spill import SpilledRows, WindowCounter
 
-FLIGHT = "flight"
-BOARD = "board"
-NODES = (FLIGHT, BOARD)   # the nodes of a bench bus; BusModel(nodes=...) takes any number
 LOAD_WINDOW_NS = 100_000_000
-CHANNEL_BUS, CHANNEL_DROPPED, CHANNEL_REPLACED = "bus", "dropped", "replaced"
-CHANNEL_ERRORS = "errors"   # error reports to nodes other than the flight side (not on the wire)
-RECESSIVE_RUN_BITS = 11                                   # ISO 11898-1: one occurrence for bus-off recovery
-RECOVERY_OCCURRENCES = bittiming.BUS_OFF_RECOVERY_BITS // RECESSIVE_RUN_BITS   # 128
 PASSIVE_ERROR_FRAME_BITS = 6 + 8 + 3                      # passive (recessive) error flag, delimiter, intermission
 SUSPEND_TRANSMISSION_BITS = 8                             # an error-passive transmitter's wait after intermission
-BUS_OFF_EPISODES_LISTED = 100                             # the report lists the first ones; counts cover all
-
-
-@dataclass(frozen=True)
-class Delivery:
-    msg: can.Message            # stamped with the wall time its last bit passed
-    destinations: tuple[str, ...]
-
-
-@dataclass
-class _InFlight:
-    tx: Transmission | None     # None: a babbler frame
-    msg: can.Message
-    start_ns: int
-    end_ns: int
-    destroyed_by: object | None = None          # the error_frames fault that destroys it
-    error: errors.BusError | None = None        # a bus error the bus itself causes (collision, no ACK)
-    together: tuple[Transmission, ...] = ()     # other transmitters of the same frame (equal id, equal data)
-    collided: tuple[Transmission, ...] = ()     # other transmitters in an equal-id collision
-    # Error-passive transmitters that lost at a data bit: their error flag is recessive, the frame
-    # goes on without them (ISO 11898-1); each has a bit error all the same.
-    passive_losers: tuple[Transmission, ...] = ()
-    # Recessive bits at the attempt's end (ACK delimiter, end of frame, intermission; or an error
-    # delimiter and intermission): what a bus-off node counts towards its recovery.
-    recessive_tail_bits: int = RECESSIVE_RUN_BITS
-
-
-@dataclass
-class _Recovery:
-    """A bus-off node watching the bus for the 128 occurrences of 11 consecutive recessive bits
-    after which it rejoins (ISO 11898-1), counted bit for bit from `counted_ns` on."""
-    bus_off_ns: int
-    counted_ns: int             # the bus is counted up to here (after a restart delay: from its end)
-    run_bits: int = 0           # recessive bits of the current run not yet an occurrence
-    occurrences: int = 0
 
 
 @dataclass
@@ -101,7 +62,7 @@ class BusStats:
     bus_off_episodes_left_off: int = 0
 
 
-class BusModel:
+class BusModel(FaultConfinement):
     def __init__(self, injector: FaultInjector, protocol: p.Protocol, t0_ns: int, *,
                  bitrate_bps: int = bittiming.DEFAULT_BITRATE_BPS, tx_queue_frames: int = 8,
                  capture: Callable[[can.Message], None] | None = None,
@@ -127,9 +88,9 @@ class BusModel:
         self._held: list[Transmission] = []    # the injector's frames and frames it holds back, by time
         self.recover_at_ns: dict[str, int] = {}   # bus-off nodes: when they rejoin if the bus stays idle
         self.unpowered: set[str] = set()          # nodes without power (board_power_loss): off the bus
-        self._recovery: dict[str, _Recovery] = {}
+        self._recovery: dict[str, Recovery] = {}
         self._suspended_until_ns: dict[str, int] = {}   # error-passive transmitters (suspend transmission)
-        self.in_flight: _InFlight | None = None
+        self.in_flight: InFlight | None = None
         self.bus_free_ns = t0_ns
         self.now_ns = t0_ns
         self.stats = BusStats()
@@ -290,7 +251,7 @@ class BusModel:
         others = tuple(w for w in winners[1:] if isinstance(w, Transmission))
         frames = {_frame_identity(w.msg) for w in winners}
         bits = bittiming.frame_bits(msg)
-        flight = _InFlight(tx, msg, start_ns, 0, passive_losers=passive_losers)
+        flight = InFlight(tx, msg, start_ns, 0, passive_losers=passive_losers)
         if len(frames) > 1:
             # Equal arbitration fields, different frames: a bit error at the first differing bit.
             streams = [bittiming.stuffed_bits(w.msg) for w in winners]
@@ -319,11 +280,6 @@ class BusModel:
         self.bus_free_ns = flight.end_ns
         self._account_busy(start_ns, flight.end_ns)
 
-    def _error_passive(self, item: object) -> bool:
-        counters = self.counters.get(item.source) if isinstance(item, Transmission) else None
-        return counters is not None and not counters.bus_off and \
-            (counters.tec >= errors.PASSIVE_LIMIT or counters.rec >= errors.PASSIVE_LIMIT)
-
     def _without_passive_losers(self, winners: list) -> tuple[list, tuple[Transmission, ...]]:
         """Equal arbitration fields, different frames: at the first bit where they differ, the
         transmitters of a recessive bit read a dominant one, a bit error (ISO 11898-1). If one of
@@ -343,15 +299,7 @@ class BusModel:
             winners = [w for w, bit in zip(winners, sent) if bit == 0]
         return winners, tuple(losers)
 
-    def _flush_queue(self, node: str, t_ns: int) -> None:
-        """Bus-off: the controller's transmit buffers are cleared (nothing stale is sent later)."""
-        queue = self.queues[node]
-        while queue:
-            flushed = queue.popleft()
-            self._log(flushed.msg, CHANNEL_DROPPED, t_ns)
-            self.stats.dropped["bus_off_flush"] += 1
-
-    def _complete(self, flight: _InFlight) -> list[Delivery]:
+    def _complete(self, flight: InFlight) -> list[Delivery]:
         if self._recovery:
             self._count_recessive_tail(flight)
         if flight.destroyed_by is not None or flight.error is not None:
@@ -370,18 +318,7 @@ class BusModel:
                     SUSPEND_TRANSMISSION_BITS, self.bitrate_bps)
         return deliveries
 
-    def _passive_losses(self, flight: _InFlight) -> list[Delivery]:
-        """Error-passive transmitters that lost at a data bit: a bit error each (TEC + 8), and
-        bus-off at the end of this frame if it takes them above 255; they retry otherwise."""
-        deliveries: list[Delivery] = []
-        for loser in flight.passive_losers:
-            self.stats.bus_errors[errors.BusError.BIT.value] += 1
-            deliveries += self._count(loser.source, flight.end_ns, transmit=True, ok=False, error=errors.BusError.BIT)
-            if self.counters[loser.source].bus_off:
-                self._go_bus_off(loser, flight)
-        return deliveries
-
-    def _transmitted(self, flight: _InFlight) -> list[Delivery]:
+    def _transmitted(self, flight: InFlight) -> list[Delivery]:
         """The frame went through: counters, capture, and the nodes that hear it."""
         tx = flight.tx
         deliveries: list[Delivery] = []
@@ -395,7 +332,7 @@ class BusModel:
         hearing = tuple(n for n in self.nodes if n not in senders and self._on_bus(n))
         for node in hearing:
             deliveries += self._count(node, flight.end_ns, transmit=False, ok=True)
-        stamped = _stamped(flight.msg, self.to_wall_s(flight.end_ns), CHANNEL_BUS)
+        stamped = stamped_frame(flight.msg, self.to_wall_s(flight.end_ns), CHANNEL_BUS)
         self.capture(stamped)
         self.stats.frames[p.frame_kind(self.protocol, flight.msg)] += 1
         if tx is None:
@@ -406,123 +343,6 @@ class BusModel:
         destinations = tuple(n for n in dict.fromkeys(d for t in transmitters for d in t.destinations)
                              if n not in senders and self._on_bus(n))
         return [Delivery(stamped, destinations)] + deliveries
-
-    def _count(self, node: str, t_ns: int, *, transmit: bool, ok: bool,
-               error: errors.BusError | None = None) -> list[Delivery]:
-        """Apply one fault-confinement rule to a node; an error report when the controller would
-        send one: every change of its state, and every error it transmitted except a missing ACK
-        (a node alone retries back to back, thousands a second: SocketCAN reports those only with
-        berr-reporting on, and a bridge forwarding each would fall behind the wall clock)."""
-        counters = self.counters[node]
-        before = counters.state
-        if ok:
-            after = counters.on_transmit_success() if transmit else counters.on_receive_success()
-        else:
-            after = counters.on_transmit_error(error) if transmit else counters.on_receive_error()
-        self.stats.tec_max[node] = max(self.stats.tec_max[node], counters.tec)
-        if after is before and (ok or not transmit or error is errors.BusError.ACK):
-            return []
-        report = errors.error_frame(after, counters.tec, rec=counters.rec, error=None if ok else error,
-                                    transmitting=transmit, state_changed=after is not before,
-                                    timestamp_s=self.to_wall_s(t_ns))
-        return [self._report(report, node)]
-
-    def _report(self, report: can.Message, node: str) -> Delivery:
-        # The flight side's error frames are what its candump shows; others go to the accounting.
-        report.channel = CHANNEL_BUS if node == FLIGHT else f"{CHANNEL_ERRORS}:{node}"
-        self.capture(report)
-        if node == FLIGHT:
-            self.stats.error_frames += 1
-        return Delivery(report, (node,))
-
-    def _transmission_error(self, flight: _InFlight) -> list[Delivery]:
-        """The frame was destroyed: error counters change; retry, or bus-off and drop it."""
-        error = flight.error or errors.BusError.BIT
-        self.stats.bus_errors[error.value] += 1
-        deliveries: list[Delivery] = []
-        transmitters = [t for t in (flight.tx, *flight.collided) if t is not None]
-        for tx in transmitters:
-            if tx.source not in self.queues:
-                # The injector's frame in a collision: it gives up (no controller to retry it).
-                self._dequeue(tx)
-                self.injector.record(flight.end_ns, tx.fault or SOURCE_INJECTOR, "collided", tx.msg)
-                continue
-            deliveries += self._count(tx.source, flight.end_ns, transmit=True, ok=False, error=error)
-            if self.counters[tx.source].bus_off:
-                self._go_bus_off(tx, flight)
-        senders = {t.source for t in (*transmitters, *flight.passive_losers)}
-        for node in self.nodes:
-            if node not in senders and self._on_bus(node) and error is not errors.BusError.ACK:
-                deliveries += self._count(node, flight.end_ns, transmit=False, ok=False)
-        return deliveries
-
-    def _go_bus_off(self, tx: Transmission, flight: _InFlight) -> None:
-        self._dequeue(tx)
-        self._log(tx.msg, CHANNEL_DROPPED, flight.end_ns)
-        self.stats.dropped["bus_off"] += 1
-        self.stats.bus_off[tx.source] += 1
-        self._flush_queue(tx.source, flight.end_ns)
-        # The controller rejoins after it has seen 128 occurrences of 11 consecutive recessive bits
-        # (ISO 11898-1), counted from the end of the error frame that took it bus-off: 1408 bit
-        # times on an idle bus, more when frames pass meanwhile (_count_recessive_*). Whoever
-        # caused it, collisions included. Only the error_frames fault adds its restart_delay_s
-        # before the count (SocketCAN's restart-ms, a host restarting the controller).
-        restart_s = 0.0
-        if flight.destroyed_by is not None and tx is flight.tx:
-            restart_s = flight.destroyed_by.spec.param("restart_delay_s")
-        self._recovery[tx.source] = _Recovery(flight.end_ns, flight.end_ns + round(restart_s * 1e9))
-        self._predict_recovery(tx.source)
-        self.stats.bus_off_episodes_left_off += len(self.stats.bus_off_episodes) >= BUS_OFF_EPISODES_LISTED
-        if len(self.stats.bus_off_episodes) < BUS_OFF_EPISODES_LISTED:
-            self.stats.bus_off_episodes.append([tx.source, flight.end_ns, None])
-
-    def _count_recessive_until(self, t_ns: int) -> None:
-        """A frame starts at t_ns: the idle bus before it counts for each bus-off node, and its
-        start-of-frame bit (dominant) ends the run of recessive bits."""
-        for node, r in self._recovery.items():
-            if t_ns > r.counted_ns:
-                run = r.run_bits + (t_ns - r.counted_ns) * self.bitrate_bps // 1_000_000_000
-                r.occurrences += run // RECESSIVE_RUN_BITS
-                r.run_bits, r.counted_ns = 0, t_ns
-                self._predict_recovery(node)
-
-    def _count_recessive_tail(self, flight: _InFlight) -> None:
-        """An attempt ended: its recessive tail counts for each bus-off node that watched it (a
-        frame's stuffed bits hold no 6 equal bits, its tail 11 or more recessive ones)."""
-        for node, r in self._recovery.items():
-            if flight.end_ns > r.counted_ns:
-                seen = min(flight.recessive_tail_bits,
-                           (flight.end_ns - r.counted_ns) * self.bitrate_bps // 1_000_000_000)
-                run = r.run_bits + seen
-                r.occurrences += run // RECESSIVE_RUN_BITS
-                r.run_bits, r.counted_ns = run % RECESSIVE_RUN_BITS, flight.end_ns
-                self._predict_recovery(node)
-
-    def _predict_recovery(self, node: str) -> None:
-        """When the node rejoins if the bus stays idle from what has been counted (an idle bus is
-        recessive: one occurrence every 11 bit times); a frame that starts first is counted anew."""
-        r = self._recovery[node]
-        left_bits = RECESSIVE_RUN_BITS * (RECOVERY_OCCURRENCES - r.occurrences) - r.run_bits
-        self.recover_at_ns[node] = r.counted_ns + bittiming.duration_ns(max(0, left_bits), self.bitrate_bps)
-
-    def _restart_recovered(self, t_ns: int) -> list[Delivery]:
-        out = []
-        for node, at_ns in list(self.recover_at_ns.items()):
-            if at_ns <= t_ns:
-                del self.recover_at_ns[node]
-                recovery = self._recovery.pop(node)
-                self.counters[node].restart()
-                self.stats.bus_off_recovered[node] += 1
-                self.stats.bus_off_time_ns[node] += at_ns - recovery.bus_off_ns
-                self.stats.bus_off_longest_ns[node] = max(self.stats.bus_off_longest_ns[node], at_ns - recovery.bus_off_ns)
-                for episode in self.stats.bus_off_episodes:
-                    if episode[0] == node and episode[1] == recovery.bus_off_ns:
-                        episode[2] = at_ns
-                report = errors.error_frame(errors.ErrorState.ACTIVE, 0, restarted=True,
-                                            timestamp_s=self.to_wall_s(at_ns))
-                self.bus_free_ns = max(self.bus_free_ns, at_ns)
-                out.append(self._report(report, node))
-        return out
 
     def _dequeue(self, tx: Transmission) -> None:
         (self._held if tx.held or tx.source == SOURCE_INJECTOR else self.queues[tx.source]).remove(tx)
@@ -538,7 +358,7 @@ class BusModel:
             t = window_end
 
     def _log(self, msg: can.Message, channel: str, t_ns: int) -> None:
-        self.capture(_stamped(msg, self.to_wall_s(t_ns), channel))
+        self.capture(stamped_frame(msg, self.to_wall_s(t_ns), channel))
 
     def report(self) -> dict:
         """Bus load, frames, drops, errors and command latency with and without a babbler."""
@@ -586,159 +406,9 @@ def _first_difference(a: list[int], b: list[int]) -> int:
     return min(len(a), len(b))
 
 
-def _stamped(msg: can.Message, timestamp_s: float, channel: str) -> can.Message:
-    return can.Message(timestamp=timestamp_s, arbitration_id=msg.arbitration_id, is_extended_id=msg.is_extended_id,
-                       is_remote_frame=msg.is_remote_frame, is_error_frame=msg.is_error_frame, dlc=msg.dlc,
-                       is_fd=msg.is_fd, data=bytes(msg.data), channel=channel, is_rx=False)
-
-
 def _percentiles_us(values_ns: list[int]) -> dict:
     if not values_ns:
         return {"n": 0}
     ordered = sorted(values_ns)
     p99 = ordered[min(len(ordered) - 1, round(0.99 * (len(ordered) - 1)))]
     return {"n": len(ordered), "median": statistics.median(ordered) / 1e3, "p99": p99 / 1e3, "max": ordered[-1] / 1e3}
-
-
-class RealTimeBridge:
-    """Runs a BusModel on the wall clock between two python-can buses (flight side, board side).
-
-    A frame enters the model at the time its sender put it on its bus (python-can's timestamp:
-    the sender's clock over Zenoh, the kernel's on SocketCAN), not when this process got round
-    to reading it: a stall here must delay deliveries, never bunch frames 20 ms apart into a burst
-    that overflows a transmit queue in the model. Frames are submitted in that time order, the
-    model advanced to just before each first: frames sent at one time (both ends at once) start
-    together if they reach this process before the model has run past that time. Deliveries
-    leave at most `granularity_s` after the model says their last bit passed.
-
-    Each end's node is the first sender heard on its channel (the Zenoh transport says which bus
-    instance sent a frame). Any other process on a channel (a rogue, a CAN tool) is a node of its
-    own, with its own controller, transmit queue and error counters, as a third device on a real
-    bus is: what it sends arbitrates with the ends' frames and the ends acknowledge it, but it
-    never waits in an end's transmit queue nor counts as that end's transmission. (Taken as the
-    ends' own, one NMT frame put on both channels at once was both ends sending the same frame,
-    which nobody else was there to acknowledge: ACK errors until one end was error-passive, and
-    before suspend transmission without end, the driver's commands dropped behind them and the
-    board in safe state; issue 44.) At most MAX_OTHER_SENDERS such nodes; further senders share one.
-    """
-
-    MAX_OTHER_SENDERS = 8
-
-    # A timestamp further from the arrival than this is another host's clock: use the arrival.
-    MAX_TRANSPORT_DELAY_NS = 1_000_000_000
-    # A delivery leaving this much after its last bit passed in the model, or a wait ending this
-    # much after it should: this process was not scheduled in time (a host overrun). Recorded so
-    # the flight side's fault checks can tell a starved bridge from a bus fault.
-    HOST_LATE_S = 0.005
-
-    def __init__(self, model: BusModel, buses: dict[str, can.BusABC], granularity_s: float = 0.0001):
-        self.model = model
-        self.buses = buses
-        self.granularity_s = granularity_s
-        self.send_failures = 0
-        self.host_lateness = HostLateLog()                     # on the monotonic clock
-        self._wall_minus_monotonic_ns = time.time_ns() - time.monotonic_ns()
-        # queue.Queue, not SimpleQueue: on CPython 3.11 a SimpleQueue.get(timeout) that a signal
-        # interrupts (SIGTERM: stop) was seen never to return, so the node could not stop.
-        self._inbox: queue.Queue = queue.Queue()
-        self._end_sender: dict[str, int] = {}                 # side -> the bus instance of its node
-        self.other_senders: dict[tuple[str, int], str] = {}   # (side, sender) -> its node in the model
-        # A bus that can hand its frames over on its own receive thread (the Zenoh transport) does;
-        # any other python-can bus gets a Notifier thread that reads it.
-        self._notifiers = []
-        for side, bus in buses.items():
-            listener = _Inbox(side, self._inbox)
-            if hasattr(bus, "forward_to"):
-                bus.forward_to(listener.on_frame, with_sender=True)
-            else:
-                self._notifiers.append(can.Notifier(bus, [listener], timeout=0.05))
-
-    def run(self, stop) -> None:
-        try:
-            while not stop.is_set():
-                now_ns = time.monotonic_ns()
-                next_ns = self.model.next_event_ns()
-                wait_s = 0.01 if next_ns is None else min(0.01, max(self.granularity_s, (next_ns - now_ns) / 1e9))
-                arrivals = self._arrivals(wait_s)
-                if not arrivals:
-                    self._count_late((time.monotonic_ns() - now_ns) / 1e9 - wait_s)
-                for t_ns, side, msg in sorted(arrivals, key=lambda a: a[0]):
-                    # To just before it: frames sent at the same time (by both ends at once) are
-                    # all queued before any starts, so they arbitrate (equal identifiers collide).
-                    self._deliver(self.model.run_until(t_ns - 1))
-                    self.model.submit(side, msg, t_ns)
-                self._deliver(self.model.run_until(time.monotonic_ns()))
-        finally:
-            for notifier in self._notifiers:
-                notifier.stop()
-
-    def _arrivals(self, wait_s: float) -> list[tuple[int, str, can.Message]]:
-        """Everything that arrived (waiting up to wait_s for the first), with its send time."""
-        arrivals = []
-        try:
-            item = self._inbox.get(timeout=wait_s)
-            while True:
-                side, msg, arrival_ns, *sender = item
-                arrivals.append((self._sent_ns(msg, arrival_ns), self._node(side, sender[0] if sender else None), msg))
-                item = self._inbox.get_nowait()
-        except queue.Empty:
-            pass
-        return arrivals
-
-    def _node(self, side: str, sender: int | None) -> str:
-        """The model's node that sent a frame heard on `side`'s channel (see the class docstring)."""
-        if sender is None or self._end_sender.setdefault(side, sender) == sender:
-            return side
-        node = self.other_senders.get((side, sender))
-        if node is None:
-            node = f"{side}/{sender:016x}"
-            if len(self.other_senders) >= self.MAX_OTHER_SENDERS:
-                node = f"{side}/others"     # not kept per sender: a rogue drawing new ids costs no memory
-            else:
-                self.other_senders[(side, sender)] = node
-            if node not in self.model.queues:
-                self.model.add_node(node)
-                self.model.wire_of[node] = side
-        return node
-
-    def _sent_ns(self, msg: can.Message, arrival_ns: int) -> int:
-        if msg.timestamp:
-            sent_ns = round(msg.timestamp * 1e9) - self._wall_minus_monotonic_ns
-            if 0 <= arrival_ns - sent_ns <= self.MAX_TRANSPORT_DELAY_NS:
-                return sent_ns
-        return arrival_ns
-
-    def _count_late(self, late_s: float) -> None:
-        if late_s > self.HOST_LATE_S:
-            self.host_lateness.note(time.monotonic_ns(), late_s)
-
-    def report(self) -> dict:
-        """The bridge's own figures, for the bus model's report beside the model's."""
-        return {"send_failures": self.send_failures, **self.host_lateness.report(),
-                "other_senders": sorted(n for n in self.model.nodes if n in self.model.wire_of)}
-
-    def _deliver(self, deliveries: list[Delivery]) -> None:
-        if deliveries:
-            # msg.timestamp: the wall time its last bit passed, in the model
-            last_bit_wall_ns = max(round(d.msg.timestamp * 1e9) for d in deliveries)
-            self._count_late((time.time_ns() - last_bit_wall_ns) / 1e9)
-        for delivery in deliveries:
-            for side in delivery.destinations:
-                if side not in self.buses:
-                    continue    # another sender on a channel: it hears that channel's frames there
-                try:
-                    self.buses[side].send(delivery.msg)
-                except (can.CanError, ValueError):  # counted; the bridge must keep running
-                    self.send_failures += 1
-
-
-class _Inbox(can.Listener):
-    def __init__(self, side: str, inbox):
-        self.side = side
-        self.inbox = inbox
-
-    def on_message_received(self, msg: can.Message) -> None:
-        self.inbox.put((self.side, msg, time.monotonic_ns()))
-
-    def on_frame(self, msg: can.Message, sender: int) -> None:
-        self.inbox.put((self.side, msg, time.monotonic_ns(), sender))

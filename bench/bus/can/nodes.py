@@ -23,7 +23,8 @@ from bench.bus import keys
 from bench.bus.can import protocol as p
 from bench.bus.can.board import AppliedCommand, MagnetorquerBoard, applied_record
 from bench.bus.can.coils import CoilHardware
-from bench.bus.can.busmodel import BOARD, CHANNEL_BUS, FLIGHT, BusModel, RealTimeBridge
+from bench.bus.can.busmodel import BOARD, CHANNEL_BUS, FLIGHT, BusModel
+from bench.bus.can.realtime_bridge import RealTimeBridge
 from bench.bus.can.config import CanConfig
 from bench.bus.can.injector import FaultInjector
 from bench.bus.can.live_faults import LiveFaults, follow_live_hardware_faults
