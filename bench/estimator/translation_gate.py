@@ -10,16 +10,13 @@ reacquisitions, and its _propagate for the run's track.
 from __future__ import annotations
 
 import logging
-from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.linalg
 
 from bench.estimator.kalman import Gaussian
 from bench.estimator.translation_measurement import Measurement
-
-if TYPE_CHECKING:
-    from bench.estimator.translation import TranslationSmoother
+from bench.estimator.translation_motion import RelativeMotion
 
 # The smoother's logger: these are its messages, as before the gate had a module of its own.
 log = logging.getLogger("bench.estimator.translation")
@@ -43,7 +40,7 @@ class RejectionRun:
         self.track_seq = 0
         self.fixes = 0                       # fixes in the track (each within the gate of the ones before)
 
-    def propagate(self, smoother: "TranslationSmoother", seq: int, thrust: np.ndarray) -> None:
+    def propagate(self, smoother: RelativeMotion, seq: int, thrust: np.ndarray) -> None:
         """Carry the track to step `seq` with the smoother's model (the thrust held since its step)."""
         if self.track is not None and seq > self.track_seq:
             n_steps = seq - self.track_seq
