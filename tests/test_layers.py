@@ -42,7 +42,7 @@ LAYERS: list[dict[str, list[str]]] = [
     {"contract": ["bench.contract", "bench.contract.table", "bench.contract.fields", "bench.contract.document",
                   "bench.contract.export"]},
     {"sim": ["bench.sim"],                                # the whole loop in one process
-     "launcher": ["bench.launcher"]},
+     "launcher": ["bench.launcher", "bench.launcher.*"]},  # `bench run`: one concern a module
     # The contract's check: it runs the bench (the launcher) against an outside node.
     {"contract_check": ["bench.contract.*"]},
     {"cli": ["bench.cli", "bench.__main__"]},
@@ -165,6 +165,9 @@ def test_the_graph_sees_the_bench():
     assert "bench.gnc.cwh" in BENCH["bench.controller.factory"]
     assert "bench.runtime.deadline" in BENCH["bench.plant.stepping"]
     assert "bench.bus.can.protocol" in BENCH["bench.bus.can.board"]      # `from bench.bus.can import protocol`
+    # The scenario reads each part's section schema; the launcher is a package, one concern a module.
+    assert {"bench.controller.config", "bench.plant.config", "bench.bus.can.config"} <= BENCH["bench.scenario"]
+    assert {"bench.launcher.children", "bench.launcher.follow"} <= BENCH["bench.launcher.run"]
 
 
 def test_every_module_has_a_layer():
@@ -227,3 +230,12 @@ def test_layer_map_places_part_schemas_as_documented(module):
     # Part schemas sit with the scenario, except the bus's own (first match wins).
     expected = {"bench.plant.config": "scenario", "bench.bus.can.config": "bus", "bench.gnc.mpc": "gnc"}
     assert layer_of(module, LAYERS)[1] == expected[module]
+
+
+@pytest.mark.parametrize("module, group", [("bench.scenario", "scenario"), ("bench.controller.config", "scenario"),
+                                           ("bench.launcher", "launcher"), ("bench.launcher.run", "launcher"),
+                                           ("bench.launcher.stats", "launcher")])
+def test_layer_map_places_the_scenario_and_the_launcher_package(module, group):
+    # Every module of the launcher package sits in the launcher's layer (not unplaced, not a lower one).
+    assert module in BENCH
+    assert layer_of(module, LAYERS)[1] == group
