@@ -24,7 +24,7 @@ A launcher that was itself not scheduled (two looks more than LATE_LOOK_S apart)
 the time it missed against the run.
 
 Pure: no Zenoh, no processes; time is passed in (tests drive it with a fake clock). The launcher
-feeds it (bench/launcher.py `_follow_run`) and raises the stall as NodeFailed: exit 1.
+feeds it (bench/launcher/follow.py `_follow_run`) and raises the stall as NodeFailed: exit 1.
 """
 from __future__ import annotations
 
