@@ -44,195 +44,21 @@ restarts, so the monitor goes on judging the other two, and the accommodation (`
 
 Thresholds, the false-alarm count on the built-in scenarios, the signal-to-noise ratio of a
 reversed coil and the detection latencies: docs/fdir.md.
+
+Its terms (settings, beliefs, events) are bench/gnc/coil_faults.py; reading a coil's fit
+(detection distance, class) bench/gnc/coil_judgement.py.
 """
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass, field
-from typing import Callable, Literal
 
 import numpy as np
 
+from bench.gnc.coil_faults import (
+    AXES, CLASS_MODELS, CoilBelief, CoilEstimate, FdirEvent, MonitorSettings, OnboardActuatorModel,
+)
+from bench.gnc.coil_judgement import IsolationFit, box_distance2, classify
 from bench.gnc.quaternion import cross3, rotation_matrix
-
-AXES = ("x", "y", "z")
-CLASSES = ("open", "reversed", "gain", "stuck")
-EARTH_MU_M3PS2 = 3.986004418e14
-# The identified model each class leaves the coil with (gain, offset); None: as estimated.
-CLASS_MODELS: dict[str, tuple[float | None, float | None]] = {
-    "open": (0.0, 0.0), "reversed": (-1.0, 0.0), "gain": (None, 0.0), "stuck": (0.0, None)}
-
-
-@dataclass(frozen=True)
-class MonitorSettings:
-    """How the monitor decides (scenario [attitude_control.fdir]; docs/fdir.md for the figures)."""
-    window_s: float = 60.0               # least-squares window
-    min_window_s: float = 20.0           # no judgement before this much contiguous data
-    evaluate_every_s: float = 1.0
-    gain_tolerance: float = 0.3          # |g - 1| within this is a healthy coil
-    offset_tolerance_am2: float = 0.01   # |s| within this is a healthy coil
-    threshold: float = 40.0              # d^2 to the nominal box above this: a fault
-    persistence: int = 3                 # evaluations in a row with the same class
-    onset_step_s: float = 0.0            # onsets tried within the window (0: every step)
-    detection_onsets: int = 4            # onsets detected on (the window's start and evenly after)
-    isolation_margin: float = 13.8       # residual (chi-square) by which the faulty coil's hypothesis must win
-    max_gain_std: float = 0.08           # excitation: a coil is judged only with its gain this well known
-    class_consistency: float = 13.8      # chi-square(2) at 0.999: (0, 0) or (-1, 0) consistent
-    prior_gain_std: float = 10.0         # weak priors: an unexcited parameter keeps a finite, wide variance
-    prior_offset_std_am2: float = 1.0
-    prior_residual_std_am2: float = 0.01  # the believed residual dipole's error (a nuisance the fit estimates)
-
-
-@dataclass(frozen=True)
-class OnboardActuatorModel:
-    """What the flight side believes, for the monitor."""
-    inertia_kgm2: np.ndarray
-    step_s: float
-    gyro_noise_std_radps: float                    # per rate sample (noise density / sqrt(step))
-    rate_sample: Literal["mean", "instant"] = "mean"
-    residual_dipole_am2: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    dipole_limit_am2: float = 0.2                  # the board's per-axis saturation
-    dipole_resolution_am2: float | None = 1e-3     # the board's DAC step (None: none)
-    position_m: Callable[[float], np.ndarray] | None = None   # believed orbit; None: no gravity gradient
-    # The board's setting for a command, if the flight side has its model (the command frame's
-    # scaling, then the DAC step and the limit: bench.controller.fdir); None: the two numbers above.
-    board_model: Callable[[np.ndarray], np.ndarray] | None = None
-    mu_m3ps2: float = EARTH_MU_M3PS2
-
-
-@dataclass(frozen=True)
-class FdirEvent:
-    """A coil fault the monitor detected, at `time_s` (the run's simulated time)."""
-    time_s: float
-    axis: int
-    fault_class: str
-    gain: float
-    gain_std: float
-    offset_am2: float
-    offset_std_am2: float
-    statistic: float          # d^2 to the nominal box
-    window_s: float           # the evidence: data over this long before time_s
-    alarm_s: float            # when d^2 first crossed the threshold (the class may take longer: excitation)
-    onset_s: float            # the onset the isolating fit found (maximum likelihood)
-
-    @property
-    def kind(self) -> str:
-        return f"fdir_{self.fault_class}"
-
-    @property
-    def axis_name(self) -> str:
-        return AXES[self.axis]
-
-    def describe(self) -> str:
-        return (f"coil {self.axis_name}: {self.fault_class} at {self.time_s:.3f} s, alarm since {self.alarm_s:.3f} s, "
-                f"onset fitted at {self.onset_s:.3f} s (gain {self.gain:.3f} "
-                f"+- {self.gain_std:.3f}, offset {self.offset_am2:.2e} +- {self.offset_std_am2:.1e} A m^2, "
-                f"d2 {self.statistic:.1f}, over {self.window_s:.0f} s)")
-
-    def to_dict(self) -> dict:
-        return {"monitor": "FDIR", "kind": self.kind, "axis": self.axis_name, "class": self.fault_class,
-                "time_s": self.time_s, "gain": self.gain, "gain_std": self.gain_std, "offset_am2": self.offset_am2,
-                "offset_std_am2": self.offset_std_am2, "statistic": self.statistic, "window_s": self.window_s,
-                "alarm_s": self.alarm_s, "onset_s": self.onset_s}
-
-
-@dataclass
-class CoilBelief:
-    """The model the flight side holds of one coil: healthy (1, 0) until the monitor latches a fault."""
-    gain: float = 1.0
-    offset_am2: float = 0.0
-    fault: str | None = None
-    detected_s: float | None = None
-    onset_s: float = 0.0          # the fault's onset as estimated: the belief holds from then on
-
-    @property
-    def usable(self) -> bool:
-        """Whether commanding this coil moves its torque (open and stuck coils: no)."""
-        return self.fault is None or (self.fault in ("reversed", "gain") and abs(self.gain) >= 0.2)
-
-
-@dataclass(frozen=True)
-class IsolationFit:
-    """One coil's single-fault fit (ActuatorMonitor.isolation_fits): (g, s) absolute, from `onset_s`."""
-    coil: int
-    theta: np.ndarray        # (gain, offset)
-    covariance: np.ndarray   # 2 x 2
-    factor: float            # variance factor (>= 1)
-    onset: int               # record index
-    onset_s: float
-    rss: float               # whitened residual sum of squares
-    by_onset: dict = field(default_factory=dict)   # onset index -> (theta, covariance), the best's factor
-    # The fit with the offset held at the belief (the gain alone differs), at its own best onset.
-    gain_only: float = 1.0
-    gain_only_std: float = float("inf")
-    gain_only_onset_s: float = 0.0
-    gain_only_rss: float = float("inf")
-
-
-@dataclass(frozen=True)
-class CoilReading:
-    """What the monitor reads of a faulty coil, as classified (offset 0 when read on s = 0)."""
-    gain: float
-    gain_std: float
-    offset_am2: float
-    offset_std_am2: float
-    onset_s: float
-
-
-@dataclass(frozen=True)
-class CoilEstimate:
-    """A coil at the latest evaluation (`ActuatorMonitor.last`), as detection saw it."""
-    gain: float
-    offset_am2: float
-    covariance: np.ndarray       # 2 x 2, of (gain, offset)
-    observable: bool
-    statistic: float             # d^2 to the nominal box (0 inside; NaN when not judged)
-
-
-def box_distance2(x: np.ndarray, covariance: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> float:
-    """Smallest Mahalanobis distance squared from x to the box [lower, upper] (2-D, exact)."""
-    if np.all(x >= lower) and np.all(x <= upper):
-        return 0.0
-    w = np.linalg.inv(covariance)
-    best = np.inf
-    for fixed in (0, 1):
-        free = 1 - fixed
-        for edge in (lower[fixed], upper[fixed]):
-            a = x[fixed] - edge
-            # the free coordinate minimising the quadratic with this one fixed, kept on the edge
-            y = np.clip(x[free] + w[fixed, free] * a / w[free, free], lower[free], upper[free])
-            d = np.empty(2)
-            d[fixed], d[free] = a, x[free] - y
-            best = min(best, float(d @ w @ d))
-    return best
-
-
-def classify(fit: IsolationFit, consistency: float, max_gain_std: float) -> tuple[str | None, CoilReading]:
-    """The fault class a coil's single-fault fit points to (None while the data cannot tell), and
-    the coil as read for it.
-
-    An offset is believed only when the data demand it: unless holding s at 0 costs the fit at
-    least `consistency` (chi-square units), the coil is read on s = 0 (the gain-only fit at its own
-    best onset: far sharper when the coil was commanded at a near-constant dipole, which makes gain
-    and offset nearly collinear and the onset loose) and the class is "open" or "reversed" when 0
-    or -1 is consistent with the gain (d^2 below `consistency`), else "gain". When s = 0 is
-    rejected, the coil holds a dipole of its own: "stuck" when g = 0 is consistent, else "gain" (a
-    gain and an offset; the event gives both). A class needs the gain it is read on known to
-    max_gain_std."""
-    if (fit.gain_only_rss - fit.rss) / fit.factor < consistency:
-        g, sigma = fit.gain_only, fit.gain_only_std
-        reading = CoilReading(g, sigma, 0.0, 0.0, fit.gain_only_onset_s)
-        if sigma > max_gain_std:
-            return None, reading
-        to_open, to_reversed = (g / sigma) ** 2, ((g + 1.0) / sigma) ** 2
-        if min(to_open, to_reversed) < consistency:
-            return ("open" if to_open <= to_reversed else "reversed"), reading
-        return "gain", reading
-    (g, offset), p = fit.theta, fit.covariance
-    reading = CoilReading(float(g), float(np.sqrt(p[0, 0])), float(offset), float(np.sqrt(p[1, 1])), fit.onset_s)
-    if reading.gain_std > max_gain_std:
-        return None, reading
-    return ("stuck" if g**2 / p[0, 0] < consistency else "gain"), reading
 
 
 def _unit_cross_field(field_t: np.ndarray) -> np.ndarray:
