@@ -20,7 +20,9 @@ import tempfile
 import time
 from pathlib import Path
 
-from bench.studies.campaign import RAY_OBJECT_STORE_BYTES, parse_spec, read_rows, run_campaign
+from bench.studies.campaign import parse_spec, run_campaign
+from bench.studies.campaign_engines import RAY_OBJECT_STORE_BYTES
+from bench.studies.campaign_results import read_rows
 
 
 def spec(seeds: int, mode: str):

@@ -14,8 +14,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bench.studies.campaign import (CampaignError, expand, parse_spec, parts_dir, read_rows, run_campaign,
-                                    run_case)
+from bench.studies.campaign import CampaignError, expand, parse_spec, run_campaign
+from bench.studies.campaign_engines import run_case
+from bench.studies.campaign_results import parts_dir, read_rows
 from bench.studies.campaign_metrics import TIMING_COLUMNS, run_metrics, time_to_rendezvous_s
 from bench.studies.campaign_report import wilson_interval, write_report
 

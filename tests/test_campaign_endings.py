@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from bench.studies.campaign import parts_dir, read_rows
+from bench.studies.campaign_results import parts_dir, read_rows
 
 TESTS_DIR = Path(__file__).parent
 REPO = TESTS_DIR.parent

@@ -33,36 +33,34 @@ exception or a timeout is a row with status "error"/"timeout" and the message, n
 Rows are appended to `<out>.parts/` as small Parquet files while the campaign runs (atomically,
 by rename), and merged into `<out>` in case order at the end: a killed campaign re-run with the
 same output skips every case already in a part and produces the same file.
+
+The parts: running the cases (campaign_engines.py: run_case, the local pool, Ray), the results
+file (campaign_results.py).
 """
 from __future__ import annotations
 
 import copy
 import importlib
 import itertools
-import json
 import os
-import signal
-import threading
 import time
 import tomllib
 import zlib
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
-from typing import Annotated, Callable, Iterable
+from typing import Annotated, Iterable
 
 import msgspec
 import numpy as np
 
 from bench.bus import toml_input
 from bench.scenario import ScenarioError, load_scenario, parse_scenario, scenario_to_toml_dict
+from bench.studies.campaign_engines import CELL_COLUMNS, RUNNERS, Case, run_local, run_ray
+from bench.studies.campaign_results import ResultsWriter, finalise, read_rows, seed001_schema
 
 AXES = ("controllers", "dynamics", "knowledge", "initial_conditions", "faults")
-CELL_COLUMNS = ("controller", "dynamics", "knowledge", "initial_conditions", "fault")
 BUILTIN_PACKAGE = "bench.studies.campaigns"
-# The case functions live with what they run (the in-process loop, the launcher), above this
-# layer; they are found by name, as `bench.cli` finds subcommands.
-RUNNERS = {"in-process": "bench.sim:campaign_case", "processes": "bench.launcher:campaign_case"}
 MODES = tuple(RUNNERS)
 # Other kinds of spec (a TOML's `kind`), each a module with parse_spec, expand and schema. Found by
 # name, as the runners are: such a module builds on this one (cases, engines, results file).
@@ -94,17 +92,6 @@ class CampaignSpec(msgspec.Struct, forbid_unknown_fields=True):
     mode: str = "in-process"
     steps: Annotated[int, msgspec.Meta(ge=1)] | None = None          # overrides run.steps
     case_timeout_s: Annotated[float, msgspec.Meta(gt=0)] = 900.0
-
-
-@dataclass(frozen=True)
-class Case:
-    case_id: str
-    index: int                      # position in the spec's expansion: the results file's order
-    cell: dict                      # axis column -> value name
-    seed: int
-    scenario: dict                  # the full scenario, plain data
-    mode: str
-    timeout_s: float
 
 
 # ------------------------------------------------------------------------------------------------
@@ -240,291 +227,13 @@ def expand(spec) -> list[Case]:
 
 
 # ------------------------------------------------------------------------------------------------
-# Running one case (in a worker)
-# ------------------------------------------------------------------------------------------------
-class CaseTimeout(BaseException):
-    """Raised in the worker's main thread when a case overruns its wall-clock budget. A
-    BaseException so that code under test catching Exception does not swallow it."""
-
-
-def _runner(mode: str) -> Callable:
-    """The case function (imported before the case's clock starts: imports take seconds)."""
-    module, _, function = RUNNERS.get(mode, mode).partition(":")
-    return getattr(importlib.import_module(module), function)
-
-
-class _Alarm:
-    """SIGALRM after timeout_s in the main thread (where pool and Ray workers run their tasks)."""
-
-    def __init__(self, timeout_s: float):
-        self.timeout_s = timeout_s
-        self.armed = threading.current_thread() is threading.main_thread() and hasattr(signal, "setitimer")
-
-    def _fire(self, _signum, _frame):
-        raise CaseTimeout()
-
-    def __enter__(self):
-        if self.armed:
-            self.previous = signal.signal(signal.SIGALRM, self._fire)
-            signal.setitimer(signal.ITIMER_REAL, self.timeout_s)
-        return self
-
-    def __exit__(self, *exc):
-        if self.armed:
-            signal.setitimer(signal.ITIMER_REAL, 0)
-            signal.signal(signal.SIGALRM, self.previous)
-        return False
-
-
-def run_case(case: Case) -> dict:
-    """One row: the case's columns, its metrics or its error. Never raises for a case's failure."""
-    row = {"case_id": case.case_id, "case_index": case.index, **case.cell, "seed": case.seed,
-           "scenario_json": json.dumps(case.scenario, sort_keys=True), "status": "ok", "error": ""}
-    start = time.perf_counter()
-    try:
-        runner = _runner(case.mode)
-        scenario = parse_scenario(case.scenario, case.case_id)
-        with _Alarm(case.timeout_s):
-            row.update(runner(scenario))
-    except CaseTimeout:
-        row.update(status="timeout", error=f"timed out after {case.timeout_s:g} s")
-    except Exception as exc:            # a case's failure is a row, whatever it was
-        row.update(status="error", error=f"{type(exc).__name__}: {exc}")
-    row["wall_time_s"] = time.perf_counter() - start
-    return row
-
-
-# ------------------------------------------------------------------------------------------------
 # Results file
 # ------------------------------------------------------------------------------------------------
 def schema_for(spec):
     """The results file's columns for a spec: seed 001's metrics, or a fault campaign's."""
     if isinstance(spec, CampaignSpec):
-        return _schema()
+        return seed001_schema()
     return _spec_kind(spec).schema()
-
-
-def _schema():
-    import pyarrow as pa
-
-    from bench.gnc.cwh import RendezvousParams
-    from bench.studies.campaign_metrics import run_metrics
-
-    sample = run_metrics(np.zeros((2, 6)), np.zeros((1, 3)), RendezvousParams.from_reference(), [0.0], [0], [True])
-    types = {bool: pa.bool_(), int: pa.int64(), float: pa.float64()}
-    fields = [("case_id", pa.string()), ("case_index", pa.int64())] + [(c, pa.string()) for c in CELL_COLUMNS]
-    fields += [("seed", pa.int64()), ("status", pa.string()), ("error", pa.string())]
-    fields += [(k, types[type(v)]) for k, v in sample.items()]
-    fields += [("wall_time_s", pa.float64()), ("scenario_json", pa.string())]
-    return pa.schema(fields)
-
-
-def parts_dir(out: Path) -> Path:
-    return out.with_name(out.name + ".parts")
-
-
-class ResultsWriter:
-    """Appends rows as numbered part files (written to a temporary name, then renamed)."""
-
-    def __init__(self, out: Path, flush_every: int, flush_interval_s: float = 5.0, schema=None):
-        self.out, self.dir = out, parts_dir(out)
-        self.dir.mkdir(parents=True, exist_ok=True)
-        self.flush_every, self.flush_interval_s = max(1, flush_every), flush_interval_s
-        self.pending: list[dict] = []
-        self.last_flush = time.monotonic()
-        self.schema = schema if schema is not None else _schema()
-        self.next_part = 1 + max((int(p.stem.split("-")[1]) for p in self.dir.glob("part-*.parquet")), default=0)
-
-    def add(self, row: dict) -> None:
-        self.pending.append(row)
-        if len(self.pending) >= self.flush_every or time.monotonic() - self.last_flush > self.flush_interval_s:
-            self.flush()
-
-    def flush(self) -> None:
-        import pyarrow as pa
-        import pyarrow.parquet as pq
-
-        if not self.pending:
-            return
-        table = pa.Table.from_pylist(self.pending, schema=self.schema)
-        final = self.dir / f"part-{self.next_part:06d}.parquet"
-        tmp = final.with_suffix(".tmp")
-        pq.write_table(table, tmp)
-        os.replace(tmp, final)
-        self.next_part += 1
-        self.pending = []
-        self.last_flush = time.monotonic()
-
-
-def read_rows(out: Path) -> list[dict]:
-    """Rows already in the results file and its parts (a later row of a case replaces an earlier)."""
-    import pyarrow.parquet as pq
-
-    rows: dict[str, dict] = {}
-    sources = ([out] if out.is_file() else []) + sorted(parts_dir(out).glob("part-*.parquet"))
-    for path in sources:
-        for row in pq.read_table(path).to_pylist():
-            rows[row["case_id"]] = row
-    return list(rows.values())
-
-
-def finalise(out: Path, case_order: dict[str, int] | None = None, schema=None) -> int:
-    """Merge the parts into `out`, sorted by case order; remove the parts. Returns the row count."""
-    import pyarrow as pa
-    import pyarrow.parquet as pq
-    import shutil
-
-    rows = read_rows(out)
-    key = (lambda r: case_order.get(r["case_id"], len(case_order))) if case_order else (lambda r: r["case_index"])
-    rows.sort(key=lambda r: (key(r), r["case_id"]))
-    tmp = out.with_name(out.name + ".tmp")
-    pq.write_table(pa.Table.from_pylist(rows, schema=schema if schema is not None else _schema()), tmp)
-    os.replace(tmp, out)
-    shutil.rmtree(parts_dir(out), ignore_errors=True)
-    return len(rows)
-
-
-# ------------------------------------------------------------------------------------------------
-# Engines
-# ------------------------------------------------------------------------------------------------
-def _failed_row(case: Case, status: str, message: str) -> dict:
-    return {"case_id": case.case_id, "case_index": case.index, **case.cell, "seed": case.seed,
-            "scenario_json": json.dumps(case.scenario, sort_keys=True), "status": status, "error": message,
-            "wall_time_s": float("nan")}
-
-
-# A pool worker whose driver is gone (the kernel's parent-death signal missed: not Linux, or a
-# worker stuck in C) notices within this and ends itself.
-_PARENT_POLL_S = 0.5
-# A worker asked to stop (SIGTERM) when the campaign is interrupted is killed after this.
-_WORKER_STOP_S = 5.0
-PR_SET_PDEATHSIG = 1          # linux/prctl.h
-
-
-def _die_with_driver(driver_pid: int) -> None:
-    """Pool worker initializer: the worker ends with the campaign command, however that ends.
-
-    - Its own process group: Ctrl-C at a terminal signals the foreground group, which is then the
-      command alone; the command stops the pool (one line, exit 130), no traceback per worker.
-    - On Linux, SIGTERM from the kernel when the driver dies (prctl PR_SET_PDEATHSIG), also after
-      SIGKILL; SIGTERM, not SIGKILL, so a `processes` case's launcher stops its nodes.
-    - Everywhere, a thread that polls the parent pid, for where the signal is not available.
-    The multiprocessing resource tracker ends by itself once no worker holds its pipe.
-    """
-    os.setpgid(0, 0)
-    try:
-        import ctypes
-
-        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0)
-    except (OSError, AttributeError):
-        pass                                    # not Linux: the thread below still notices
-    if os.getppid() != driver_pid:              # the driver died before prctl took effect
-        os._exit(1)
-    threading.Thread(target=_watch_driver, args=(driver_pid,), name="watch-driver", daemon=True).start()
-
-
-def _watch_driver(driver_pid: int) -> None:
-    while os.getppid() == driver_pid:
-        time.sleep(_PARENT_POLL_S)
-    os.kill(os.getpid(), signal.SIGTERM)
-    time.sleep(_WORKER_STOP_S)
-    os._exit(1)
-
-
-def _stop_pool(pool) -> None:
-    """Interrupted: cancel what has not started, stop the workers running a case (SIGTERM, then
-    SIGKILL), without waiting for their cases. ProcessPoolExecutor has no public way to stop a
-    running task; its worker processes are in `_processes`."""
-    previous = None
-    if threading.current_thread() is threading.main_thread():
-        previous = signal.signal(signal.SIGINT, signal.SIG_IGN)     # a second Ctrl-C: no traceback
-    try:
-        processes = list((getattr(pool, "_processes", None) or {}).values())
-        pool.shutdown(wait=False, cancel_futures=True)
-        for process in processes:
-            process.terminate()
-        deadline = time.monotonic() + _WORKER_STOP_S
-        for process in processes:
-            process.join(max(0.0, deadline - time.monotonic()))
-            if process.is_alive():
-                process.kill()
-                process.join(1.0)
-    finally:
-        if previous is not None:
-            signal.signal(signal.SIGINT, previous)
-
-
-def run_local(cases: list[Case], workers: int, on_row: Callable[[dict], None]) -> None:
-    """A local process pool (spawned workers: no state inherited from the driver), whose workers
-    end with the driver (`_die_with_driver`) and are stopped when it is interrupted."""
-    import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor, as_completed
-
-    if workers == 1:
-        for case in cases:
-            on_row(run_case(case))
-        return
-    pool = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
-                               initializer=_die_with_driver, initargs=(os.getpid(),))
-    try:
-        futures = {pool.submit(run_case, case): case for case in cases}
-        for future in as_completed(futures):
-            try:
-                row = future.result()
-            except Exception as exc:            # the worker process itself died (not the case)
-                row = _failed_row(futures[future], "error", f"worker died: {type(exc).__name__}: {exc}")
-            on_row(row)
-    except BaseException:                       # Ctrl-C (KeyboardInterrupt), SIGTERM handlers, bugs
-        _stop_pool(pool)
-        raise
-    pool.shutdown(wait=True)
-
-
-# On this 24 GiB machine Ray would reserve 30 % of memory for its object store; a campaign passes
-# a scenario dict in and a row of numbers out per task, so 256 MiB is plenty.
-RAY_OBJECT_STORE_BYTES = 256 * 1024**2
-RAY_WAIT_S = 0.5
-
-
-def run_ray(cases: list[Case], workers: int, on_row: Callable[[dict], None], address: str | None) -> None:
-    """Ray tasks, one per case. Connects to `address`, or to this process's running Ray, or
-    starts a local one with `workers` CPUs (and shuts down only what it started)."""
-    import ray
-
-    started_here = False
-    if not ray.is_initialized():
-        if address:
-            ray.init(address=address, log_to_driver=False)
-        else:
-            # address="local": a new cluster of our own, never one somebody else started on this host.
-            ray.init(address="local", num_cpus=workers, object_store_memory=RAY_OBJECT_STORE_BYTES,
-                     include_dashboard=False, log_to_driver=False)
-        started_here = True
-    pending: dict = {}
-    try:
-        # max_retries=0: a case that kills its worker is a failed row, not a silent re-run.
-        remote_case = ray.remote(num_cpus=1, max_retries=0)(run_case)
-        pending = {remote_case.remote(case): case for case in cases}
-        while pending:
-            # With a timeout: a ray.wait that blocks for a whole case never lets Python act on Ctrl-C.
-            done, _ = ray.wait(list(pending), num_returns=1, timeout=RAY_WAIT_S)
-            for ref in done:
-                case = pending.pop(ref)
-                try:
-                    row = ray.get(ref)
-                except Exception as exc:         # worker crash, node loss
-                    row = _failed_row(case, "error", f"ray task failed: {type(exc).__name__}: {exc}")
-                on_row(row)
-    except BaseException:                # interrupted: stop the cases still running or queued
-        for ref in pending:
-            try:
-                ray.cancel(ref, force=True)
-            except Exception:            # noqa: BLE001 - already finished or its worker gone
-                pass
-        raise
-    finally:
-        if started_here:
-            ray.shutdown()
 
 
 # ------------------------------------------------------------------------------------------------

@@ -11,7 +11,8 @@ EXIT_INTERRUPTED = 130      # 128 + SIGINT, as a shell reports a command Ctrl-C 
 
 
 def cmd_campaign(args) -> int:
-    from bench.studies.campaign import CampaignError, load_spec, parts_dir, read_rows, run_campaign
+    from bench.studies.campaign import CampaignError, load_spec, run_campaign
+    from bench.studies.campaign_results import parts_dir, read_rows
     from bench.studies.campaign_report import write_report
 
     out = None
