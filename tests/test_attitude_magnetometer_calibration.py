@@ -114,3 +114,19 @@ def test_without_the_calibration_the_section_is_as_before(runs):
     assert metrics["estimator_error"]["mean_nees"] is not None
     assert "magnetometer" not in section
     assert png_height_px(run_dir / "plots" / "attitude_estimator.png") == 12 * 90    # the five panels, as before
+
+
+def test_the_law_gets_the_field_with_the_believed_calibration_undone():
+    """measured = scale * B_body + bias: the estimate's field_body_t is (measured - bias) / scale,
+    with the smoother's belief before it estimates anything (here: no estimation at all)."""
+    from bench.estimator.attitude_frontend import AttitudeEstimator
+    from bench.scenario import parse_scenario
+
+    data = scenario(calibrate=False)
+    data["estimator"]["attitude"]["magnetometer_bias_t"] = TRUE_MAGNETOMETER_BIAS_T
+    data["estimator"]["attitude"]["magnetometer_scale"] = 1.05
+    estimator = AttitudeEstimator(parse_scenario(data, "test"))
+    field_body_t = np.array([20e-6, -15e-6, 30e-6])
+    measured_t = 1.05 * field_body_t + np.array(TRUE_MAGNETOMETER_BIAS_T)
+    out = estimator.step(0, 0.0, np.zeros(3), measured_t, np.array([0.0, 0.0, 4e-5]), None)
+    np.testing.assert_allclose(out.field_body_t, field_body_t, rtol=0, atol=1e-15)

@@ -50,6 +50,13 @@ class AttitudeEstimator:
         self._field_model_inertial_t = np.zeros(3)    # none until the first magnetometer sample
         self.gyro_samples_held = 0                    # gyro samples lost, the previous one held
 
+    def _magnetometer_calibration(self) -> tuple[np.ndarray, float]:
+        """(bias T, scale): the smoother's estimate when it estimates them, else its beliefs."""
+        if self._magnetometer_bias_t is not None and self._magnetometer_scale is not None:
+            return self._magnetometer_bias_t, self._magnetometer_scale
+        c = self.smoother.config
+        return np.asarray(c.magnetometer_bias_t, float), float(c.magnetometer_scale)
+
     @property
     def needs_truth(self) -> bool:
         return self.mode == "truth"
@@ -91,7 +98,11 @@ class AttitudeEstimator:
                 self._magnetometer_scale = result.magnetometer_scale
                 self._valid = True
         if mag is not None:
-            field_body = mag
+            # The law gets the field, not the reading: measured = scale * B_body + bias, undone
+            # with the calibration the smoother holds (estimated, else believed). Uncorrected, a
+            # 3 uT bias is a tenth of the LEO field, and the law's dipole points that much off.
+            bias_t, scale = self._magnetometer_calibration()
+            field_body = (mag - bias_t) / scale
         else:
             # Between magnetometer samples: the model's field at the last sample (the inertial
             # field turns at about twice the orbit rate, ~0.13 deg/s in LEO) in today's body axes.
