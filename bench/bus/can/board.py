@@ -33,6 +33,9 @@ nothing and drives no coil, and when power returns it boots as after a reset nod
 heartbeat, pre-operational: the driver's NMT start makes it operational again). Each loss, boot
 and start is logged with its time (`power_log`, can/board.json).
 
+The parts: the NMT slave and boot (board_nmt.py), what it sends, emergency frames included
+(board_transmit.py), its SDO server (board_sdo.py), its coils' hardware (coils.py).
+
 `step(now_s)` handles what arrived and what is due at `now_s`; `run(stop)` is the process loop.
 Time comes from the caller's clock, so unit tests drive the board deterministically.
 """
@@ -53,16 +56,14 @@ import numpy as np
 from bench.bus.can import canopen_od
 from bench.bus.can import protocol as p
 from bench.bus.can import secoc
+from bench.bus.can.board_nmt import NmtSlave
 from bench.bus.can.board_sdo import BoardSdoServer
+from bench.bus.can.board_transmit import ERROR_HISTORY_ENTRIES, ERROR_REGISTER_COMMUNICATION, BoardTransmitter
 from bench.bus.can.coils import CoilHardware
 from bench.bus.can.config import BoardConfig, SecurityConfig
 from bench.bus.can.host_lateness import HostLateLog
 
 log = logging.getLogger(__name__)
-
-ERROR_REGISTER_GENERIC = 0x01
-ERROR_REGISTER_COMMUNICATION = 0x10
-ERROR_HISTORY_ENTRIES = 4        # 0x1003's standard error fields in mtq.eds
 
 
 @dataclass
@@ -102,7 +103,7 @@ def coil_driver_dipole(requested_am2: np.ndarray, config: BoardConfig) -> tuple[
     return saturated, bool(np.any(saturated != quantised))
 
 
-class MagnetorquerBoard:
+class MagnetorquerBoard(NmtSlave, BoardTransmitter):
     def __init__(self, bus: can.BusABC, config: BoardConfig, protocol: p.Protocol,
                  clock: Callable[[], float] = time.monotonic,
                  on_applied: Callable[[AppliedCommand], None] | None = None,
@@ -198,83 +199,11 @@ class MagnetorquerBoard:
             return self.setpoint_am2
         return self.hardware.physical_am2(self.setpoint_am2, self._hw_now_s)
 
-    # --- the loop -------------------------------------------------------------------------
-    def start(self, now_s: float) -> None:
-        """Boot: announce ourselves (CANopen boot-up heartbeat), enter pre-operational, schedule
-        the periodic frames."""
-        if self._started_s is None:
-            self._started_s = self._last_update_s = now_s
-        self._send(self.protocol.encode(p.HEARTBEAT, {"NmtState": p.NMT_BOOT_UP}))
-        self.nmt_state = p.NMT_PRE_OPERATIONAL
-        self._next_heartbeat_s = self._first_heartbeat_s(now_s)
-        self._next_telemetry_s = now_s + self.config.telemetry_period_s
-
-    # --- CiA 301 NMT slave ----------------------------------------------------------------
-    def _on_nmt(self, frame: p.Frame, now_s: float) -> None:
-        if int(frame.signals["NodeId"]) not in (0, self.protocol.node_id):
-            return
-        command = int(frame.signals["Command"])
-        if command == p.NMT_START and self.nmt_state != p.NMT_OPERATIONAL:
-            self.nmt_state = p.NMT_OPERATIONAL
-            if self.power_log and self.power_log[-1]["event"] == "booted":
-                self.power_log.append({"event": "operational", "t_s": now_s})
-            self._last_command_s = now_s            # the command timeout runs from the start
-            self.e2e.reset()
-        elif command in (p.NMT_STOP, p.NMT_ENTER_PRE_OPERATIONAL):
-            self.nmt_state = p.NMT_STOPPED if command == p.NMT_STOP else p.NMT_PRE_OPERATIONAL
-            self._coils_off(now_s)
-        elif command in (p.NMT_RESET_NODE, p.NMT_RESET_COMMUNICATION):
-            self._coils_off(now_s)
-            # CiA 301: reset communication restores the communication parameters, reset node all.
-            restored = canopen_od.PARAMETERS if command == p.NMT_RESET_NODE else canopen_od.COMMUNICATION_PARAMETERS
-            self.config = msgspec.structs.replace(self.config, **{f: getattr(self._configured, f) for f in restored})
-            self.e2e.reset()
-            self._tx_counter.clear()
-            self._pending_emcy.clear()
-            self.start(now_s)                       # boot-up heartbeat, pre-operational
-
-    def _nmt_authentic(self, frame: p.Frame, msg: can.Message, now_s: float) -> bool:
-        """Whether an NMT frame may change the NMT state: on "e2e" any plain NMT frame; on "secoc"
-        only MTQ_NMT_AUTH with a verified MAC and freshness value. Refusals are counted and
-        reported (EMCY) like rejected commands; they change no state."""
-        if frame.name != self.nmt_name:
-            if self.nmt_freshness is None:
-                return False    # MTQ_NMT_AUTH on an e2e bus: not this board's protocol
-            status = p.E2EStatus.NOT_AUTHENTICATED
-        else:
-            if self.nmt_freshness is None:
-                return True
-            verdict, freshness, _ = self.nmt_freshness.verify(bytes(msg.data), now_s)
-            if verdict is secoc.Verdict.OK:
-                self.nmt_freshness.accept(freshness)
-                return True
-            status = p.E2EStatus[verdict.value]
-        self._reject(f"NMT_{status.name}", None, p.EMCY_E2E_CHECK_FAILED, int(status), now_s)
-        return False
-
-    def _first_heartbeat_s(self, now_s: float) -> float:
-        period_s = self.config.heartbeat_period_s
-        return now_s + period_s if period_s > 0 else math.inf     # 0x1017 = 0: no heartbeat
-
     def _write_parameter(self, name: str, value_s: float) -> None:
         """A CANopen tool wrote a parameter over SDO; a new heartbeat time counts from now."""
         self.config = msgspec.structs.replace(self.config, **{name: value_s})
         if name == "heartbeat_period_s":
             self._next_heartbeat_s = self._first_heartbeat_s(self._now_s)
-
-    def _coils_off(self, now_s: float) -> None:
-        """Leaving operational: no commands will come, the coils must not hold the last one."""
-        s = self.state
-        self.update(now_s)
-        s.target_dipole_am2 = np.zeros(3)
-        s.mode = p.MODE_OFF
-        changed = not s.safe_state
-        s.safe_state = True
-        s.command_timeout = False
-        self._last_command_s = None
-        self._next_no_data_s = None
-        if changed and self.on_coils_changed is not None:
-            self.on_coils_changed(s)
 
     # --- power supply (board_power_loss) --------------------------------------------------
     def _powered_at(self, now_s: float) -> bool:
@@ -428,33 +357,6 @@ class MagnetorquerBoard:
         self.state.command_rejected_since_tlm = True
         self._emergency(error_code, e2e_status, counter, now_s)
 
-    def _emergency(self, error_code: int, e2e_status: int, counter: int | None, now_s: float,
-                   error_register: int = ERROR_REGISTER_GENERIC | ERROR_REGISTER_COMMUNICATION) -> None:
-        """Send an EMCY now, or when the inhibit time since the last one has passed. Waiting EMCYs
-        queue in order; one of the same error code as the last waiting one replaces it (a burst
-        of rejections is one report; RejectedFrames carries the running count)."""
-        if self.nmt_state == p.NMT_STOPPED:
-            return   # CiA 301: a stopped node sends only its heartbeat
-        emcy = {"ErrorCode": error_code, "ErrorRegister": error_register, "E2eStatus": e2e_status,
-                "RejectedCounter": counter or 0}
-        if self._pending_emcy and self._pending_emcy[-1]["ErrorCode"] == error_code:
-            self._pending_emcy[-1] = emcy
-        else:
-            self._pending_emcy.append(emcy)
-        self._flush_emergency(now_s)
-
-    def _flush_emergency(self, now_s: float) -> None:
-        if not self._pending_emcy:
-            return
-        if self._last_emcy_s is not None and now_s - self._last_emcy_s < self.config.emcy_inhibit_s:
-            return
-        signals = self._pending_emcy.pop(0) | {"RejectedFrames": min(sum(self.rejected.values()), 0xFFFF)}
-        self._last_emcy_s = now_s
-        self.error_register = signals["ErrorRegister"]
-        if signals["ErrorCode"] != p.EMCY_NO_ERROR:
-            self.error_history.appendleft(signals["ErrorCode"])
-        self._send(self.protocol.encode(p.EMCY, signals))
-
     # --- time -----------------------------------------------------------------------------
     def update(self, now_s: float) -> None:
         """Safe state and magnetometer windows, coil currents up to now, periodic frames."""
@@ -546,49 +448,6 @@ class MagnetorquerBoard:
         decay = math.exp(-dt_s / self.config.coil_time_constant_s)
         s = self.state
         s.coil_current_a = target_current_a + (s.coil_current_a - target_current_a) * decay
-
-    # --- sending --------------------------------------------------------------------------
-    def _send_telemetry(self) -> None:
-        s = self.state
-        dipole = self.applied_dipole_am2
-        self._send(self._protected(p.TLM_DIPOLE, {
-            "SafeState": s.safe_state, "ActuationPaused": s.actuation_paused,
-            "CommandTimeout": s.command_timeout, "Saturated": s.saturated,
-            **{f"AppliedDipole{a}": float(v) for a, v in zip(p.AXES, dipole)},
-        }))
-        self._send(self._protected(p.TLM_COIL, {
-            "CommandRejected": s.command_rejected_since_tlm, "OverTemperature": False,
-            **{f"CoilCurrent{a}": float(v) for a, v in zip(p.AXES, s.coil_current_a)},
-            "Temperature": self.config.ambient_temperature_c, "LastCommandCounter": s.last_command_counter,
-        }))
-        s.command_rejected_since_tlm = False
-
-    def _echo_setpoint(self, command_applied: bool) -> None:
-        """MTQ_TLM_SETPOINT (config.setpoint_echo): what the coil drivers are set to now, and the
-        counter of the command applied last; a TPDO, so only when operational."""
-        if not self.config.setpoint_echo or self.nmt_state != p.NMT_OPERATIONAL:
-            return
-        s = self.state
-        self._send(self._protected(p.TLM_SETPOINT, {
-            "CommandCounter": s.last_command_counter, "CommandApplied": command_applied,
-            "SafeState": s.safe_state, "ActuationPaused": s.actuation_paused,
-            **{f"Setpoint{a}": float(v) for a, v in zip(p.AXES, self.setpoint_am2)},
-        }))
-
-    def _protected(self, name: str, signals: dict) -> can.Message:
-        counter = self._tx_counter[name]
-        self._tx_counter[name] = (counter + 1) % p.COUNTER_MODULO
-        return self.protocol.encode(name, signals, counter)
-
-    def _send(self, msg: can.Message) -> None:
-        if not self._powered:
-            return
-        try:
-            self.bus.send(msg)
-            self.sent[p.frame_kind(self.protocol, msg)] += 1
-        except can.CanError as exc:  # a full or broken bus must not kill the board
-            self.sent["send_failed"] += 1
-            log.warning("send failed: %s", exc)
 
 
 _NMT_NAMES = {p.NMT_BOOT_UP: "boot_up", p.NMT_STOPPED: "stopped", p.NMT_OPERATIONAL: "operational",
