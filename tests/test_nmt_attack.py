@@ -8,7 +8,7 @@ errors without end (before suspend transmission; since then until the flight end
 the driver's commands dropped behind it, the board timed out to its safe state, and the lock-step
 plant waited command_timeout_s + 1 s for each step's report, every process alive (3 of 25 runs).
 Now any sender but an end's own node is a node of its own on the modelled bus
-(bench/bus/can/busmodel.py RealTimeBridge): the ends acknowledge its frames, and their queues and
+(bench/bus/can/realtime_bridge.py RealTimeBridge): the ends acknowledge its frames, and their queues and
 error counters are untouched."""
 from __future__ import annotations
 
