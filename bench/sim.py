@@ -125,7 +125,10 @@ def simulate_attitude_in_process(scenario: Scenario, coil_fault=None, with_bus: 
                 plan_records.append((plant.time_s, planned[1]["reason"], planned[0].arrival_time_s))
         outcome = cycle.run(plant.time_s, estimate.valid, estimate.q_wxyz, estimate.omega_radps, estimate.field_body_t,
                             gyro_bias_radps=estimate.gyro_bias_radps)
-        cycle.monitor_actuators()
+        # The driver's word on the board as of the step just flown (the processes' order too).
+        board_ok = (bus.board_ok() if bus is not None
+                    else coil_fault.board_ok() if hasattr(coil_fault, "board_ok") else True)
+        cycle.monitor_actuators(board_ok)
         if bus is not None:     # the canbus process's report of the step, as the plant accepts it
             coils = bus.step(k, outcome.dipole_am2)
             dipole, _ = acceptance.accept(np.array(coils.dipole_am2.tolist()), None)

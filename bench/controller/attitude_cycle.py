@@ -94,9 +94,13 @@ class AttitudeCycle:
             self._fdir_input = (time_s, q, omega, bias, field_t, dipole) if valid else None
         return AttitudeCycleOutcome(dipole, outcome, saturated, weak, None if angle is None else float(angle))
 
-    def monitor_actuators(self) -> list[FdirEvent]:
+    def monitor_actuators(self, board_ok: bool = True) -> list[FdirEvent]:
         """The FDIR monitor's step on this cycle's estimate and command (after `run`, once the
-        command is out): the coil faults detected at this cycle, usually none."""
+        command is out): the coil faults detected at this cycle, usually none. `board_ok`: the
+        flight-side driver's word on the board (BoardHealth.ok, as of the step just flown). While
+        it says the board is lost, off, in safe state or its commands refused, the coils did not
+        make the commanded torque for a reason the driver already names: the monitor's window
+        restarts instead of reading a power loss or a run of dropped commands as a weak coil."""
         events = []
         if self.envelope is not None and self._envelope_input is not None:
             events += self.envelope.step(*self._envelope_input)
@@ -104,7 +108,7 @@ class AttitudeCycle:
         if self.fdir is None:
             return events
         pending, self._fdir_input = self._fdir_input, None
-        if pending is None:
+        if pending is None or not board_ok:
             self.fdir.reset()     # no valid estimate or no command this cycle: the window restarts
             return events
         return self.fdir.step(*pending) + events

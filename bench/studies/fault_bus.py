@@ -105,11 +105,13 @@ class BusCoSimulation:
         self.end_s = max(fault_end_s(f, period_s) for f in self.faults)
         self.window = (max(0.0, self.onset_s - self.warmup_s), self.end_s + self.tail_s)
         self._started = False
+        self._in_window = False
 
     # --- the hook ---------------------------------------------------------------------------
     def __call__(self, time_s: float, applied_am2: np.ndarray) -> np.ndarray:
         start_s, stop_s = self.window
-        if time_s + self.step_s <= start_s or time_s >= stop_s:
+        self._in_window = not (time_s + self.step_s <= start_s or time_s >= stop_s)
+        if not self._in_window:
             return applied_am2
         if not self._started:
             self._start(time_s)
@@ -190,6 +192,11 @@ class BusCoSimulation:
         return integral / span_ns
 
     # --- what the flight side saw -----------------------------------------------------------
+    def board_ok(self) -> bool:
+        """The flight-side driver's word on the board after the last step (BoardHealth.ok); outside
+        the co-simulated window the bus is fault-free and the board as commanded."""
+        return self.driver.health().ok if self._started and self._in_window else True
+
     def first_detection(self) -> DetectedEvent | None:
         """The driver's first fault event at or after the onset (benign 'back to normal' events aside)."""
         return next((e for e in self.events if e.time_s >= self.onset_s and e.kind not in BENIGN_EVENTS), None)

@@ -51,6 +51,10 @@ class LockStepLoopBus:
         self.events += [(mission_s(e.detected_ns), e) for e in self.windowed.heard(heard)]
         return coils
 
+    def board_ok(self) -> bool:
+        """The flight-side driver's word on the board after the last window (BoardHealth.ok)."""
+        return self.windowed.driver.health().ok
+
     def step(self, k: int, dipole_am2) -> StepCoils:
         return self._window(sim_ns(k * self.step_s), sim_ns((k + 1) * self.step_s),
                             np.asarray(dipole_am2, float))
