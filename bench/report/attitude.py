@@ -14,7 +14,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from bench.report.attitude_metrics import attitude_metrics, pointing_error_deg, summary_rows  # noqa: E402
+from bench.report.attitude_metrics import attitude_metrics, pointing_error_deg  # noqa: E402
 from bench.report import canbus, plots  # noqa: E402
 from bench.report.document import Figure, Section, Table  # noqa: E402
 from bench.report.timebase import RunClock  # noqa: E402
@@ -157,10 +157,12 @@ def attitude_section(run, plot_dir: Path) -> tuple[Section | None, dict | None]:
     loop = loop_figure(trajectory, scenario, windows, plot_dir / "attitude.png")
     dipole = dipole_figure(trajectory, dipole_limit_am2(scenario), windows, plot_dir / "dipole.png",
                            board_telemetry_am2(run))
+    # Its figures are in the Summary's table already (the same rows): the section draws them.
     section = Section("Attitude", [
         f"Law {scenario.attitude_control.law}, estimator {scenario.estimator.mode}, "
-        f"{metrics['steps']} steps of {scenario.step_s:g} s; fault windows (simulated time) shaded."],
-        [Table(["metric", "value"], [list(r) for r in summary_rows(metrics)])],
+        f"{metrics['steps']} steps of {scenario.step_s:g} s" + ("; fault windows (simulated time) shaded." if windows
+                                                                 else ".") + " Its figures are in the Summary."],
+        [],
         [Figure(Path(PLOTS_DIR) / loop.name, "Pointing error and body rate" if pointing_error_deg(trajectory, scenario)
                 is not None else "Body rate"),
          Figure(Path(PLOTS_DIR) / dipole.name, "Dipole per axis against the limit (commanded, the board's telemetry "

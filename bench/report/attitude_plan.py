@@ -54,7 +54,9 @@ def plan_figure(run, path: Path) -> Path | None:
         keep = times <= end_s + plan["dt_s"]
         if not keep.any():
             continue
-        label = (f"plan ({len(plans)} MILQR plans)" if len(plans) > 1 else "plan (MILQR)") if n == 0 else None
+        # One colour and one legend entry a plan: a replan is a new plan, drawn from its own start.
+        label = (f"MILQR plan {n + 1} of {len(plans)}, from {plan['start_time_s']:.0f} s" if len(plans) > 1
+                 else "plan (MILQR)")
         colour = f"C{n % 10}"
         axes[0].plot(times[keep], angle_to_deg(states[keep, :4], plan["target_wxyz"]), "--", color=colour, lw=1,
                      label=label)
