@@ -70,6 +70,8 @@ def test_effect_metrics_against_hand_worked_series():
     m = effect_metrics(t, np.r_[faulted[:-1], 0.2], clean, tolerance=0.1, onset_s=3.0, end_s=4.0)
     assert math.isnan(m["time_to_recover_s"])                          # not back by the end
     assert effect_metrics(t, clean, clean, 0.1, 3.0, 4.0)["time_to_recover_s"] == 0.0
+    # A fault that outlasts the mission (a coil that does not heal): back 3 s after its onset.
+    assert effect_metrics(t, faulted, clean, tolerance=0.1, onset_s=3.0, end_s=3000.0)["time_to_recover_s"] == 3.0
 
 
 def test_spec_errors_name_the_field():

@@ -216,8 +216,11 @@ def _series(trajectory: dict, scenario, quantity: str) -> np.ndarray:
 def effect_metrics(time_s: np.ndarray, faulted: np.ndarray, clean: np.ndarray, tolerance: float, onset_s: float,
                    end_s: float) -> dict:
     """Deviation of the faulted run's quantity from the clean run's after the onset: the worst, when
-    it is back within tolerance for good (time to recover, from the fault's end; 0 when it never
-    left; NaN when it is not back by the end)."""
+    it is back within tolerance for good (time to recover, from the fault's end, or from its onset
+    when the fault outlasts the mission (a coil that does not heal); 0 when it never left; NaN when
+    it is not back by the end)."""
+    if end_s >= time_s[-1]:
+        end_s = onset_s
     deviation = np.abs(faulted - clean)
     after = time_s >= onset_s
     worst = float(deviation[after].max()) if after.any() else 0.0
@@ -307,6 +310,7 @@ def fault_case(scenario) -> dict:
         "max_deviation": effect["max_deviation"],          # in the mission's quantity's unit
         "deviation_tolerance": float(tolerance),
         "time_to_recover_s": effect["time_to_recover_s"],
+        "fault_outlasts_mission": bool(end_s >= time_s[-1]),
         "dipole_integral_am2s": dipole_f,
         "clean_dipole_integral_am2s": dipole_c,
         "coils_off_s": hook.coils_off_s(),
@@ -332,7 +336,7 @@ def schema():
     fields = [("case_id", pa.string()), ("case_index", pa.int64())] + [(c, pa.string()) for c in CELL_COLUMNS]
     fields += [("seed", pa.int64()), ("status", pa.string()), ("error", pa.string())]
     strings = {"fault_kind", "effect", "first_detection", "detected_by", "monitors", "detection_kinds"}
-    booleans = {"goal_met", "clean_goal_met", "detected", "board_operational_after"}
+    booleans = {"goal_met", "clean_goal_met", "detected", "board_operational_after", "fault_outlasts_mission"}
     integers = {"false_alarms", "steps"}
     for column in METRIC_COLUMNS:
         fields.append((column, pa.string() if column in strings else pa.bool_() if column in booleans
@@ -345,7 +349,7 @@ METRIC_COLUMNS = (
     "fault_kind", "fault_onset_s", "fault_end_s", "effect", "goal_met", "clean_goal_met", "time_to_detumble_s",
     "clean_time_to_detumble_s", "final_pointing_error_deg", "clean_final_pointing_error_deg",
     "max_pointing_error_after_onset_deg", "clean_max_pointing_error_after_onset_deg", "final_rate_dps",
-    "clean_final_rate_dps", "max_deviation", "deviation_tolerance", "time_to_recover_s", "dipole_integral_am2s",
+    "clean_final_rate_dps", "max_deviation", "deviation_tolerance", "time_to_recover_s", "fault_outlasts_mission", "dipole_integral_am2s",
     "clean_dipole_integral_am2s", "coils_off_s", "coils_off_in_fault_s", "fault_duration_s", "board_recovery_ms",
     "board_operational_after", "detected", "detection_latency_s", "first_detection", "detected_by", "monitors",
     "detection_kinds", "false_alarms", "steps")

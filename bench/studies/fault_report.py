@@ -58,6 +58,7 @@ def cells(rows: list[dict]) -> tuple[list[str], list[str], dict]:
                                        key=lambda k: sum(r["first_detection"] == k for r in ok), default=""),
                 "max_deviation": max((r["max_deviation"] for r in ok), default=float("nan")),
                 "recover_median_s": float(np.median(recover)) if recover.size else float("nan"),
+                "outlasts": any(bool(r.get("fault_outlasts_mission", False)) for r in ok),
                 "mission": group[0]["mission"],
                 "detected_by": max(dict.fromkeys(detected_by), key=detected_by.count, default=""),
                 "monitors": sorted({m for r in ok for m in (r.get("monitors") or "").split(",") if m}),
@@ -89,7 +90,9 @@ def _cell_text(s: dict) -> str:
             detection += f"; **undetected {ok - s['detected']}**"
     else:
         detection = f"**undetected** ({ok} runs)"
-    recover = "" if math.isnan(s["recover_median_s"]) else f"; recovers {s['recover_median_s']:.0f} s after"
+    recover = ("" if math.isnan(s["recover_median_s"]) else
+               f"; back {s['recover_median_s']:.0f} s after the onset, the fault still acting" if s["outlasts"]
+               else f"; recovers {s['recover_median_s']:.0f} s after")
     power = ""
     if s["power_runs"]:
         power = (f"; coils off {100 * s['off_share_min']:.0f} % of the window (least), operational again "
@@ -107,7 +110,7 @@ def matrix_markdown(rows: list[dict]) -> str:
         lines.append(f"| {fault} | " + " | ".join(_cell_text(summary[(fault, law)]) if (fault, law) in summary else ""
                                                   for law in laws) + " |")
     legend = ("Worst mission effect over the seeds (counts per effect): none = within tolerance of the clean run "
-              "throughout; recovered = back within tolerance for good (median time after the fault's end); "
+              "throughout; recovered = back within tolerance for good (median time after the fault's end, or after its onset for a fault that outlasts the mission); "
               "degraded = not back by the end, mission goal still met; lost = goal missed where the clean run met it. "
               "Detection: cases in which a monitor raised a fault event after the onset: the monitor that was first "
               "most often (board: its E2E/SecOC checks and command timeout, reported by EMCY; driver: heartbeat, "
