@@ -86,16 +86,12 @@ def read_secoc_key(cert_dir: Path) -> str | None:
     path = Path(cert_dir) / SECOC_KEY_NAME
     if not path.is_file():
         return None
-    mode = stat.S_IMODE(path.stat().st_mode)
-    if mode & 0o077:
-        raise CertificateError(f"SecOC key {str(path)!r} is readable by others (mode {mode:04o}); chmod 600 it")
-    text = path.read_text().strip()
+    from bench.bus.data_auth import KeyFileError, read_private_key
+
     try:
-        if len(bytes.fromhex(text)) != 16:
-            raise ValueError
-    except ValueError:
-        raise CertificateError(f"SecOC key {str(path)!r} must hold 32 hexadecimal digits (AES-128)") from None
-    return text
+        return read_private_key(path, 16, f"SecOC key {str(path)!r}", "AES-128").hex()
+    except KeyFileError as exc:
+        raise CertificateError(str(exc)) from None
 
 
 def _name(common_name: str, deployment: str) -> x509.Name:

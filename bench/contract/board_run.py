@@ -54,21 +54,7 @@ def board_scenario(path: str | None) -> Scenario:
 
 def read_secoc_key(path: Path) -> str:
     """The 16-byte SecOC key as 32 hex digits from a file only its owner can read (secoc.key)."""
-    import stat
-    try:
-        mode = stat.S_IMODE(path.stat().st_mode)
-        text = path.read_text().strip()
-    except OSError as exc:
-        raise ValueError(f"--key-file {str(path)!r}: {exc.strerror}") from None
-    if mode & 0o077:
-        raise ValueError(f"--key-file {str(path)!r} is readable by others (mode {mode:04o}); chmod 600 it")
-    try:
-        ok = len(bytes.fromhex(text)) == secoc.KEY_BYTES
-    except ValueError:
-        ok = False
-    if not ok:
-        raise ValueError(f"--key-file {str(path)!r} must hold {2 * secoc.KEY_BYTES} hexadecimal digits (AES-128)")
-    return text
+    return data_auth.read_private_key(path, secoc.KEY_BYTES, f"--key-file {str(path)!r}", "AES-128").hex()
 
 
 def cmd_check_board(args) -> int:
