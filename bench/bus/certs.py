@@ -32,6 +32,8 @@ from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
+from bench.bus.private_files import PrivateKeyError, read_private_key
+
 CA_NAME = "ca"
 DEFAULT_VALIDITY_DAYS = 365
 PRIVATE_KEY_MODE = 0o600
@@ -86,11 +88,9 @@ def read_secoc_key(cert_dir: Path) -> str | None:
     path = Path(cert_dir) / SECOC_KEY_NAME
     if not path.is_file():
         return None
-    from bench.bus.data_auth import KeyFileError, read_private_key
-
     try:
         return read_private_key(path, 16, f"SecOC key {str(path)!r}", "AES-128").hex()
-    except KeyFileError as exc:
+    except PrivateKeyError as exc:
         raise CertificateError(str(exc)) from None
 
 

@@ -33,6 +33,8 @@ import threading
 import time
 from pathlib import Path
 
+from bench.bus.private_files import PrivateKeyError, read_private_key
+
 KEY_FILE = "bus.key"
 KEY_BYTES = 32
 MAC_BYTES = 32
@@ -61,27 +63,10 @@ def deployment_key(secoc_key_hex: str) -> bytes:
 
 
 def read_key_file(path: Path) -> bytes:
-    return read_private_key(Path(path), KEY_BYTES, f"bus key {str(path)!r}")
-
-
-def read_private_key(path: Path, n_bytes: int, what: str, kind: str = "") -> bytes:
-    """A key of n_bytes, as hexadecimal digits, from a file only its owner can read (the data-topic
-    key, a SecOC key); KeyFileError naming `what` (and the key's `kind`) otherwise."""
-    import stat
     try:
-        mode = stat.S_IMODE(path.stat().st_mode)
-        text = path.read_text().strip()
-    except OSError as exc:
-        raise KeyFileError(f"{what}: {exc.strerror}") from None
-    if mode & 0o077:
-        raise KeyFileError(f"{what} is readable by others (mode {mode:04o}); chmod 600 it")
-    try:
-        key = bytes.fromhex(text)
-    except ValueError:
-        key = b""
-    if len(key) != n_bytes:
-        raise KeyFileError(f"{what} must hold {2 * n_bytes} hexadecimal digits" + (f" ({kind})" if kind else ""))
-    return key
+        return read_private_key(Path(path), KEY_BYTES, f"bus key {str(path)!r}")
+    except PrivateKeyError as exc:
+        raise KeyFileError(str(exc)) from None
 
 
 def node_key(run_dir: Path, cert_dir: Path | None = None) -> bytes | None:

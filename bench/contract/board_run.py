@@ -24,6 +24,7 @@ import msgspec
 import numpy as np
 
 from bench.bus import data_auth, keys
+from bench.bus.private_files import read_private_key
 from bench.bus.can import run_key, secoc
 from bench.bus.can.config import BusSpec
 from bench.bus.can.transport import TransportUnavailable, open_bus
@@ -54,7 +55,7 @@ def board_scenario(path: str | None) -> Scenario:
 
 def read_secoc_key(path: Path) -> str:
     """The 16-byte SecOC key as 32 hex digits from a file only its owner can read (secoc.key)."""
-    return data_auth.read_private_key(path, secoc.KEY_BYTES, f"--key-file {str(path)!r}", "AES-128").hex()
+    return read_private_key(path, secoc.KEY_BYTES, f"--key-file {str(path)!r}", "AES-128").hex()
 
 
 def cmd_check_board(args) -> int:
