@@ -1,7 +1,7 @@
 """Scenario files (TOML), validated on load.
 
 A scenario is composed of one section per part of the loop; each part owns its section's schema
-(`bench/<part>/config.py`). A bad file raises `ScenarioError` with one line naming the field.
+(`bench/config/<part>.py`). A bad file raises `ScenarioError` with one line naming the field.
 
 Nothing a file holds may get past here and fail later: the file's size is bounded before it is
 parsed and its nesting by the parser itself (tomllib's recursion, then a depth check of what it
@@ -28,14 +28,14 @@ import msgspec
 
 from bench.bus import toml_input
 from bench.bus.can.config import CanConfig
-from bench.controller.config import ATTITUDE_LAWS, PLANNED_LAWS, AttitudeControlConfig, ControllerConfig
-from bench.criteria import Criteria
-from bench.estimator.config import EstimatorConfig
-from bench.gnc.cwh import RendezvousParams
-from bench.plant.config import (
+from bench.config.controller import ATTITUDE_LAWS, PLANNED_LAWS, AttitudeControlConfig, ControllerConfig
+from bench.config.estimator import EstimatorConfig
+from bench.config.plant import (
     AttitudeConfigError, AttitudePlantConfig, check_attitude_plant, check_unit_quaternion, inertia_matrix,
 )
-from bench.plant.config import PlantConfig
+from bench.config.plant import PlantConfig
+from bench.criteria import Criteria
+from bench.gnc.cwh import RendezvousParams
 
 BUILTIN_PACKAGE = "bench.scenarios"
 

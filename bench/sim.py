@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from bench.controller.attitude_cycle import AttitudeCycle
-from bench.controller.config import PLANNED_LAWS
+from bench.config.controller import PLANNED_LAWS
 from bench.controller.cycle import ControlCycle
 from bench.controller.fdir import event_arrays as fdir_event_arrays
 from bench.estimator.attitude_frontend import AttitudeEstimator

@@ -24,13 +24,13 @@ from scipy.spatial.transform import Rotation  # noqa: E402
 
 from bench.estimator import kalman  # noqa: E402
 from bench.estimator.attitude import AttitudeSmoother  # noqa: E402
-from bench.estimator.config import AttitudeSmootherConfig, TranslationSmootherConfig  # noqa: E402
+from bench.config.estimator import AttitudeSmootherConfig, TranslationSmootherConfig  # noqa: E402
 from bench.estimator.factors import range_bearing  # noqa: E402
 from bench.estimator.motion_model import CwhMotionModel  # noqa: E402
 from bench.estimator.translation import TranslationSmoother  # noqa: E402
 from bench.plant.attitude import AttitudeSensorSpec, AttitudeSimulation  # noqa: E402
 from bench.gnc.cwh import RendezvousParams  # noqa: E402
-from bench.plant.config import RangeBearingSensorConfig  # noqa: E402
+from bench.config.plant import RangeBearingSensorConfig  # noqa: E402
 
 PARAMS = RendezvousParams.from_reference()
 

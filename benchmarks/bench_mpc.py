@@ -38,7 +38,7 @@ import osqp
 import quadprog
 from scipy import sparse
 
-from bench.controller.config import DeadlineConfig
+from bench.config.controller import DeadlineConfig
 from bench.controller.deadline import DeadlineMonitor
 from bench.gnc.cwh import RendezvousParams
 from bench.gnc.mpc import MPC

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bench.estimator.config import TranslationSmootherConfig
+from bench.config.estimator import TranslationSmootherConfig
 from bench.estimator.translation import TranslationSmoother
 from bench.gnc.cwh import params_with_mean_motion, RendezvousParams
 from bench.gnc.lqr import LQR

@@ -17,7 +17,7 @@ import msgspec
 import numpy as np
 from scipy.stats import chi2
 
-from bench.estimator.config import TranslationSmootherConfig
+from bench.config.estimator import TranslationSmootherConfig
 from bench.estimator.factors import range_bearing
 from bench.estimator.motion_model import CwhMotionModel
 from bench.estimator.translation import TranslationSmoother

@@ -9,7 +9,7 @@ import pytest
 import sgp4
 
 from bench.plant.attitude import body_to_inertial, rk4_attitude_step
-from bench.plant.config import (
+from bench.config.plant import (
     AttitudeConfigError, AttitudePlantConfig, FieldConfig, OrbitConfig, check_attitude_plant,
 )
 from bench.plant.attitude_plant import AttitudePlant

@@ -12,7 +12,7 @@ from bench.report.attitude_metrics import (
 )
 from bench.sim import simulate_attitude_in_process
 from bench.controller.attitude_laws import build_attitude_law, nadir_target
-from bench.controller.config import ATTITUDE_LAWS
+from bench.config.controller import ATTITUDE_LAWS
 from bench.gnc import quaternion as qt
 from bench.plant.attitude import CircularOrbit
 from bench.plant.mtq_acceptance import DipoleAcceptance, board_dipole_without_bus

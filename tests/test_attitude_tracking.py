@@ -112,7 +112,7 @@ def test_closed_loop_with_the_smoother_in_the_loop_ends_within_two_degrees(slew_
     attitude smoother estimates attitude and gyro bias; the law sees the estimate propagated with
     bias-corrected gyro between keyframes and the estimated rate (gyro minus bias)."""
     from bench.estimator.attitude import AttitudeSmoother
-    from bench.estimator.config import AttitudeSmootherConfig
+    from bench.config.estimator import AttitudeSmootherConfig
 
     sensors = AttitudeSensorSpec(gyro_rate_hz=2.0)
     sim = AttitudeSimulation(INERTIA, slew_plan.states[0, :4], np.zeros(3), sensors=sensors, orbit=ORBIT, seed=5)

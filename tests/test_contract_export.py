@@ -28,10 +28,10 @@ from bench.bus.session import KEEP_ALIVE_PER_LEASE, SessionOptions, build_config
 from bench.contract import check, document, fields, probe
 from bench.contract.export import export
 from bench.contract.table import TOPICS
-from bench.controller.config import ATTITUDE_LAWS, DeadlineConfig, FallbackPolicy
+from bench.config.controller import ATTITUDE_LAWS, DeadlineConfig, FallbackPolicy
 from bench.gnc.cwh import RendezvousParams
 from bench.plant.acceptance import REASONS
-from bench.plant.config import CommandAcceptanceConfig, PlantConfig
+from bench.config.plant import CommandAcceptanceConfig, PlantConfig
 from bench.scenario import LivelinessConfig, RunConfig, Scenario, parse_scenario
 from conftest import REPO, run_bench_cli
 

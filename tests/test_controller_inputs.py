@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from bench.controller.config import ControllerConfig
+from bench.config.controller import ControllerConfig
 from bench.controller.factory import build_controller
 from bench.gnc.cwh import RendezvousParams, z_subsystem
 from bench.gnc.lqr import LQR

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from bench.bus.schemas import DeadlineEvent, decode, encode, header
-from bench.controller.config import DeadlineConfig, StressConfig
+from bench.config.controller import DeadlineConfig, StressConfig
 from bench.controller.deadline import DeadlineMonitor, StressInjector, lqr_fallback_law
 from bench.runtime.deadline import PlantCommandDeadline
 from bench.scenario import ScenarioError, parse_scenario

@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
 from bench.estimator.attitude import AttitudeSmoother
-from bench.estimator.config import AttitudeSmootherConfig
+from bench.config.estimator import AttitudeSmootherConfig
 from bench.plant.attitude import (
     EARTH_RADIUS_M, AttitudeSensorSpec, AttitudeSimulation, TiltedDipole, body_to_inertial, magnetorquer_torque_nm,
     rk4_attitude_step,

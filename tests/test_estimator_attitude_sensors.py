@@ -12,7 +12,7 @@ from test_estimator_attitude import INERTIA, _run, _within_bounds
 
 from bench.estimator import factors
 from bench.estimator.attitude import AttitudeSmoother, star_tracker_covariance
-from bench.estimator.config import AttitudeSmootherConfig
+from bench.config.estimator import AttitudeSmootherConfig
 from bench.plant.attitude import AttitudeSensorSpec, AttitudeSimulation, body_to_inertial
 
 RUNS, TICKS = 50, 250

@@ -8,7 +8,7 @@ from estimator_loop import run_closed_loop
 from scipy.stats import chi2
 
 from bench.estimator.beliefs import OnboardBeliefs
-from bench.estimator.config import TranslationSmootherConfig
+from bench.config.estimator import TranslationSmootherConfig
 from bench.gnc.cwh import RendezvousParams
 from bench.plant.model import TranslationPlant
 from bench.scenario import parse_scenario

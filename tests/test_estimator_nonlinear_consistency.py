@@ -14,7 +14,7 @@ import functools
 import numpy as np
 import pytest
 
-from bench.estimator.config import TranslationSmootherConfig
+from bench.config.estimator import TranslationSmootherConfig
 from bench.estimator.translation import TranslationSmoother
 from bench.gnc.cwh import RendezvousParams
 from bench.plant.curvilinear import (cartesian_to_curvilinear, curvilinear_to_cartesian, position_to_curvilinear_m,

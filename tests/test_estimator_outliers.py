@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from bench.estimator import factors
-from bench.estimator.config import TranslationSmootherConfig
+from bench.config.estimator import TranslationSmootherConfig
 from bench.estimator.motion_model import CwhMotionModel
 from bench.estimator.translation import TranslationSmoother, state_key
 from bench.scenario import load_scenario

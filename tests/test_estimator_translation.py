@@ -10,7 +10,7 @@ from gtsam_faults import FailingSmoother
 from scipy.stats import chi2
 
 from bench.estimator import kalman
-from bench.estimator.config import TranslationSmootherConfig
+from bench.config.estimator import TranslationSmootherConfig
 from bench.estimator.factors import range_bearing
 from bench.estimator.motion_model import CwhMotionModel
 from bench.estimator import translation

@@ -22,9 +22,11 @@ LAYERS: list[dict[str, list[str]]] = [
     {"data": ["bench", "bench.data"]},                     # reference numbers (TOML)
     {"gnc": ["bench.gnc", "bench.gnc.*"]},                # pure algorithms and models
     {"bus": ["bench.bus", "bench.bus.*"]},                # Zenoh session, messages, CAN
-    # The scenario and the section schema each part owns (bench/<part>/config.py): plain data,
-    # below every process so each part can read the scenario it runs.
-    {"scenario": ["bench.scenario", "bench.scenarios", "bench.*.config", "bench.criteria"]},
+    # The section schema each part owns (bench/config/<part>.py): plain data, below the scenario
+    # that loads them from TOML.
+    {"config": ["bench.config", "bench.config.*"]},
+    # The scenario: below every process so each part can read the scenario it runs.
+    {"scenario": ["bench.scenario", "bench.scenarios", "bench.criteria"]},
     {"runtime": ["bench.runtime", "bench.runtime.*"]},    # node context, process start, deadlines
     {"plant": ["bench.plant", "bench.plant.*"],           # the processes that only know the bus
      "estimator": ["bench.estimator", "bench.estimator.*"],
@@ -166,7 +168,7 @@ def test_the_graph_sees_the_bench():
     assert "bench.runtime.deadline" in BENCH["bench.plant.stepping"]
     assert "bench.bus.can.protocol" in BENCH["bench.bus.can.board"]      # `from bench.bus.can import protocol`
     # The scenario reads each part's section schema; the launcher is a package, one concern a module.
-    assert {"bench.controller.config", "bench.plant.config", "bench.bus.can.config"} <= BENCH["bench.scenario"]
+    assert {"bench.config.controller", "bench.config.plant", "bench.bus.can.config"} <= BENCH["bench.scenario"]
     assert {"bench.launcher.children", "bench.launcher.follow"} <= BENCH["bench.launcher.run"]
 
 
@@ -225,14 +227,20 @@ def test_checker_flags_peers_and_relative_imports(tmp_path):
     assert unplaced(graph, FAKE_LAYERS) == ["fake.planner"]
 
 
-@pytest.mark.parametrize("module", ["bench.plant.config", "bench.bus.can.config", "bench.gnc.mpc"])
+@pytest.mark.parametrize("module", ["bench.config.plant", "bench.bus.can.config", "bench.gnc.mpc"])
 def test_layer_map_places_part_schemas_as_documented(module):
-    # Part schemas sit with the scenario, except the bus's own (first match wins).
-    expected = {"bench.plant.config": "scenario", "bench.bus.can.config": "bus", "bench.gnc.mpc": "gnc"}
+    # Part schemas sit in bench.config, a layer below the scenario; the bus's own sits with the bus.
+    expected = {"bench.config.plant": "config", "bench.bus.can.config": "bus", "bench.gnc.mpc": "gnc"}
     assert layer_of(module, LAYERS)[1] == expected[module]
 
 
-@pytest.mark.parametrize("module, group", [("bench.scenario", "scenario"), ("bench.controller.config", "scenario"),
+@pytest.mark.parametrize("module", ["bench.config.controller", "bench.config.estimator", "bench.config.plant"])
+def test_part_schemas_sit_below_the_scenario(module):
+    assert module in BENCH
+    assert layer_of(module, LAYERS)[0] < layer_of("bench.scenario", LAYERS)[0]
+
+
+@pytest.mark.parametrize("module, group", [("bench.scenario", "scenario"), ("bench.config.controller", "config"),
                                            ("bench.launcher", "launcher"), ("bench.launcher.run", "launcher"),
                                            ("bench.launcher.stats", "launcher")])
 def test_layer_map_places_the_scenario_and_the_launcher_package(module, group):

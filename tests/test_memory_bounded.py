@@ -187,7 +187,7 @@ def test_the_bus_model_holds_no_more_memory_after_more_frames(traced):
 
 
 def test_the_deadline_monitor_holds_no_more_memory_after_more_cycles(traced):
-    from bench.controller.config import DeadlineConfig
+    from bench.config.controller import DeadlineConfig
     from bench.controller.deadline import DeadlineMonitor
 
     monitor = DeadlineMonitor(DeadlineConfig(budget_s=1.0), n_inputs=3)

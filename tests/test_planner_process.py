@@ -9,7 +9,7 @@ import pytest
 from bench.bus import data_auth, keys
 from bench.bus.schemas import encode, header
 from bench.bus.session import SessionOptions, free_loopback_port, loopback_endpoint, open_session
-from bench.controller.config import DeadlineConfig
+from bench.config.controller import DeadlineConfig
 from bench.controller.deadline import DeadlineMonitor
 from bench.controller.plan_tracking import PlanInbox, PlanTrackingLaw
 from bench.gnc.attitude_law import AttitudeControlInput

@@ -10,7 +10,7 @@ import pytest
 from mcap.reader import make_reader
 
 from bench.bus import keys
-from bench.controller.config import StressConfig
+from bench.config.controller import StressConfig
 from conftest import run_bench_cli
 
 REALTIME_STEPS = 40          # 4 s of real time at the default 10 steps per wall second

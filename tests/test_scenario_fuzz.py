@@ -338,7 +338,7 @@ def use_in_process(scenario: Scenario) -> None:
 
         simulate_in_process(few)
     else:
-        from bench.controller.config import PLANNED_LAWS
+        from bench.config.controller import PLANNED_LAWS
         from bench.sim import simulate_attitude_in_process
 
         if scenario.attitude_control.law in PLANNED_LAWS:

@@ -13,7 +13,7 @@ from functools import partial
 import numpy as np
 import pytest
 
-from bench.controller.config import StressConfig
+from bench.config.controller import StressConfig
 from bench.controller.deadline import StressInjector
 from bench.gnc.cwh import RendezvousParams, z_subsystem
 from bench.gnc.lqr import dlqr

@@ -23,7 +23,7 @@ from bench.bus.schemas import SCHEMA_VERSION, STAGES, Header, Message, json_sche
 from bench.contract import fields
 from bench.contract.document import CONTRACT_FILE, message_types, struct_types, write_contract
 from bench.contract.table import TOKENS, TOPICS
-from bench.controller.config import DeadlineConfig
+from bench.config.controller import DeadlineConfig
 from bench.estimator.node import COMMAND_WAIT_S
 from bench.plant.acceptance import REASONS
 from bench.scenario import LivelinessConfig, RunConfig, Scenario

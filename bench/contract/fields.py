@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from typing import get_args
 
 from bench.bus.schemas import SCHEMA_VERSION, STAGES
-from bench.controller.config import ATTITUDE_LAWS, FallbackPolicy
+from bench.config.controller import ATTITUDE_LAWS, FallbackPolicy
 
 # --- frames and conventions -------------------------------------------------------------------
 LVLH = ("the target's LVLH frame in Hill (RSW) axes, Cartesian: origin at the target, which flies a circular "

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from bench.controller.attitude_laws import build_attitude_law
-from bench.controller.config import ATTITUDE_FREE_LAWS
+from bench.config.controller import ATTITUDE_FREE_LAWS
 from bench.controller.deadline import DeadlineMonitor
 from bench.controller.fdir import build_actuator_monitor, build_pointing_envelope
 from bench.gnc.actuator_monitor import FdirEvent, accommodate

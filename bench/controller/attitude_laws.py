@@ -1,6 +1,6 @@
 """Which attitude law the controller runs: the builders the registry names.
 
-`bench.controller.config.ATTITUDE_LAWS` maps a scenario's law name to "module:builder" (one line
+`bench.config.controller.ATTITUDE_LAWS` maps a scenario's law name to "module:builder" (one line
 per law); a builder takes the scenario and returns an object with
 `eval(AttitudeControlInput) -> (dipole_am2, info)` (bench.gnc.attitude_law). The laws themselves
 are pure algorithms in bench.gnc; this module only reads the scenario.
@@ -18,8 +18,8 @@ from bench.gnc.attitude_law import (
     ResidualDipoleCompensation, SlidingModeTracking,
     TargetState, inertial_hold,
 )
-from bench.controller.config import ATTITUDE_LAWS
-from bench.plant.config import inertia_matrix
+from bench.config.controller import ATTITUDE_LAWS
+from bench.config.plant import inertia_matrix
 from bench.scenario import Scenario
 
 def dipole_limit_am2(scenario: Scenario) -> float:

@@ -33,7 +33,7 @@ from bench.bus.can.bus_events import publish_bus_events
 from bench.bus.can.sim_window import bus_on_simulated_time, sim_ns
 from bench.bus.schemas import AttitudeEstimate, DipoleCommand
 from bench.controller.attitude_cycle import AttitudeCycle
-from bench.controller.config import PLANNED_LAWS
+from bench.config.controller import PLANNED_LAWS
 from bench.controller import fdir
 from bench.controller.mtq_link import LockStepLink, MagnetorquerLink
 from bench.controller.newest import NewestEstimate

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from bench.controller.config import StressConfig
+from bench.config.controller import StressConfig
 from bench.controller.deadline import DeadlineMonitor, StressInjector, lqr_fallback_law
 from bench.controller.thrust import ThrustLaw
 from bench.runtime.deadline import CycleOutcome

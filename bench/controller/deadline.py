@@ -9,7 +9,7 @@ abandoned here.
 
 The plant's view of the same deadline (`PlantCommandDeadline`) and the miss bookkeeping both
 share are in `bench.runtime.deadline`; the budget, fallback and stress schema in
-`bench.controller.config`.
+`bench.config.controller`.
 
 `StressInjector` makes a process slow on purpose (a scenario option), deterministically: a CPU
 busy loop or a sleep of `extra_cycle_time_s` on listed cycles or on every Nth cycle.
@@ -23,7 +23,7 @@ from typing import Callable
 import numpy as np
 
 from bench.bus.spill import SpilledRows
-from bench.controller.config import ControllerConfig, DeadlineConfig, StressConfig
+from bench.config.controller import ControllerConfig, DeadlineConfig, StressConfig
 from bench.controller.factory import weights_from_config
 from bench.gnc.cwh import RendezvousParams
 from bench.gnc.lqr import LQR

@@ -9,7 +9,7 @@ import time
 
 import numpy as np
 
-from bench.controller.config import ControllerConfig
+from bench.config.controller import ControllerConfig
 from bench.gnc.cwh import RendezvousParams, Z_INPUTS, Z_STATES, z_subsystem
 from bench.gnc.lqr import LQR, dlqr
 from bench.gnc.lqt import TrackingLQT

@@ -10,7 +10,7 @@ The algorithm is bench.gnc.actuator_monitor (pure); this module only reads the s
   target uses) with the believed inertia;
 - gyro noise: the smoother's belief ([estimator.attitude] gyro_noise_density_radps_per_rthz) per
   sample; a mean-rate sample with the smoother (the integrating gyro), an instant one with `truth`.
-Its settings are [attitude_control.fdir] (bench.controller.config.FdirConfig).
+Its settings are [attitude_control.fdir] (bench.config.controller.FdirConfig).
 
 With `pointing_error_limit_deg` set, the system-level check (bench.gnc.pointing_envelope) runs
 beside it: kind "fdir_pointing", no coil named.

@@ -26,7 +26,7 @@ import numpy as np
 from bench.bus import keys
 from bench.bus.plan_message import AttitudePlanMessage, from_message
 from bench.controller.attitude_laws import dipole_limit_am2
-from bench.controller.config import AttitudePlannerConfig
+from bench.config.controller import AttitudePlannerConfig
 from bench.gnc import quaternion as qt
 from bench.gnc.attitude_law import AttitudeControlInput, AttitudeLaw
 from bench.gnc.attitude_tracking import AttitudePlan, TvlqrAttitudeTracker
@@ -92,7 +92,7 @@ class PlanTrackingLaw:
 
 
 def tvlqr_plan(s: Scenario) -> AttitudeLaw:
-    """Registry builder (bench.controller.config.ATTITUDE_LAWS)."""
+    """Registry builder (bench.config.controller.ATTITUDE_LAWS)."""
     from bench.controller.attitude_laws import pd, sliding_mode
 
     settings = s.attitude_control.planner

@@ -25,7 +25,7 @@ import gtsam
 import numpy as np
 
 from bench.estimator import factors
-from bench.estimator.config import AttitudeSmootherConfig
+from bench.config.estimator import AttitudeSmootherConfig
 from bench.estimator.gating import nis_gate
 from bench.gnc.quaternion import skew
 

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import msgspec
 
-from bench.estimator.config import TranslationSmootherConfig
+from bench.config.estimator import TranslationSmootherConfig
 
 
 @dataclass(frozen=True)

@@ -32,7 +32,7 @@ import gtsam
 import numpy as np
 
 from bench.estimator import factors
-from bench.estimator.config import TranslationSmootherConfig
+from bench.config.estimator import TranslationSmootherConfig
 from bench.estimator.gating import nis_gate
 from bench.estimator.kalman import POSITION_MATRIX, Gaussian
 from bench.estimator.motion_model import CwhMotionModel
@@ -43,7 +43,7 @@ from bench.estimator.translation_motion import MEAN_MOTION_KEY, RelativeMotion, 
 from bench.estimator.two_body_model import TwoBodyRelativeModel
 from bench.gnc.cwh import RendezvousParams
 from bench.gnc.range_bearing import position_from_range_bearing
-from bench.plant.config import RangeBearingSensorConfig, RelativePositionSensorConfig
+from bench.config.plant import RangeBearingSensorConfig, RelativePositionSensorConfig
 
 log = logging.getLogger(__name__)
 

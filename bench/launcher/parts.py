@@ -6,7 +6,7 @@ from __future__ import annotations
 import msgspec
 
 from bench.bus.can.sim_window import bus_on_simulated_time
-from bench.controller.config import PLANNED_LAWS
+from bench.config.controller import PLANNED_LAWS
 from bench.runtime.node import NODES
 from bench.scenario import Scenario, ScenarioError
 

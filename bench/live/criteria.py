@@ -38,7 +38,7 @@ class LiveMetrics:
         self.metrics: dict = {}
         self._target = None
         if scenario.kind == "attitude":
-            from bench.controller.config import TARGET_FREE_LAWS
+            from bench.config.controller import TARGET_FREE_LAWS
 
             if scenario.attitude_control.law not in TARGET_FREE_LAWS:
                 from bench.controller.attitude_laws import attitude_target   # the flight side's target

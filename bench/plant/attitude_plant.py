@@ -22,7 +22,7 @@ from bench.plant.attitude import (
     magnetorquer_torque_nm, EARTH_RADIUS_M,
 )
 from bench.plant.coils import CoilModel
-from bench.plant.config import AttitudePlantConfig
+from bench.config.plant import AttitudePlantConfig
 from bench.gnc.environment import (
     EARTH_MU_M3PS2, IgrfAlongOrbit, Sgp4Orbit, gravity_gradient_torque_nm, residual_dipole_torque_nm,
 )

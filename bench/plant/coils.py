@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from bench.plant.config import CoilsConfig
+from bench.config.plant import CoilsConfig
 
 
 class CoilModel:

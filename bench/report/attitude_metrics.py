@@ -22,7 +22,7 @@ SETTLING_BAND_DEG = 2.0
 
 def pointing_error_deg(trajectory: dict, scenario: Scenario) -> np.ndarray | None:
     """Angle between the body and the target frame per step; None for laws without a target."""
-    from bench.controller.config import TARGET_FREE_LAWS
+    from bench.config.controller import TARGET_FREE_LAWS
 
     if scenario.attitude_control.law in TARGET_FREE_LAWS:
         return None

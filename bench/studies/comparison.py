@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.controller.config import ControllerConfig
+from bench.config.controller import ControllerConfig
 from bench.controller.factory import build_controller, weights_from_config
 from bench.studies.metrics import POSITION_TOL_M, THRUST_TOL_N, fuel_delta_v_mps, traj_constraints, traj_cost
 from bench.gnc.cwh import RendezvousParams
