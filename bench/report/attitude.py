@@ -71,10 +71,7 @@ def loop_figure(trajectory: dict, scenario, windows, path: Path) -> Path:
     ax.legend(fontsize="small", ncol=4)
     for a in axes:
         a.grid(True, alpha=0.3)
-    plots.fixed_layout(fig)
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return path
+    return plots.save(fig, path, dpi=90)
 
 
 def board_telemetry_am2(run) -> tuple[np.ndarray, np.ndarray] | None:
@@ -139,10 +136,7 @@ def dipole_figure(trajectory: dict, limit_am2: float, windows, path: Path, telem
     axes[3].set_xlabel("simulated time [s]")
     axes[3].legend(fontsize="small", ncol=4)
     axes[3].grid(True, alpha=0.3)
-    plots.fixed_layout(fig)
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return path
+    return plots.save(fig, path, dpi=90)
 
 
 def attitude_section(run, plot_dir: Path) -> tuple[Section | None, dict | None]:
@@ -204,10 +198,7 @@ def comparison_section(runs: list, plot_dir: Path, with_reference: bool = True) 
     ax.set_ylabel("pointing error [deg] or body rate [deg/s]")
     ax.grid(True, alpha=0.3)
     ax.legend(fontsize="small")
-    plots.fixed_layout(fig)
-    path = plot_dir / "attitude_compare.png"
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    path = plots.save(fig, plot_dir / "attitude_compare.png", dpi=90)
     note = (f"Reference (clean) run: {reference.run_id}. Excess = this run minus the reference, step by step "
             "(same seed; real-time runs differ slightly in timing even without faults). Loop recovery: simulated "
             "time after the last fault window until every step applies what the law commanded."

@@ -221,10 +221,7 @@ def estimator_figure(est: AttitudeEstimation, path: Path) -> Path:
     axes[-1].set_xlabel("simulated time [s]")
     for a in axes:
         a.grid(True, alpha=0.3)
-    plots.fixed_layout(fig)
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return path
+    return plots.save(fig, path, dpi=90)
 
 
 def _magnetometer_panels(ax_bias, ax_scale, t: np.ndarray, mag: MagnetometerCalibration) -> None:

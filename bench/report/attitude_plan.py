@@ -75,7 +75,4 @@ def plan_figure(run, path: Path) -> Path | None:
     for a in axes:
         a.grid(True, alpha=0.3)
         a.legend(fontsize="small", loc="upper right")
-    plots.fixed_layout(fig)
-    fig.savefig(path, dpi=80)
-    plt.close(fig)
-    return path
+    return plots.save(fig, path, dpi=80)

@@ -47,9 +47,10 @@ def fixed_layout(fig, column_gap_in: float = 0.9, row_gap_in: float = 0.75) -> N
                         hspace=spacing(rows, h_in * (top - bottom), row_gap_in))
 
 
-def _save(fig, path: Path) -> Path:
+def save(fig, path: Path, dpi: int = DPI) -> Path:
+    """The figure laid out (fixed_layout), written to `path` and closed."""
     fixed_layout(fig)
-    fig.savefig(path, dpi=DPI)
+    fig.savefig(path, dpi=dpi)
     plt.close(fig)
     return path
 
@@ -80,7 +81,7 @@ def trajectory(series: list[TrajectorySeries], params: RendezvousParams, path: P
         axes[2, i].set_xlabel("time [h]")
     axes[0, 0].legend(fontsize="small")
     fig.suptitle("Trajectory against constraints (dashed: limits)")
-    return _save(fig, path)
+    return save(fig, path)
 
 
 def _cdf(ax, samples_ms: np.ndarray, label: str, **style) -> None:
@@ -104,7 +105,7 @@ def latency_cdfs(series_s: dict[str, np.ndarray], path: Path, title: str) -> Pat
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize="small", loc="lower right")
     ax.set_title(title)
-    return _save(fig, path)
+    return save(fig, path)
 
 
 def _histogram(ax, values, bins: int, **style) -> None:
@@ -171,7 +172,7 @@ def cycle_times(seq: np.ndarray, cycle_time_s: np.ndarray, budget_s: float | Non
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize="small")
     ax.set_title("Deadline: controller cycle time and misses over the run")
-    return _save(fig, path)
+    return save(fig, path)
 
 
 def planning_times(plan_time_s: np.ndarray, wall_s: np.ndarray, budget_s: float | None, path: Path) -> Path:
@@ -186,7 +187,7 @@ def planning_times(plan_time_s: np.ndarray, wall_s: np.ndarray, budget_s: float 
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize="small")
     ax.set_title("Planner: wall time per plan")
-    return _save(fig, path)
+    return save(fig, path)
 
 
 def solve_times(series_s: dict[str, np.ndarray], path: Path) -> Path:
@@ -205,7 +206,7 @@ def solve_times(series_s: dict[str, np.ndarray], path: Path) -> Path:
         ax.legend(fontsize="small")
         ax.grid(True, alpha=0.3)
     fig.suptitle("Solve-time distribution")
-    return _save(fig, path)
+    return save(fig, path)
 
 
 def estimator_error(sim_time_s: np.ndarray, error: np.ndarray, bound_3sigma: np.ndarray, path: Path) -> Path:
@@ -229,7 +230,7 @@ def estimator_error(sim_time_s: np.ndarray, error: np.ndarray, bound_3sigma: np.
         ax.set_xlabel("time [h]")
     axes[0, 0].legend(fontsize="small")
     fig.suptitle("Estimator error (estimate - truth) with its 3-sigma bounds (axes: 99 % of the error or the median bound)")
-    return _save(fig, path)
+    return save(fig, path)
 
 
 def nis(sim_time_s: np.ndarray, nis_values: np.ndarray, dof: int, rejected: np.ndarray, path: Path) -> Path:
@@ -251,7 +252,7 @@ def nis(sim_time_s: np.ndarray, nis_values: np.ndarray, dof: int, rejected: np.n
     ax.grid(True, alpha=0.3, which="both")
     ax.legend(fontsize="small")
     ax.set_title("Normalised innovation squared (consistent filter: inside the band 95 % of the time)")
-    return _save(fig, path)
+    return save(fig, path)
 
 
 def fault_colour(i: int) -> str:
@@ -275,4 +276,4 @@ def bus_load(window_start_s: np.ndarray, load: np.ndarray, fault_windows: list[t
     ax.grid(True, alpha=0.3)
     ax.legend(fontsize="small")
     ax.set_title("CAN bus load and fault timeline")
-    return _save(fig, path)
+    return save(fig, path)
