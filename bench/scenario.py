@@ -539,6 +539,16 @@ def builtin_names() -> list[str]:
     return sorted(p.name[: -len(".toml")] for p in root.iterdir() if p.name.endswith(".toml"))
 
 
+def fault_free_attitude_builtins() -> list[str]:
+    """The built-in attitude scenarios without [[can.faults]] (where any alarm is a false one)."""
+    names = []
+    for name in builtin_names():
+        s = load_scenario(name)
+        if s.kind == "attitude" and not (s.can is not None and s.can.faults):
+            names.append(name)
+    return names
+
+
 def load_scenario(name_or_path: str | Path | None = None) -> Scenario:
     """A built-in scenario by name, or a TOML file by path; the default is `rendezvous_lqr`."""
     name_or_path = str(name_or_path or "rendezvous_lqr")

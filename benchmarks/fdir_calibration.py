@@ -30,22 +30,13 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.gnc.actuator_monitor import AXES, ActuatorMonitor  # noqa: E402
-from bench.scenario import builtin_names, load_scenario, parse_scenario  # noqa: E402
+from bench.scenario import fault_free_attitude_builtins, load_scenario, parse_scenario  # noqa: E402
 
 FAULTS = {"reversed": -1.0, "open": 0.0, "gain": 0.5}
 FDIR_OVERRIDES: dict = {}      # --fdir key=value: [attitude_control.fdir] settings tried
 # The missions of bench/studies/campaigns/attitude_faults.toml where coils are commanded hard
 # enough to be judged, and the other built-in attitude scenarios with their own laws.
 FAULT_MISSIONS = ("attitude_quick", "attitude_detumble", "attitude_detumble_sgp4", "attitude_slew_milqr_truth")
-
-
-def clean_builtins() -> list[str]:
-    names = []
-    for name in builtin_names():
-        s = load_scenario(name)
-        if s.kind == "attitude" and not (s.can is not None and s.can.faults):
-            names.append(name)
-    return names
 
 
 def scenario(name: str, seed: int, steps: int | None, coils: dict | None = None, duration_s: float | None = None):
@@ -92,7 +83,7 @@ def run(s, keep_statistics: bool = False) -> tuple[ActuatorMonitor, dict]:
 
 
 def clean(args) -> None:
-    names = args.scenarios.split(",") if args.scenarios else clean_builtins()
+    names = args.scenarios.split(",") if args.scenarios else fault_free_attitude_builtins()
     print(f"fault-free built-in attitude scenarios: {', '.join(names)}; seeds 1..{args.seeds}; "
           f"{'full length' if not args.steps else f'{args.steps} steps'}")
     total_alarms, total_evaluations = 0, 0

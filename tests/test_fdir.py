@@ -27,7 +27,7 @@ import pytest
 from bench.gnc.actuator_monitor import (
     ActuatorMonitor, CoilBelief, MonitorSettings, OnboardActuatorModel, accommodate,
 )
-from bench.scenario import builtin_names, load_scenario, parse_scenario
+from bench.scenario import fault_free_attitude_builtins, load_scenario, parse_scenario
 from conftest import run_bench_cli
 
 INERTIA = np.diag([2.2e-3, 2.3e-3, 2.0e-3])     # the 1U body of the built-in scenarios
@@ -201,15 +201,6 @@ def test_the_plant_turns_a_faulty_coil_into_the_torque_of_its_dipole(gain):
 
 
 # ---- the loop: in process and as lock-step processes ---------------------------------------------
-def fault_free_attitude_builtins() -> list[str]:
-    names = []
-    for name in builtin_names():
-        s = load_scenario(name)
-        if s.kind == "attitude" and not (s.can is not None and s.can.faults):
-            names.append(name)
-    return names
-
-
 LOCKSTEP_STEPS = 300
 
 
