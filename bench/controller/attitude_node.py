@@ -133,7 +133,7 @@ def run(ctx: NodeContext) -> int:
             monitored.fallback if monitored is not None else None))
         if monitored is not None and monitored.has_event:
             ctx.publish(keys.EVENT_DEADLINE, monitored.deadline_event(hdr))
-        board_ok = True if link is None else link.health.ok if isinstance(link, LockStepLink) else link.loop.health.ok
+        board_ok = True if link is None else link.health.ok
         for event in cycle.monitor_actuators(board_ok):     # after the command: the fit must not delay it
             ctx.log.warning("FDIR: %s", event.describe())
             detected_ns = sim_ns(event.time_s) if isinstance(link, LockStepLink) else time.monotonic_ns()

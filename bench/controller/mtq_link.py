@@ -80,7 +80,12 @@ class MagnetorquerLink:
         """Join the command thread (ctx.stop is set by now) and write what the driver saw (and
         `extra_events`: the FDIR monitor's, bench.controller.fdir)."""
         self._thread.join(timeout=2.0)
-        _write_report(self.ctx, self.loop.health, self.driver, extra_events)
+        _write_report(self.ctx, self.health, self.driver, extra_events)
+
+    @property
+    def health(self) -> BoardHealth:
+        """The driver's word on the board, as its command loop last took it (LockStepLink's too)."""
+        return self.loop.health
         self.bus.shutdown()
 
 
