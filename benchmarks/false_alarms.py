@@ -24,13 +24,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
 def clean_scenario(spec_name: str, law_name: str, seed: int) -> dict:
-    from bench.scenario import load_scenario, scenario_to_toml_dict
     from bench.studies.campaign import _merge, load_spec
+    from bench.studies.fault_campaign import mission_base
 
     spec = load_spec(spec_name)
     law = spec.laws[law_name]
-    mission = spec.missions[law.mission]
-    data = _merge(_merge(scenario_to_toml_dict(load_scenario(mission.base_scenario)), mission.patch), law.patch)
+    data = _merge(mission_base(spec, law.mission), law.patch)     # as the campaign's cases, without the fault
     data = _merge(data, {"name": f"clean_{law_name}_s{seed}", "run": {"seed": seed}})
     data["can"] = {**data["can"], "faults": []}
     return data

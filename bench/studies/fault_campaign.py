@@ -124,18 +124,7 @@ def expand(spec: FaultCampaignSpec) -> list:
     """Every case (law x fault x seed), validated, in a fixed order (seeds innermost)."""
     from bench.studies.campaign import Case, CampaignError, _merge, scenario_name
 
-    bases = {}
-    for name, mission in spec.missions.items():
-        try:
-            base = scenario_to_toml_dict(load_scenario(mission.base_scenario))
-        except ScenarioError as exc:
-            raise CampaignError(f"missions.{name}: {exc}") from None
-        if base.get("kind") != "attitude" or "can" not in base:
-            raise CampaignError(f"missions.{name}: {mission.base_scenario!r} is not an attitude scenario with a [can] section")
-        base = _merge(base, mission.patch)
-        if spec.steps is not None:
-            base = _merge(base, {"attitude": {"duration_s": spec.steps / _step_rate_hz(base)}})
-        bases[name] = base
+    bases = {name: mission_base(spec, name) for name in spec.missions}
     cases = []
     for law_name, law in spec.laws.items():
         for fault_name, fault in spec.faults.items():
@@ -165,6 +154,24 @@ def expand(spec: FaultCampaignSpec) -> list:
                 cell = {"mission": law.mission, "law": law.label or law_name, "fault": fault_name}
                 cases.append(Case(case_id, len(cases), cell, seed, scenario, spec.mode, spec.case_timeout_s))
     return cases
+
+
+def mission_base(spec: FaultCampaignSpec, name: str) -> dict:
+    """Mission `name`'s scenario as a case starts from it: its base scenario, its patch, the spec's
+    steps; before the law's patch, the seed and the fault."""
+    from bench.studies.campaign import CampaignError, _merge
+
+    mission = spec.missions[name]
+    try:
+        base = scenario_to_toml_dict(load_scenario(mission.base_scenario))
+    except ScenarioError as exc:
+        raise CampaignError(f"missions.{name}: {exc}") from None
+    if base.get("kind") != "attitude" or "can" not in base:
+        raise CampaignError(f"missions.{name}: {mission.base_scenario!r} is not an attitude scenario with a [can] section")
+    base = _merge(base, mission.patch)
+    if spec.steps is not None:
+        base = _merge(base, {"attitude": {"duration_s": spec.steps / _step_rate_hz(base)}})
+    return base
 
 
 def _step_rate_hz(scenario: dict) -> float:
