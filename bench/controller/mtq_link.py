@@ -81,12 +81,12 @@ class MagnetorquerLink:
         `extra_events`: the FDIR monitor's, bench.controller.fdir)."""
         self._thread.join(timeout=2.0)
         _write_report(self.ctx, self.health, self.driver, extra_events)
+        self.bus.shutdown()
 
     @property
     def health(self) -> BoardHealth:
         """The driver's word on the board, as its command loop last took it (LockStepLink's too)."""
         return self.loop.health
-        self.bus.shutdown()
 
 
 class LockStepLink:
