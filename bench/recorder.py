@@ -16,8 +16,13 @@ the Zenoh callback, before it is queued, and counted per topic and reason in the
 The budgets are ten times what the bench's own loop publishes in lock-step on this machine, so a
 run of the bench never loses a sample to them.
 
-Zenoh delivers samples on its own threads; they are queued with their arrival time and written by
-the node's thread, because mcap's Writer is not thread-safe and a slow disk must not block Zenoh.
+The recording is assembled at the end, off the loop's hot path. During the run, Zenoh's callback
+only copies each admitted sample's bytes with its arrival time into a queue, and the node's thread
+moves them every DRAIN_PERIOD_S into a spool file (an unlinked temporary file in the run
+directory: memory stays flat); checking MACs, classifying, encoding JSON and writing the MCAP wait
+for the stop, in arrival order. In lock-step a recorder that did that work as the samples came
+competed with the loop's processes for the two cores at every hop (benchmarks/bench_loop.py,
+docs/performance.md). The price: a recorder killed before its stop leaves no recording.
 
 Time (`SimTimeBase`): a message's MCAP log time is the run's simulated time, so a viewer's timeline
 is the mission's (a 48 h rendezvous spans 48 h): the sim_time_s of its header, counted from the
@@ -48,7 +53,6 @@ import sys
 import threading
 import time
 from collections import Counter
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Union
 
@@ -62,8 +66,9 @@ from bench.bus.presence import PresenceQuery
 from bench.bus.can import protocol as can_protocol
 from bench.bus.can import zenoh_wire
 from bench.bus.can.zenoh_interface import CAN_TOPIC
-from bench.bus.spill import SpilledRecords
 from bench.bus.schemas import SCHEMA_VERSION, BusEvent, Message, MtqApplied, ProcessStats, json_schema
+from bench.bus.spill import SpilledRecords
+from bench.recorder_intake import RecordingBudget, SampleSpool
 from bench.bus import plan_message as _plan_message   # noqa: F401  registers AttitudePlanMessage
 
 RECORDING_FILE = "recording.mcap"
@@ -71,16 +76,15 @@ COUNTS_FILE = "recorder_counts.json"
 OFFSETS_FILE = "clock_offsets.json"
 MALFORMED_PREFIX = "malformed/"
 UNAUTHENTIC_PREFIX = "unauthentic/"
-# A chunk reaches the file when full: a recorder killed mid-run loses at most this much (a few
-# seconds of a real-time run) instead of mcap's default 1 MiB, the whole of a short run.
+# mcap's default is 1 MiB: a viewer seeking to a moment of the run decompresses one small chunk.
 CHUNK_SIZE_BYTES = 64 * 1024
 CLOCK_SYNC_PERIOD_S = 0.5   # cheap (one query per round); catches short-lived runs
 # A lock-step run of a few hundred steps can be over (its plant gone) within a second of its start,
 # on a loaded host before the first 0.5 s round: ping every 0.1 s over the first seconds.
 CLOCK_SYNC_EARLY_PERIOD_S = 0.1
 CLOCK_SYNC_EARLY_FOR_S = 3.0
-# The writer wakes this often and writes everything queued since, rather than once per sample:
-# on a small machine each wake-up of the recorder competes with the loop's processes for a core.
+# The node's thread wakes this often and spools everything queued since, rather than once per
+# sample: on a small machine each wake-up of the recorder competes with the loop's processes for a core.
 DRAIN_PERIOD_S = 0.2
 
 # Messages whose header has no simulated time of the loop: the shutdown counts, the board's
@@ -120,14 +124,6 @@ CAN_FRAME_SCHEMA = {
     "required": ["sim_time_s", "timestamp_s", "channel", "id", "data", "name", "direction", "signals"],
 }
 
-# Budgets (see the module docstring). The default loop publishes ~1 300 samples/s per topic of
-# ~0.5 kB in lock-step (README, loop rate); a saturated 1 Mbit/s CAN bus is ~7 900 frames/s.
-MAX_MESSAGE_BYTES = 256 * 1024
-MAX_TOPICS = 512
-TOPIC_MESSAGES_PER_S, TOPIC_MESSAGE_BURST = 20_000.0, 40_000.0
-TOPIC_BYTES_PER_S, TOPIC_BYTE_BURST = 2e6, 8e6
-TOTAL_BYTES_PER_S, TOTAL_BYTE_BURST = 8e6, 32e6
-
 MESSAGE_TYPES: tuple[type[Message], ...] = tuple(Message.__subclasses__())
 _any_message = msgspec.json.Decoder(Union[MESSAGE_TYPES])  # tagged union: dispatches on "type"
 
@@ -150,67 +146,6 @@ def classify(payload: bytes, run_id: str) -> Message | None:
     if header.schema_version != SCHEMA_VERSION or header.run_id != run_id:
         return None
     return message
-
-
-@dataclass
-class TokenBucket:
-    """Admits `amount` if the bucket holds it; refills at rate_per_s up to burst."""
-
-    rate_per_s: float
-    burst: float
-    tokens: float = -1.0
-    last_s: float | None = None
-
-    def take(self, amount: float, now_s: float) -> bool:
-        if self.last_s is None:
-            self.tokens, self.last_s = self.burst, now_s
-        self.tokens = min(self.burst, self.tokens + (now_s - self.last_s) * self.rate_per_s)
-        self.last_s = now_s
-        if amount > self.tokens:
-            return False
-        self.tokens -= amount
-        return True
-
-
-@dataclass
-class RecordingBudget:
-    """What the recorder may keep; `admit` returns None or the reason a sample is dropped."""
-
-    max_message_bytes: int = MAX_MESSAGE_BYTES
-    max_topics: int = MAX_TOPICS
-    total: TokenBucket = field(default_factory=lambda: TokenBucket(TOTAL_BYTES_PER_S, TOTAL_BYTE_BURST))
-    messages: dict = field(default_factory=dict)
-    bytes: dict = field(default_factory=dict)
-    dropped: dict = field(default_factory=dict)      # topic -> Counter(reason)
-    _lock: threading.Lock = field(default_factory=threading.Lock)
-
-    def admit(self, topic: str, size: int, now_s: float) -> str | None:
-        with self._lock:     # Zenoh calls back on several threads
-            reason = self._reason(topic, size, now_s)
-            if reason is not None:
-                key = topic if (topic in self.messages or len(self.dropped) < self.max_topics) else "<other topics>"
-                self.dropped.setdefault(key, Counter())[reason] += 1
-            return reason
-
-    def _reason(self, topic: str, size: int, now_s: float) -> str | None:
-        if size > self.max_message_bytes:
-            return "message_too_large"
-        if topic not in self.messages:
-            if len(self.messages) >= self.max_topics:
-                return "too_many_topics"
-            self.messages[topic] = TokenBucket(TOPIC_MESSAGES_PER_S, TOPIC_MESSAGE_BURST)
-            self.bytes[topic] = TokenBucket(TOPIC_BYTES_PER_S, TOPIC_BYTE_BURST)
-        if not self.messages[topic].take(1.0, now_s):
-            return "message_rate"
-        if not self.bytes[topic].take(size, now_s):
-            return "byte_rate"
-        if not self.total.take(size, now_s):
-            return "total_byte_rate"
-        return None
-
-    def dropped_counts(self) -> dict[str, dict[str, int]]:
-        with self._lock:
-            return {topic: dict(reasons) for topic, reasons in sorted(self.dropped.items())}
 
 
 def root_object_schema(kind: type[Message]) -> dict:
@@ -496,13 +431,14 @@ class ClockSyncThread(threading.Thread):
 
 
 class Recorder:
-    """Subscription, queue and recording of one run; `run(ctx)` drives it until ctx.stop."""
+    """Subscription, spool and recording of one run; `run(ctx)` drives it until ctx.stop."""
 
     def __init__(self, ctx):
         self.ctx = ctx
         self.recording = Recording(ctx.run_dir / RECORDING_FILE, ctx.run_id, ctx.scenario,
                                    deployment_metadata(sys.argv))
         self.samples: queue.SimpleQueue = queue.SimpleQueue()
+        self.spool = SampleSpool(ctx.run_dir)
         self.budget = RecordingBudget()
         self.arrived = 0     # samples handed over by Zenoh so far, kept or dropped (tests wait on it)
         key = getattr(ctx, "data_key", None)
@@ -510,37 +446,43 @@ class Recorder:
         self.subscriber = ctx.session.declare_subscriber(keys.all_topics(ctx.run_id), self._on_sample)
 
     def _on_sample(self, sample) -> None:
-        key_expr = str(sample.key_expr)
+        """Zenoh's thread: the budget's verdict and a copy of the bytes, nothing more (the hot path)."""
         payload = sample.payload
-        topic = topic_of(key_expr, self.ctx.run_id)
-        if self.budget.admit(topic, len(payload), time.monotonic()) is None:
-            data = payload.to_bytes()
-            unauthentic = sender = None
-            if self.verifier is not None and not topic.startswith(CAN_TOPIC + "/"):
-                attachment = data_auth.attachment_bytes(sample)
-                unauthentic = self.verifier.check(key_expr, data, attachment)
-                sender = data_auth.sender_of(attachment) if unauthentic is None else None
-            self.samples.put((key_expr, data, time.time_ns(), unauthentic, sender))
+        key_expr = str(sample.key_expr)
+        if self.budget.admit(topic_of(key_expr, self.ctx.run_id), len(payload), time.monotonic()) is None:
+            self.samples.put((key_expr, payload.to_bytes(), data_auth.attachment_bytes(sample), time.time_ns()))
         self.arrived += 1
 
     def drain(self, timeout_s: float) -> None:
-        """Write every queued sample, waiting up to timeout_s for the first one."""
+        """Spool every queued sample, waiting up to timeout_s for the first one."""
         try:
             item = self.samples.get(timeout=timeout_s) if timeout_s > 0 else self.samples.get_nowait()
         except queue.Empty:
             return
         while True:
-            key_expr, payload, received_ns, unauthentic, sender = item
-            self.recording.write(topic_of(key_expr, self.ctx.run_id), payload, received_ns, unauthentic, sender)
+            self.spool.append(item)
             try:
                 item = self.samples.get_nowait()
             except queue.Empty:
                 return
 
+    def _assemble(self) -> None:
+        """The MCAP from the spool, in arrival order: MACs checked (a replay is a counter seen
+        before, so the order matters), samples classified and written."""
+        for key_expr, payload, attachment, received_ns in self.spool:
+            topic = topic_of(key_expr, self.ctx.run_id)
+            unauthentic = sender = None
+            if self.verifier is not None and not topic.startswith(CAN_TOPIC + "/"):
+                unauthentic = self.verifier.check(key_expr, payload, attachment)
+                sender = data_auth.sender_of(attachment) if unauthentic is None else None
+            self.recording.write(topic, payload, received_ns, unauthentic, sender)
+
     def finish(self) -> dict:
-        """Stop listening, write what is still queued, close the file; the counts."""
+        """Stop listening, spool what is still queued, assemble and close the file; the counts."""
         self.subscriber.undeclare()
         self.drain(0.0)
+        self._assemble()
+        self.spool.close()
         self.recording.dropped = self.budget.dropped_counts()
         self.recording.close()
         counts = self.recording.counts()

@@ -30,7 +30,7 @@ LAYERS: list[dict[str, list[str]]] = [
     {"runtime": ["bench.runtime", "bench.runtime.*"]},    # node context, process start, deadlines
     {"plant": ["bench.plant", "bench.plant.*"],           # the processes that only know the bus
      "estimator": ["bench.estimator", "bench.estimator.*"],
-     "recorder": ["bench.recorder"]},
+     "recorder": ["bench.recorder", "bench.recorder_intake"]},
     {"controller": ["bench.controller", "bench.controller.*"]},
     # The planner plans for the flight side: it reads the controller's beliefs and replan rule.
     {"planner": ["bench.planner", "bench.planner.*"]},

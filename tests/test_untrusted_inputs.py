@@ -12,10 +12,8 @@ from bench.bus import keys
 from bench.bus.can import zenoh_wire
 from bench.bus.schemas import DeadlineEvent, ProcessStats, StepDone, ThrustCommand, TruthState, encode, header
 from bench.cli import main as bench_main
-from bench.recorder import (
-    COUNTS_FILE, RECORDING_FILE, TOPIC_BYTE_BURST, TOPIC_BYTES_PER_S, TOTAL_BYTE_BURST, Recorder, Recording,
-    RecordingBudget, TokenBucket,
-)
+from bench.recorder import COUNTS_FILE, RECORDING_FILE, Recorder, Recording
+from bench.recorder_intake import TOPIC_BYTE_BURST, TOPIC_BYTES_PER_S, TOTAL_BYTE_BURST, RecordingBudget, TokenBucket
 from recording_helpers import node_context, session_pair
 from test_report import N, RUN_ID, make_run
 

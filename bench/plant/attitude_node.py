@@ -238,6 +238,7 @@ def run(ctx: NodeContext) -> int:
             if realtime:
                 clock.sleep_until(clock.tick_s(k))
             _publish_step(ctx, plant, k, estimator_truth)
+            ctx.publish_pending()     # the previous step's applied commands and report, behind the tick
             if realtime:
                 command = clock.collect_command(ctx, commands, k, command_gate, value=lambda c: c.dipole_am2)
                 outcome = clock.deadline.check(k, time.monotonic() - clock.tick_s(k))
@@ -269,15 +270,17 @@ def run(ctx: NodeContext) -> int:
                     chains.open(k, command, board_dipole_without_bus(command.dipole_am2, scenario.can))
             if scenario.can is not None:
                 completed += chains.close(reports.received(), applied_ns) + chains.expire(applied_ns)
-            for _, applied in completed:
-                ctx.publish(keys.COMMAND_APPLIED, applied)
+            for _, applied in completed:     # for the recording: no node waits for them
+                ctx.publish_later(keys.COMMAND_APPLIED, applied)
             step_started_ns = time.monotonic_ns()
             plant.apply(dipole)
-            ctx.publish(keys.STATUS_STEP, StepDone(header(ctx.run_id, k, plant.time_s), n_steps, k == n_steps - 1))
+            # The launcher's progress: behind the next tick (the run's end publishes the last).
+            ctx.publish_later(keys.STATUS_STEP, StepDone(header(ctx.run_id, k, plant.time_s), n_steps, k == n_steps - 1))
     except LoopBroken as exc:
         ctx.log.error("%s", exc)
         return 1
     finally:
+        ctx.publish_pending()
         ctx.leave_realtime_priority()   # the loop is over; its files must not hold up another run
         for _, applied in chains.expire():
             ctx.publish(keys.COMMAND_APPLIED, applied)

@@ -9,6 +9,9 @@ real-time: step k starts at t0 + k * period on the monotonic clock (period = tim
 the scenario's time factor); the command for step k must arrive before step k+1 starts, else it
 is a plant-side deadline miss and the last command received is held (zero-order hold).
 
+Step k's sample goes out first, then the rest of the step's messages (the other sensors, the
+previous step's applied command and step report): the loop's next hop waits only for the sample.
+
 Every command passes the output stage (bench/plant/acceptance.py) first: only a finite command for
 the current step inside the thrust envelope is applied, whoever sent it. In lock-step the plant
 keeps waiting for an acceptable command k after refusing one (the controller's is on its way);
@@ -33,16 +36,27 @@ from bench.plant import attitude_node
 from bench.plant.stepping import LoopBroken, RealTimeClock, StampLog, wait_command_lockstep
 
 
-def _publish_sample(ctx: NodeContext, plant: TranslationPlant, last_thrust_n: np.ndarray) -> None:
-    k = plant.step_index
-    hdr = header(ctx.run_id, k, plant.sim_time_s, sensed=time.monotonic_ns())
-    position_m = plant.measure_position_m()
-    # Truth in the flight side's coordinates: the truth-mode estimator passes it on as the estimate.
-    ctx.publish(keys.TRUTH, TruthState(hdr, plant.navigation_state_m_mps.tolist(), last_thrust_n.tolist()))
-    noise = ctx.scenario.plant.relpos_sensor.noise_std_m
-    ctx.publish(keys.SENSE_RELPOS, RelativePosition(hdr, position_m.tolist(), noise))
-    fix = plant.measure_range_bearing()
-    ctx.publish(keys.SENSE_RANGE_BEARING, RangeBearing(hdr) if fix is None else RangeBearing(hdr, *map(float, fix)))
+def _publish_sample(ctx: NodeContext, plant: TranslationPlant, last_thrust_n: np.ndarray, consumed_topic: str) -> None:
+    """Step k's truth and sensors; the one the estimator reads is made and sent first (the loop's
+    hot path), then the previous step's applied command and report, then the others."""
+    hdr = header(ctx.run_id, plant.step_index, plant.sim_time_s, sensed=time.monotonic_ns())
+
+    def range_bearing() -> RangeBearing:
+        fix = plant.measure_range_bearing()
+        return RangeBearing(hdr) if fix is None else RangeBearing(hdr, *map(float, fix))
+
+    # Each sensor draws from its own generator (TranslationPlant.from_scenario): any order repeats.
+    make = {
+        # Truth in the flight side's coordinates: the truth-mode estimator passes it on as the estimate.
+        keys.TRUTH: lambda: TruthState(hdr, plant.navigation_state_m_mps.tolist(), last_thrust_n.tolist()),
+        keys.SENSE_RELPOS: lambda: RelativePosition(hdr, plant.measure_position_m().tolist(),
+                                                    ctx.scenario.plant.relpos_sensor.noise_std_m),
+        keys.SENSE_RANGE_BEARING: range_bearing,
+    }
+    ctx.publish(consumed_topic, make.pop(consumed_topic)())
+    ctx.publish_pending()
+    for topic, message in make.items():
+        ctx.publish(topic, message())
 
 
 def run(ctx: NodeContext) -> int:
@@ -83,7 +97,7 @@ def run(ctx: NodeContext) -> int:
                 raise LoopBroken(f"peer '{ctx.lost_peer(0.0)}' lost at step {k}")
             if realtime:
                 clock.sleep_until(clock.tick_s(k))
-            _publish_sample(ctx, plant, gate.output)
+            _publish_sample(ctx, plant, gate.output, sense_topic)
             if realtime:
                 command = clock.collect_command(ctx, commands, k, gate)
                 outcome = clock.deadline.check(k, time.monotonic() - clock.tick_s(k))
@@ -95,19 +109,22 @@ def run(ctx: NodeContext) -> int:
                 received = command.header.stamped("plant_received", time.monotonic_ns())
                 applied = msgspec.structs.replace(command, header=received.stamped("applied", time.monotonic_ns()))
                 stamps.record(k, applied.header.stamps_ns)
-                # Published so the recording holds every stage's stamp, actuation included.
-                ctx.publish(keys.COMMAND_APPLIED, applied)
+                # Published so the recording holds every stage's stamp, actuation included; no
+                # node waits for it, so it leaves behind the next step's sample.
+                ctx.publish_later(keys.COMMAND_APPLIED, applied)
             plant.apply(gate.output)
             divergence = state_divergence(plant, scenario)
             if divergence is not None:
                 ctx.log.error("%s; stopping the run", divergence.describe())
                 divergence.write(ctx.run_dir)
                 return EXIT_DIVERGED
-            ctx.publish(keys.STATUS_STEP, StepDone(header(ctx.run_id, k, plant.sim_time_s), n_steps, k == n_steps - 1))
+            # The launcher's progress: behind the next step's sample (the run's end publishes the last).
+            ctx.publish_later(keys.STATUS_STEP, StepDone(header(ctx.run_id, k, plant.sim_time_s), n_steps, k == n_steps - 1))
     except LoopBroken as exc:
         ctx.log.error("%s", exc)
         return 1
     finally:
+        ctx.publish_pending()
         ctx.leave_realtime_priority()   # the loop is over; its files must not hold up another run
         _write_trajectory(ctx, plant, stamps, clock, dipoles)
         _write_acceptance(ctx, {"thrust": gate.counts(), "dipole": dipoles.gate.counts() if dipoles.gate else None})

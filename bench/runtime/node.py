@@ -5,7 +5,10 @@ builds the context and calls it; the launcher starts each node that way as its o
 
 Messages arrive on Zenoh's threads; `subscribe` decodes and validates them there and hands typed
 messages to the node's queue, so a node's logic runs on one thread and a malformed payload is
-counted and logged where it arrives, never raised into the node. With the run's data key
+counted and logged where it arrives, never raised into the node. What no node of the loop waits for
+(the plant's step report, applied commands, the sensors the estimator does not read) is published
+with `publish_later` and goes out at the node's `publish_pending`, behind the next message the loop
+waits on: off the loop's hot path. With the run's data key
 (bench/bus/data_auth.py) every published message carries a MAC in its attachment (`_tag`), and a
 received one without a valid, fresh MAC is dropped and counted before it is decoded (`_refused`).
 Liveliness, readiness and clock readings are authenticated the same way: a node answers presence
@@ -33,6 +36,7 @@ from bench.bus.certs import check_identity, identity_files
 from bench.bus.deployment import DeploymentError, load_deployment
 from bench.bus.schemas import MalformedMessage, Message, ProcessStats, decode, encode, header
 from bench.bus.session import SessionOptions, open_session
+from bench.runtime.hop_trace import HopTrace, TracedQueue, from_environment as hop_trace_from_environment
 from bench.runtime.ownership import die_with_launcher
 from bench.runtime.priority import node_realtime_priority, set_realtime_priority
 from bench.runtime.reports import SIGNED_TYPES, key_from_environment, sign
@@ -74,6 +78,7 @@ class NodeContext:
     published: Counter = field(default_factory=Counter)
     malformed: Counter = field(default_factory=Counter)
     _publishers: dict = field(default_factory=dict)
+    _later: list = field(default_factory=list)       # (topic, message) for publish_later
     _keepalive: list = field(default_factory=list)
     # The secret the launcher handed this process: its reports to the launcher (ProcessStats, the
     # plant's StepDone) are signed with it (bench/runtime/reports.py). None: started by hand.
@@ -99,6 +104,9 @@ class NodeContext:
     # from the command channel, the board live hardware faults), and the live view's WebSocket port.
     allow_live_faults: bool = False
     live_port: int | None = None
+    # benchmarks/bench_hop_trace.py: each message's stamps through publish, Zenoh and the hand-off
+    # (bench/runtime/hop_trace.py); None, the default: nothing is stamped.
+    hop_trace: HopTrace | None = field(default_factory=hop_trace_from_environment)
 
     # --- publishing -----------------------------------------------------------------------
     def publish(self, topic: str, message: Message) -> None:
@@ -107,9 +115,25 @@ class NodeContext:
             pub = self.declare_publisher(topic)
         if self.report_key is not None and isinstance(message, SIGNED_TYPES):
             message = sign(message, self.report_key)
+        started_ns = time.monotonic_ns()
         payload = encode(message)
-        pub.put(payload, attachment=self._tag(topic, payload))
+        attachment = self._tag(topic, payload)
+        signed_ns = time.monotonic_ns()
+        pub.put(payload, attachment=attachment)
+        if self.hop_trace is not None:
+            self.hop_trace.published.append((topic, message.header.seq, started_ns, signed_ns, time.monotonic_ns()))
         self.published[topic] += 1
+
+    def publish_later(self, topic: str, message: Message) -> None:
+        """Keep `message` until publish_pending: for what no node of the loop waits on, so that the
+        next message the loop does wait on leaves first."""
+        self._later.append((topic, message))
+
+    def publish_pending(self) -> None:
+        """Publish what publish_later kept, in its order (a node's end does it too)."""
+        later, self._later = self._later, []
+        for topic, message in later:
+            self.publish(topic, message)
 
     def _tag(self, topic: str, payload: bytes) -> bytes | None:
         if self.data_key is None:
@@ -159,6 +183,7 @@ class NodeContext:
         verifier = data_auth.Verifier(self.data_key) if self.data_key is not None and not self.trust_inputs else None
 
         def handle(sample: zenoh.Sample) -> None:
+            arrived_ns = time.monotonic_ns()
             topic = str(sample.key_expr)[len(prefix):]
             kind = kinds.get(topic)
             payload = sample.payload.to_bytes()
@@ -177,12 +202,18 @@ class NodeContext:
                 self.malformed[topic] += 1
                 self.log.warning("message on %s carries run id %r", topic, message.header.run_id)
                 return
+            decoded_ns = time.monotonic_ns()
             on_message(message)
+            if self.hop_trace is not None:
+                self.hop_trace.received.append((topic, message.header.seq, arrived_ns, decoded_ns, time.monotonic_ns()))
 
         self._keepalive.append(self.session.declare_subscriber(keys.key(self.run_id, key_topic), handle))
 
     def subscribe_queue(self, topic: str, kind: type[Message]) -> "queue.Queue[Message]":
-        q: queue.Queue[Message] = queue.Queue()
+        # Not SimpleQueue, though its hand-off is cheaper: a node's thread is the one SIGTERM
+        # interrupts, and such a SimpleQueue.get(timeout) was seen never to return
+        # (bench/bus/can/realtime_bridge.py).
+        q: queue.Queue[Message] = queue.Queue() if self.hop_trace is None else TracedQueue(self.hop_trace, topic)
         self.subscribe(topic, kind, q.put)
         return q
 
@@ -413,6 +444,9 @@ def run_node(name: str, run_id: str, scenario: Scenario, options: SessionOptions
             stop_when_gone(ctx, stop_with)
         ctx.declare_alive(host)     # presence answers: liveliness, readiness and the recorder's clock pings
         code = module.run(ctx)
+        ctx.publish_pending()
+        if ctx.hop_trace is not None:
+            ctx.hop_trace.write(run_dir, name)
         ctx.publish_stats()
         time.sleep(0.05)  # let the stats sample leave before the session closes
         return code
