@@ -17,6 +17,7 @@ real board would be, and `bench run` starts everything else.
   started by the test; in lock-step the run and its estimates equal the in-process loop to 1e-9.
 """
 import json
+from types import SimpleNamespace
 import subprocess
 import sys
 import time
@@ -35,8 +36,9 @@ from bench.bus.can.sim_window import bus_on_simulated_time
 from bench.bus.schemas import DipoleCommand, header
 from bench.bus.session import free_loopback_port, loopback_endpoint
 from bench.launcher import external_parts, nodes_for, with_driver_on_the_board_bus
-from bench.plant import attitude_node
-from bench.plant.attitude_node import AppliedLog, BoardReports
+from bench.plant import board_dipole
+from bench.plant.acceptance import ActuatorEnvelope, CommandGate
+from bench.plant.board_dipole import AppliedLog, BoardReports, ReportOfCommand
 from bench.plant.board_telemetry import BoardTelemetry, as_echoed
 from bench.plant.mtq_acceptance import DipoleAcceptance, board_dipole_without_bus
 from bench.plant.stepping import LoopBroken
@@ -175,7 +177,7 @@ def _pair(reports: BoardReports, protocol, counter: int):
 
 
 def test_lock_step_pairs_a_command_with_the_echo_of_its_counter_only(monkeypatch):
-    monkeypatch.setattr(attitude_node, "REPORT_WAIT_S", 0.01)   # the wait for a later frame: not waited for here
+    monkeypatch.setattr(board_dipole, "REPORT_WAIT_S", 0.01)   # the wait for a later frame: not waited for here
     listener, reports, echo, protocol = _echo_listener()
     # Telemetry of the coils is heard but makes no report in lock-step.
     coil = protocol.encode(p.TLM_DIPOLE, {"AppliedDipoleX": 0.1}, counter=0)
@@ -189,7 +191,7 @@ def test_lock_step_pairs_a_command_with_the_echo_of_its_counter_only(monkeypatch
 
 
 def test_lock_step_refuses_a_corrupted_or_repeated_echo(monkeypatch):
-    monkeypatch.setattr(attitude_node, "REPORT_WAIT_S", 0.01)
+    monkeypatch.setattr(board_dipole, "REPORT_WAIT_S", 0.01)
     listener, reports, echo, protocol = _echo_listener()
     bad = bytearray(echo.data)
     bad[3] ^= 0x01                      # one set-point bit
@@ -204,12 +206,14 @@ def _lock_step_step(reports, listener, command_counter: int):
     acceptance = DipoleAcceptance(scenario.can)
     log = AppliedLog(1)
     command = DipoleCommand(header("t", 0, 0.0), COMMANDED_AM2, command_counter, "test")
-    dipole, report = attitude_node._lockstep_dipole(scenario, acceptance, reports, command, 0, log, 0, listener)
+    gate = CommandGate(ActuatorEnvelope("dipole", "A m^2", acceptance.envelope_am2))
+    ctx = SimpleNamespace(scenario=scenario, run_id="t")
+    dipole, report = ReportOfCommand(ctx, gate, acceptance, reports, log, listener).for_step(0, command, since_ns=0)
     return dipole, report, log, acceptance
 
 
 def test_a_missing_echo_is_handled_as_a_missing_report_and_never_applies_a_stale_set_point(monkeypatch):
-    monkeypatch.setattr(attitude_node, "REPORT_WAIT_S", 0.01)
+    monkeypatch.setattr(board_dipole, "REPORT_WAIT_S", 0.01)
     listener, reports, echo, protocol = _echo_listener()
     # The echo of command 5 came (just now): command 6's never does. The coils as last reported.
     listener.handle(echo, time.monotonic_ns())
@@ -228,7 +232,7 @@ def test_a_missing_echo_is_handled_as_a_missing_report_and_never_applies_a_stale
 
 
 def test_a_board_that_never_echoes_stops_a_lock_step_run_saying_it_is_real_time_only(monkeypatch):
-    monkeypatch.setattr(attitude_node, "REPORT_WAIT_S", 0.01)
+    monkeypatch.setattr(board_dipole, "REPORT_WAIT_S", 0.01)
     protocol = p.Protocol(profile="e2e")
     reports = BoardReports()
     listener = BoardTelemetry(bus=None, protocol=protocol, run_id="t", on_report=reports.add, source="setpoint")

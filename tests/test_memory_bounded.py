@@ -202,7 +202,7 @@ def test_the_deadline_monitor_holds_no_more_memory_after_more_cycles(traced):
 
 
 def test_the_attitude_plant_per_step_logs_do_not_take_memory_for_the_whole_run_up_front(traced):
-    from bench.plant.attitude_node import AppliedLog
+    from bench.plant.board_dipole import AppliedLog
     from bench.plant.mtq_chain import CommandChains
 
     before = traced()

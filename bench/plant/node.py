@@ -1,16 +1,13 @@
 """The plant process: owns simulated time, publishes sensing and truth, applies thrust commands.
 
 Reads: command/thrust (ThrustCommand), actuator/mtq (MtqApplied, recorded). Writes: truth,
-sense/relpos, command/applied, event/deadline, status/step; trajectory.npz,
+sense/relpos, sense/range_bearing, command/applied, event/deadline, status/step; trajectory.npz,
 command_acceptance.json and, when it stops on divergence, divergence.json.
 
-lock-step: publish step k, wait for command k, integrate. Deterministic.
-real-time: step k starts at t0 + k * period on the monotonic clock (period = time step divided by
-the scenario's time factor); the command for step k must arrive before step k+1 starts, else it
-is a plant-side deadline miss and the last command received is held (zero-order hold).
-
-Step k's sample goes out first, then the rest of the step's messages (the other sensors, the
-previous step's applied command and step report): the loop's next hop waits only for the sample.
+Each step: the step clock starts step k (bench/plant/stepping.py; lock-step or real time, the time
+model in docs/time-model.md), step k's sample goes out first, then the rest of the step's messages
+(the other sensors, the previous step's applied command and step report: the loop's next hop
+waits only for the sample), the clock gives step k's command, the plant integrates.
 
 Every command passes the output stage (bench/plant/acceptance.py) first: only a finite command for
 the current step inside the thrust envelope is applied, whoever sent it. In lock-step the plant
@@ -33,7 +30,7 @@ from bench.plant.divergence import EXIT_DIVERGED, Divergence, check_state
 from bench.plant.model import TranslationPlant
 from bench.runtime.node import NodeContext
 from bench.plant import attitude_node
-from bench.plant.stepping import LoopBroken, RealTimeClock, StampLog, wait_command_lockstep
+from bench.plant.stepping import LockStepClock, LoopBroken, RealTimeClock, StampLog, step_clock
 
 
 def _publish_sample(ctx: NodeContext, plant: TranslationPlant, last_thrust_n: np.ndarray, consumed_topic: str) -> None:
@@ -85,8 +82,7 @@ def run(ctx: NodeContext) -> int:
 
     stamps = StampLog(n_steps)
     gate = thrust_gate(scenario)
-    realtime = scenario.run.mode == "real-time"
-    clock = RealTimeClock(plant.params.time_step_s / scenario.run.time_factor) if realtime else None
+    clock = step_clock(scenario)
     divergence = None
     try:
         for k in range(n_steps):
@@ -95,16 +91,9 @@ def run(ctx: NodeContext) -> int:
                 return 1
             if ctx.lost_peer(scenario.run.liveliness.hang_timeout_s):
                 raise LoopBroken(f"peer '{ctx.lost_peer(0.0)}' lost at step {k}")
-            if realtime:
-                clock.sleep_until(clock.tick_s(k))
+            clock.start_step(k)
             _publish_sample(ctx, plant, gate.output, sense_topic)
-            if realtime:
-                command = clock.collect_command(ctx, commands, k, gate)
-                outcome = clock.deadline.check(k, time.monotonic() - clock.tick_s(k))
-                if outcome.has_event:
-                    ctx.publish(keys.EVENT_DEADLINE, outcome.deadline_event(header(ctx.run_id, k, plant.sim_time_s), "plant"))
-            else:
-                command = wait_command_lockstep(ctx, commands, k, scenario.run.command_timeout_s, gate)
+            command = clock.command_for_step(ctx, commands, k, gate, plant.sim_time_s)
             if command is not None:
                 received = command.header.stamped("plant_received", time.monotonic_ns())
                 applied = msgspec.structs.replace(command, header=received.stamped("applied", time.monotonic_ns()))
@@ -177,10 +166,10 @@ class MagnetorquerRecord:
                 "mtq_safe_state": rows[:, 4].astype(bool)}
 
 
-def _write_trajectory(ctx: NodeContext, plant: TranslationPlant, stamps: StampLog, clock: RealTimeClock | None,
+def _write_trajectory(ctx: NodeContext, plant: TranslationPlant, stamps: StampLog, clock: LockStepClock | RealTimeClock,
                       dipoles: MagnetorquerRecord) -> None:
     arrays = plant.trajectory() | dipoles.arrays()
     arrays.update({f"stamp_{stage}_ns": v for stage, v in stamps.stamps.items()})
-    arrays["plant_late_commands"] = np.array(clock.late_commands if clock else 0)
-    arrays["plant_missed_steps"] = np.array(clock.deadline.counter.misses if clock else 0)
+    arrays["plant_late_commands"] = np.array(clock.late_commands)
+    arrays["plant_missed_steps"] = np.array(clock.missed_steps)
     np.savez(ctx.run_dir / "trajectory.npz", **arrays)

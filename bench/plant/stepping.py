@@ -1,6 +1,6 @@
 """What both plant processes (translation: bench/plant/node.py; attitude:
-bench/plant/attitude_node.py) step their loops with: the lock-step wait for step k's command, the
-real-time clock and its command deadline, the per-step stamp log.
+bench/plant/attitude_node.py) step their loops with: the step clock (lock-step or real time,
+chosen once by `step_clock`: docs/time-model.md), the per-step stamp log.
 
 Commands pass the output stage (bench/plant/acceptance.py) here: only an acceptable command for
 the current step is returned, whoever sent it.
@@ -106,8 +106,35 @@ def _log_refusal(ctx: NodeContext, gate: CommandGate, command, k: int, reason: s
                         command.header.seq, command.thrust_n)
 
 
+class LockStepClock:
+    """Step k starts as soon as step k-1 is integrated, and waits for step k's command (up to the
+    run's command timeout): simulated time is the step count, no deadline applies."""
+
+    late_commands = 0       # a command is never late: the step waits for it
+    missed_steps = 0
+
+    def __init__(self, command_timeout_s: float):
+        self.command_timeout_s = command_timeout_s
+
+    def start_step(self, k: int) -> None:
+        """Nothing to wait for: the previous step's command is in."""
+
+    def command_for_step(self, ctx: NodeContext, commands: queue.Queue, k: int, gate: CommandGate, sim_time_s: float,
+                         value=lambda command: command.thrust_n):
+        """The first acceptable command for step k; None if only refused ones came by the timeout."""
+        return wait_command_lockstep(ctx, commands, k, self.command_timeout_s, gate, value)
+
+
+def step_clock(scenario) -> "LockStepClock | RealTimeClock":
+    """The plant's clock for the scenario's [run] mode: the one place a plant reads the mode."""
+    if scenario.run.mode == "real-time":
+        return RealTimeClock(scenario.step_s / scenario.run.time_factor)
+    return LockStepClock(scenario.run.command_timeout_s)
+
+
 class RealTimeClock:
-    """Step ticks on the monotonic clock, and the plant's view of each command's deadline."""
+    """Step ticks on the monotonic clock, and the plant's view of each command's deadline: step k
+    starts at t0 + k * period, and its command must be in before step k+1's tick."""
 
     def __init__(self, period_s: float):
         self.period_s = period_s
@@ -119,6 +146,23 @@ class RealTimeClock:
 
     def tick_s(self, k: int) -> float:
         return self.t0 + k * self.period_s
+
+    @property
+    def missed_steps(self) -> int:
+        return self.deadline.counter.misses
+
+    def start_step(self, k: int) -> None:
+        self.sleep_until(self.tick_s(k))
+
+    def command_for_step(self, ctx: NodeContext, commands: queue.Queue, k: int, gate: CommandGate, sim_time_s: float,
+                         value=lambda command: command.thrust_n):
+        """Step k's acceptable command if it came before step k+1's tick, else None (the plant holds
+        the last one); a miss is published as the plant's DeadlineEvent (its header at sim_time_s)."""
+        command = self.collect_command(ctx, commands, k, gate, value)
+        outcome = self.deadline.check(k, time.monotonic() - self.tick_s(k))
+        if outcome.has_event:
+            ctx.publish(keys.EVENT_DEADLINE, outcome.deadline_event(header(ctx.run_id, k, sim_time_s), "plant"))
+        return command
 
     def sleep_until(self, t_s: float) -> None:
         delay = t_s - time.monotonic()

@@ -46,7 +46,7 @@ from socketcan_scenarios import EXPECTED_KINDS, HOLD, fault_names, write_over_so
 from bench.bus.can import vcan  # noqa: E402
 from bench.bus.can.host_lateness import load_host_late_records, longest_host_late_s  # noqa: E402
 from bench.bus.can.transport import interface_exists, kernel_has_can  # noqa: E402
-from bench.plant.attitude_node import EXACT_REPORT_WAIT_S  # noqa: E402
+from bench.plant.board_dipole import EXACT_REPORT_WAIT_S  # noqa: E402
 from bench.plant.mtq_acceptance import board_dipole_without_bus  # noqa: E402
 from bench.report.rundata import load_run  # noqa: E402
 from bench.sim import simulate_attitude_in_process  # noqa: E402
