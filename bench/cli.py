@@ -31,7 +31,7 @@ COMMAND_MODULES: dict[str, str] = {
     "compare-attitude": "bench.studies.attitude_comparison",
     "campaign": "bench.studies.campaign_cli",
     "campaign-report": "bench.studies.campaign_cli",
-    "contract": "bench.contract.cli",
+    "contract": "bench.contract_check.cli",
     "inject": "bench.live.inject_cli",
 }
 

@@ -17,7 +17,7 @@ import pytest
 
 from bench.bus import acl
 from bench.bus.schemas import ThrustCommand, encode, header
-from bench.contract.check import _sequence_problems
+from bench.contract_check.check import _sequence_problems
 from bench.contract.export import export
 from bench.contract.table import TOPICS, chunks_match
 from bench.launcher import external_parts

@@ -1,5 +1,5 @@
 """`bench contract check board` (issue 47): a magnetorquer board checked from outside, on its CAN
-bus, by a flight side that speaks only mtq.dbc (bench/contract/board_check.py).
+bus, by a flight side that speaks only mtq.dbc (bench/contract_check/board_check.py).
 
 The bench's own board (`bench node mtq`, started by the check's --command and connected to the
 check's hub) passes on both command profiles, and so does one already running on its own bus (the
@@ -22,8 +22,8 @@ from bench.bus.can import run_key
 from bench.bus.can.config import BusSpec
 from bench.bus.can.transport import open_bus
 from bench.bus.session import SessionOptions, free_loopback_port, loopback_endpoint, open_session
-from bench.contract.board_flight import BoardContract
-from bench.contract.board_run import board_scenario, run_board_check
+from bench.contract_check.board_flight import BoardContract
+from bench.contract_check.board_run import board_scenario, run_board_check
 from bench.runtime.priority import set_realtime_priority
 from conftest import REPO, run_bench_cli
 
@@ -189,7 +189,7 @@ class _HoldsUpOneNmtReset:
 def test_an_nmt_frame_this_host_delivered_stale_is_sent_again_not_blamed_on_the_board(tmp_path, monkeypatch):
     """The board refuses the late NMT reset (EMCY 0x8100 STALE, counter 0) as it must; the check
     sees the refusal came back after the freshness window, sends the reset again, and passes."""
-    import bench.contract.board_run as board_run
+    import bench.contract_check.board_run as board_run
     scenario = run_key.with_run_key(board_scenario(None))
     contract = BoardContract.of(scenario.can, 0.03, None, real_time_only=False)
     held = []

@@ -25,7 +25,8 @@ from bench.bus import data_auth, keys
 from bench.bus.can.config import BoardConfig
 from bench.bus.schemas import ThrustCommand, encode, header
 from bench.bus.session import KEEP_ALIVE_PER_LEASE, SessionOptions, build_config, free_loopback_port, loopback_endpoint
-from bench.contract import check, document, fields, probe
+from bench.contract import document, fields
+from bench.contract_check import check, probe
 from bench.contract.export import export
 from bench.contract.table import TOPICS
 from bench.config.controller import ATTITUDE_LAWS, DeadlineConfig, FallbackPolicy

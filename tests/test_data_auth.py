@@ -116,7 +116,7 @@ def test_key_files(tmp_path):
 
 def test_unauthentic_samples_are_left_out_of_the_report_and_named_by_the_contract_check(tmp_path):
     from bench.bus.schemas import ThrustCommand, encode, header
-    from bench.contract.check import read_samples
+    from bench.contract_check.check import read_samples
     from bench.recorder import RECORDING_FILE, Recording
     from bench.report.rundata import read_recording
 

@@ -1,12 +1,12 @@
-"""The board check's bound on a frame's age on arrival (bench.contract.late_arrivals), on made-up
+"""The board check's bound on a frame's age on arrival (bench.contract_check.late_arrivals), on made-up
 timelines: a stale refusal the host can explain is excused, one it cannot is the board's."""
 import numpy as np
 
 from bench.bus.can import protocol as p
-from bench.contract.board_check import BoardCheck
-from bench.contract.board_flight import BoardContract, Heard, Sent
-from bench.contract.board_run import board_scenario
-from bench.contract.late_arrivals import answered_at_s, explained_emcys, may_have_arrived_stale
+from bench.contract_check.board_check import BoardCheck
+from bench.contract_check.board_flight import BoardContract, Heard, Sent
+from bench.contract_check.board_run import board_scenario
+from bench.contract_check.late_arrivals import answered_at_s, explained_emcys, may_have_arrived_stale
 
 WINDOW_S = 0.13        # freshness window: command period 0.1 s + margin 0.03 s
 

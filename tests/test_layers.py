@@ -41,12 +41,11 @@ LAYERS: list[dict[str, list[str]]] = [
     {"report": ["bench.report", "bench.report.*"]},
     # The message contract as text: the key table, the fields' meanings, contract.json and the
     # export, which the launcher writes beside each run (it describes every part, so it sits above them).
-    {"contract": ["bench.contract", "bench.contract.table", "bench.contract.fields", "bench.contract.document",
-                  "bench.contract.export"]},
+    {"contract": ["bench.contract", "bench.contract.*"]},
     {"sim": ["bench.sim"],                                # the whole loop in one process
      "launcher": ["bench.launcher", "bench.launcher.*"]},  # `bench run`: one concern a module
     # The contract's check: it runs the bench (the launcher) against an outside node.
-    {"contract_check": ["bench.contract.*"]},
+    {"contract_check": ["bench.contract_check", "bench.contract_check.*"]},
     {"cli": ["bench.cli", "bench.__main__"]},
 ]
 

@@ -27,7 +27,7 @@ from bench.scenario import Scenario
 CONTRACT_FILE = "contract.json"
 CONTRACT_VERSION = 1
 # `bench contract check`: how long an outside node has to stop once the launcher has left, and the
-# inputs it forges (bench/contract/check.py STOP_GRACE_S, probe.py; tests/test_contract_export.py
+# inputs it forges (bench/contract_check/check.py STOP_GRACE_S, probe.py; tests/test_contract_export.py
 # holds these to them).
 CHECK_STOP_GRACE_S = 5.0
 CHECK_FORGED_ESTIMATES = 3

@@ -4,8 +4,8 @@ The record: the problems found, the numbers measured, the windows in which the s
 or no set-point echo, and the genuine frames this host may have delivered stale. The judgements
 over the whole run: the heartbeat period and its longest gap, the telemetry period, the E2E check
 of every protected frame the board sends, each applied command's set-point echo, the commands
-excused as late on arrival (bench/contract/late_arrivals.py), and no EMCY for a genuine command.
-The steps themselves are bench/contract/board_check.py.
+excused as late on arrival (bench/contract_check/late_arrivals.py), and no EMCY for a genuine command.
+The steps themselves are bench/contract_check/board_check.py.
 """
 from __future__ import annotations
 
@@ -15,10 +15,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from bench.bus.can import protocol as p
-from bench.contract.board_flight import (PROTECTED, BoardContract, FlightSide, Heard, Sent, echoed_am2, fmt, ms,
+from bench.contract_check.board_flight import (PROTECTED, BoardContract, FlightSide, Heard, Sent, echoed_am2, fmt, ms,
                                          state_name)
-from bench.contract.check import OUTSIDE_LOG
-from bench.contract.late_arrivals import explained_emcys, may_have_arrived_stale
+from bench.contract_check.check import OUTSIDE_LOG
+from bench.contract_check.late_arrivals import explained_emcys, may_have_arrived_stale
 
 LATE_SHARE_LIMIT = 0.1        # more genuine commands than this share late on arrival: the host is too busy to judge
 

@@ -27,7 +27,7 @@ And what the bench did with them, and what the node did with the bench's:
   publishers: the sender in each tag) fails, whatever the key;
 - a command without its own stages' stamps (`controller_received`, `commanded`) fails;
 - a node that does not stop within STOP_GRACE_S of the launcher's leaving fails;
-- the check sends forged and replayed estimates itself (bench/contract/probe.py) and fails a
+- the check sends forged and replayed estimates itself (bench/contract_check/probe.py) and fails a
   controller whose commands answer them.
 """
 from __future__ import annotations
@@ -53,7 +53,7 @@ from bench.bus.schemas import (SCHEMA_VERSION, MalformedMessage, Message, RangeB
                                 ThrustCommand, TranslationEstimate, TruthState, decode)
 from bench.bus.session import free_loopback_port, loopback_endpoint
 from bench.contract.fields import THRUST_STATUS_PATTERN, THRUST_STATUSES
-from bench.contract.probe import FORGED_SEQ_BASE, InputProbe
+from bench.contract_check.probe import FORGED_SEQ_BASE, InputProbe
 from bench.contract.table import RENDEZVOUS, publications_of, topic_of
 from bench.launcher import run_bench
 from bench.recorder import MALFORMED_PREFIX, RECORDING_FILE, UNAUTHENTIC_PREFIX

@@ -29,9 +29,9 @@ def cmd_export(args) -> int:
 
 def cmd_check(args) -> int:
     if args.node == "board":
-        from bench.contract.board_run import cmd_check_board
+        from bench.contract_check.board_run import cmd_check_board
         return cmd_check_board(args)
-    from bench.contract.check import load_check_scenario, run_check, write_verdict
+    from bench.contract_check.check import load_check_scenario, run_check, write_verdict
 
     try:
         if not 1 <= args.steps <= MAX_STEPS:
@@ -91,7 +91,7 @@ def add_commands(subparsers) -> None:
 
 
 def add_board_arguments(check) -> None:
-    """The board check's own options (bench/contract/board_check.py)."""
+    """The board check's own options (bench/contract_check/board_check.py)."""
     board = check.add_argument_group("board (bench contract check board)")
     board.add_argument("--interface", help="the board's python-can interface (socketcan, slcan, pcan, ...); default: "
                                            "the bench's zenoh CAN interface on the hub the check opens")

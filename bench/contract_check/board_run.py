@@ -1,6 +1,6 @@
 """`bench contract check board`, the command: the scenario (the contract) and the SecOC key, the
 board's bus (a Zenoh hub the check opens for the bench's board, or the user's python-can channel),
-the board's process if the check starts it, the check (bench/contract/board_check.py), and the
+the board's process if the check starts it, the check (bench/contract_check/board_check.py), and the
 verdict.
 
 It prints one line on a pass, or FAIL and each problem, and writes the verdict with the contract's
@@ -30,9 +30,9 @@ from bench.bus.can.config import BusSpec
 from bench.bus.can.transport import TransportUnavailable, open_bus
 from bench.bus.schemas import SCHEMA_VERSION
 from bench.bus.session import SessionOptions, free_loopback_port, loopback_endpoint, open_session
-from bench.contract.board_check import BoardCheck
-from bench.contract.board_flight import BoardContract, FlightSide, ms
-from bench.contract.check import OUTSIDE_LOG, Verdict
+from bench.contract_check.board_check import BoardCheck
+from bench.contract_check.board_flight import BoardContract, FlightSide, ms
+from bench.contract_check.check import OUTSIDE_LOG, Verdict
 from bench.runtime.priority import set_realtime_priority
 from bench.scenario import Scenario, ScenarioError, load_scenario, parse_scenario
 
@@ -59,7 +59,7 @@ def read_secoc_key(path: Path) -> str:
 
 
 def cmd_check_board(args) -> int:
-    """`bench contract check board` (bench/contract/cli.py)."""
+    """`bench contract check board` (bench/contract_check/cli.py)."""
     try:
         scenario = board_scenario(args.scenario)
         if args.key_file:

@@ -33,13 +33,13 @@ check of every protected frame the board sends, each applied command acknowledge
 MTQ_TLM_SETPOINT with its alive counter (what lock-step pairs by; `--real-time-only` for a board
 without it), and no EMCY for a genuine command. On secoc a genuine frame the board refused as
 stale is the board's fault only if its refusal (or the next answer) came back within the freshness
-window; later than that, this host may have held it up (bench/contract/late_arrivals.py): the
+window; later than that, this host may have held it up (bench/contract_check/late_arrivals.py): the
 frame is excused and counted (an NMT frame is sent again), and more than a tenth of the commands
 so excused is a problem of its own (the host too busy to judge).
 
-Here are the steps; the contract and the flight side are bench/contract/board_flight.py, the
-judgements over the whole run bench/contract/board_throughout.py, the command and the verdict
-bench/contract/board_run.py.
+Here are the steps; the contract and the flight side are bench/contract_check/board_flight.py, the
+judgements over the whole run bench/contract_check/board_throughout.py, the command and the verdict
+bench/contract_check/board_run.py.
 """
 from __future__ import annotations
 
@@ -48,10 +48,10 @@ import time
 import numpy as np
 
 from bench.bus.can import protocol as p
-from bench.contract.board_flight import (PROTECTED, Heard, Sent, applied_am2, echoed_am2, fmt, ms, sleep_until,
+from bench.contract_check.board_flight import (PROTECTED, Heard, Sent, applied_am2, echoed_am2, fmt, ms, sleep_until,
                                          state_name)
-from bench.contract.board_throughout import CheckRecord, emcy_words
-from bench.contract.late_arrivals import may_have_arrived_stale
+from bench.contract_check.board_throughout import CheckRecord, emcy_words
+from bench.contract_check.late_arrivals import may_have_arrived_stale
 
 HOLD_S = 0.25                 # each commanded dipole is held this long
 PROBE_LEAD_S = 0.1            # steady commands before each refused frame
