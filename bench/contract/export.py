@@ -24,7 +24,7 @@ from bench.contract import fields
 from bench.contract.document import CONTRACT_FILE, message_types, struct_types, write_contract
 from bench.contract.table import TOKENS, TOPICS
 from bench.config.controller import DeadlineConfig
-from bench.estimator.node import COMMAND_WAIT_S
+from bench.runtime.time_model import TimeModel
 from bench.plant.acceptance import REASONS
 from bench.scenario import LivelinessConfig, RunConfig, Scenario
 
@@ -142,7 +142,7 @@ Step k, with sample k releasing estimate k, estimate k releasing command k, comm
 1. The plant publishes `truth`, `sense/relpos` and `sense/range_bearing` of step k (`seq` = k,
    stamp `sensed`).
 2. The estimator publishes one `estimate/translation` with `seq` = k (stamps `estimator_received`,
-   `estimated`). In smoother mode it first waits up to {COMMAND_WAIT_S['lock-step']:g} s for command k-1 (the thrust
+   `estimated`). In smoother mode it first waits up to {TimeModel(lock_step=True).promised_wait_s(0.0):g} s for command k-1 (the thrust
    it fuses); truth mode passes `truth` on.
 3. The controller publishes exactly one `command/thrust` for estimate k: `header.seq` = k, the
    estimate's `sim_time_s` and stamps, plus `controller_received` and `commanded`. One command
@@ -165,7 +165,7 @@ The plant publishes sample k at t0 + k * period on its monotonic clock, period =
 time_factor` ({period_s:g} s by default) and never waits. The command for step k must arrive before
 step k+1's tick; otherwise step k is integrated on the last accepted command (zero-order hold) and
 counted as a plant-side missed step; a command that comes after its step was integrated is counted
-as late and not applied. The estimator does not wait for commands ({COMMAND_WAIT_S['real-time']:g} s). The controller's
+as late and not applied. The estimator does not wait for commands ({TimeModel(lock_step=False).promised_wait_s(0.0):g} s). The controller's
 own budget, from the estimate's arrival to the command leaving, is `[controller.deadline] budget_s`
 = {budget * 1e3:g} ms (the built-in controller applies its fallback past it and publishes a
 `DeadlineEvent` on `event/deadline`).

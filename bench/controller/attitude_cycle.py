@@ -25,6 +25,7 @@ from bench.controller.fdir import build_actuator_monitor, build_pointing_envelop
 from bench.gnc.actuator_monitor import FdirEvent, accommodate
 from bench.gnc.attitude_law import AttitudeControlInput
 from bench.runtime.deadline import CycleOutcome
+from bench.runtime.time_model import TimeModel
 from bench.scenario import Scenario
 
 
@@ -45,7 +46,7 @@ class AttitudeCycle:
         deadline = scenario.controller.deadline
         if deadline.fallback == "lqr":
             raise ValueError("controller.deadline.fallback: 'lqr' is a translational law; the attitude loop holds")
-        self.monitor = DeadlineMonitor(deadline, n_inputs=3, apply_fallback=scenario.run.mode == "real-time")
+        self.monitor = DeadlineMonitor(deadline, n_inputs=3, apply_fallback=TimeModel.of(scenario).deadlines_apply)
         self.saturated_cycles = 0
         self.weak_field_cycles = 0
         self.waiting_for_estimate_cycles = 0

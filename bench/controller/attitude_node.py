@@ -38,6 +38,7 @@ from bench.controller import fdir
 from bench.controller.mtq_link import LockStepLink, MagnetorquerLink
 from bench.controller.newest import NewestEstimate
 from bench.runtime.node import NodeContext
+from bench.runtime.time_model import TimeModel
 
 
 class DipoleSender:
@@ -86,7 +87,7 @@ def command_send_timeout_s(scenario) -> float:
     dipole and the run left the in-process loop."""
     if scenario.can is None:
         return 0.0
-    if scenario.run.mode == "lock-step":
+    if TimeModel.of(scenario).lock_step:
         return scenario.run.command_timeout_s
     return 5 * scenario.can.driver.command_period_s
 
@@ -102,7 +103,7 @@ def run(ctx: NodeContext) -> int:
         sender = DipoleSender(link)
     send_timeout_s = command_send_timeout_s(scenario)
     estimates = ctx.subscribe_queue(keys.ESTIMATE_ATTITUDE, AttitudeEstimate)
-    newest = NewestEstimate(scenario.run.mode == "real-time")
+    newest = NewestEstimate(ctx.time_model)
     follower = None
     if scenario.attitude_control.law in PLANNED_LAWS:
         from bench.controller.plan_tracking import PlanFollower

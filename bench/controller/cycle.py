@@ -14,6 +14,7 @@ from bench.controller.deadline import DeadlineMonitor, StressInjector, lqr_fallb
 from bench.controller.thrust import ThrustLaw
 from bench.runtime.deadline import CycleOutcome
 from bench.runtime.priority import raise_realtime_priority, thread_realtime_priority
+from bench.runtime.time_model import TimeModel
 from bench.runtime.solver_worker import WorkerLaw
 from bench.scenario import Scenario
 
@@ -27,7 +28,8 @@ class ControlCycle:
     serves); lock-step mode runs it in-process, where the plant waits for every command anyway."""
 
     def __init__(self, scenario: Scenario):
-        real_time = scenario.run.mode == "real-time"
+        # Real time: the law runs in a solver worker process under the deadline (bench/runtime/time_model.py).
+        real_time = TimeModel.of(scenario).deadlines_apply
         self.law = ThrustLaw(scenario, in_process=not real_time)
         deadline = scenario.controller.deadline
         lqr_law = (lqr_fallback_law(scenario.controller, self.law.params)

@@ -35,7 +35,7 @@ def run(ctx: NodeContext) -> int:
     if mtq is not None:
         mtq.start()
     estimates = ctx.subscribe_queue(keys.ESTIMATE_TRANSLATION, TranslationEstimate)
-    newest = NewestEstimate(ctx.scenario.run.mode == "real-time")
+    newest = NewestEstimate(ctx.time_model)
     ctx.declare_publisher(keys.EVENT_DEADLINE)
     ctx.declare_ready([keys.COMMAND_THRUST])
     for estimate in ctx.until_stopped(estimates):

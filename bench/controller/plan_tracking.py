@@ -152,7 +152,9 @@ class PlanFollower:
     def __init__(self, ctx, law: PlanTrackingLaw):
         self.ctx, self.law = ctx, law
         self.settings = ctx.scenario.attitude_control.planner
-        self.lock_step = ctx.scenario.run.mode == "lock-step"
+        # Lock-step waits for a plan that is due (the planner takes every estimate: it is on its
+        # way); real time tracks the newest plan in (bench/runtime/time_model.py).
+        self.waits_for_due_plan = ctx.time_model.takes_every_message
         self.inbox = PlanInbox()
         self.waits_timed_out = 0
         self._said_waiting = False
@@ -165,7 +167,7 @@ class PlanFollower:
             self.ctx.log.warning("plan message %d ignored: %s", message.header.seq, refused)
 
     def before_cycle(self, seq: int, time_s: float, valid: bool, q_wxyz) -> None:
-        if self.lock_step:
+        if self.waits_for_due_plan:
             if replan_reason(time_s, valid, q_wxyz, self.law.plan, self.settings) is not None:
                 plan = self.inbox.wait_for(seq, self.settings.plan_wait_timeout_s, self.ctx.stop)
                 if plan is None:

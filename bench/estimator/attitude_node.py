@@ -22,10 +22,11 @@ from bench.estimator.attitude_frontend import AttitudeEstimator
 from bench.estimator.attitude_sensors import SensorInbox, SensorSchedule
 from bench.runtime.node import STOP_POLL_S, NodeContext
 
-# How long a sample the schedule promises is awaited once its tick's gyro is in. The plant
-# publishes it before the gyro and one subscriber keeps that order, so it is normally there already;
-# lock-step waits long (a late sample would change the run), real time a sliver of the 0.1 s tick.
-SCHEDULED_SAMPLE_WAIT_S = {"lock-step": 1.0, "real-time": 0.005}
+# In real time, how long a sample the schedule promises is awaited once its tick's gyro is in: a
+# sliver of the 0.1 s tick. The plant publishes it before the gyro and one subscriber keeps that
+# order, so it is normally there already; lock-step waits as for any promised message
+# (bench/runtime/time_model.py: a late sample would change the run).
+REAL_TIME_SAMPLE_WAIT_S = 0.005
 
 
 def run(ctx: NodeContext) -> int:
@@ -34,7 +35,7 @@ def run(ctx: NodeContext) -> int:
         return _run_truth(ctx, estimator)
     scenario = ctx.scenario
     inbox = SensorInbox(SensorSchedule.from_sensors(scenario.attitude.sensors), scenario.n_steps, scenario.step_s,
-                        SCHEDULED_SAMPLE_WAIT_S[scenario.run.mode], ctx.malformed, ctx.log)
+                        ctx.time_model.promised_wait_s(REAL_TIME_SAMPLE_WAIT_S), ctx.malformed, ctx.log)
     # One subscriber for the three: it keeps the plant's publishing order (the gyro last in a tick).
     ctx.subscribe_topics("sense/*", {keys.SENSE_GYRO: GyroSample, keys.SENSE_MAG: MagnetometerSample,
                                      keys.SENSE_STAR: StarTrackerSample}, inbox.add)

@@ -21,9 +21,6 @@ from bench.bus.schemas import RangeBearing, RelativePosition, ThrustCommand, Tra
 from bench.estimator.frontend import StateEstimator
 from bench.runtime.node import NodeContext
 
-# How long to wait for command k-1 once fix k is in. In lock-step it was sent before fix k was
-# taken, so it is in flight; in real-time a missing command means the plant held the last one.
-COMMAND_WAIT_S = {"lock-step": 2.0, "real-time": 0.0}
 
 
 class CommandHistory:
@@ -65,7 +62,9 @@ def run(ctx: NodeContext) -> int:
     else:
         samples = ctx.subscribe_queue(keys.SENSE_RELPOS, RelativePosition)
         history = CommandHistory(ctx.subscribe_queue(keys.COMMAND_THRUST, ThrustCommand))
-    command_wait_s = COMMAND_WAIT_S[scenario.run.mode]
+    # How long to wait for command k-1 once fix k is in: in lock-step it was sent before fix k was
+    # taken, so it is on its way; in real time one not in yet means the plant held the last one.
+    command_wait_s = ctx.time_model.promised_wait_s(real_time_s=0.0)
     ctx.declare_ready([keys.ESTIMATE_TRANSLATION])
     for sample in ctx.until_stopped(samples):
         hdr = sample.header.stamped("estimator_received", time.monotonic_ns())

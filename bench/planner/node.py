@@ -19,38 +19,25 @@ Planning takes seconds; the controller keeps tracking the previous plan (or its 
 from __future__ import annotations
 
 import json
-import queue
 import time
 
 from bench.bus import keys
 from bench.bus.schemas import AttitudeEstimate
 from bench.bus.plan_message import to_message
 from bench.controller.deadline import StressInjector
+from bench.controller.newest import NewestEstimate
 from bench.planner.planner import AttitudePlanner
 from bench.runtime.node import NodeContext
 
 
-def _newest(first: AttitudeEstimate, estimates: "queue.Queue[AttitudeEstimate]") -> tuple[AttitudeEstimate, int]:
-    newest, skipped = first, 0
-    while True:
-        try:
-            newest = estimates.get_nowait()
-            skipped += 1
-        except queue.Empty:
-            return newest, skipped
-
-
 def run(ctx: NodeContext) -> int:
     planner = AttitudePlanner(ctx.scenario)
-    realtime = ctx.scenario.run.mode == "real-time"
     estimates = ctx.subscribe_queue(keys.ESTIMATE_ATTITUDE, AttitudeEstimate)
+    newest = NewestEstimate(ctx.time_model)
     ctx.declare_ready([keys.PLAN_ATTITUDE])
-    skipped_total = 0
     stress = StressInjector(ctx.scenario.controller.deadline.stress, "planner")
     for estimate in ctx.until_stopped(estimates):
-        if realtime:
-            estimate, skipped = _newest(estimate, estimates)
-            skipped_total += skipped
+        estimate = newest.take(estimates, estimate)
         hdr = estimate.header.stamped("planner_received", time.monotonic_ns())
         reason = planner.due(hdr.sim_time_s, estimate.valid, estimate.q_wxyz)
         if reason is None:
@@ -69,7 +56,7 @@ def run(ctx: NodeContext) -> int:
                      "iterations in %.2f s", plan.plan_id, reason, plan.start_time_s, plan.steps, plan.dt_s,
                      info["horizon_s"], info["gramian_condition_number"], info["stop_reason"], info["iterations"],
                      info["wall_time_s"])
-    summary = planner.summary() | {"stale_estimates_skipped": skipped_total,
+    summary = planner.summary() | {"stale_estimates_skipped": newest.skipped,
                                    "stress_injected_plans": len(stress.injected_cycles)}
     (ctx.run_dir / "planner.json").write_text(json.dumps(summary, indent=2))
     return 0

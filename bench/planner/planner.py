@@ -24,6 +24,7 @@ from bench.gnc import quaternion as qt
 from bench.gnc.attitude_tracking import AttitudePlan
 from bench.gnc.milqr import MilqrOptions
 from bench.planner.plan import PlannerConfig, plan_from_estimate
+from bench.runtime.time_model import TimeModel
 from bench.scenario import Scenario
 
 def inertial_target_wxyz(scenario: Scenario) -> np.ndarray:
@@ -36,7 +37,7 @@ def inertial_target_wxyz(scenario: Scenario) -> np.ndarray:
 
 def planner_config(scenario: Scenario) -> PlannerConfig:
     s = scenario.attitude_control.planner
-    wall_s = s.max_planning_wall_s if scenario.run.mode == "real-time" else np.inf
+    wall_s = s.max_planning_wall_s if TimeModel.of(scenario).deadlines_apply else np.inf
     return PlannerConfig(
         inertia_kgm2=believed_inertia(scenario), dipole_limit_am2=dipole_limit_am2(scenario), dt_s=s.plan_step_s,
         gramian_condition_tolerance=s.gramian_condition_tolerance, max_horizon_s=s.max_horizon_s,

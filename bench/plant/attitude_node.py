@@ -184,7 +184,7 @@ def _listen_to_external_board(ctx: NodeContext, reports: BoardReports):
     bus = open_bus(config.bus_spec("driver"), run_id=ctx.run_id, session=ctx.session)
     # Lock-step pairs each step with the board's acknowledgement of its command; real time holds
     # the coils' reported dipole.
-    source = "setpoint" if ctx.scenario.run.mode == "lock-step" else "dipole"
+    source = "setpoint" if ctx.time_model.lock_step else "dipole"
     telemetry = BoardTelemetry(bus, config.protocol(), ctx.run_id, reports.add, config.driver.max_delta_counter,
                                source=source)
     telemetry.start()

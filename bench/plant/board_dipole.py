@@ -232,7 +232,7 @@ def board_dipole_source(ctx: NodeContext, command_gate: CommandGate, acceptance:
                         external_board=None) -> ReportOfCommand | ReportOfStep | HeldReport:
     """The run's source of the applied dipole (the module docstring); command_gate: the plant's
     output stage of dipole commands (a lock-step run ends when it refused every one of a step's)."""
-    if ctx.scenario.run.mode == "real-time":
+    if not ctx.time_model.lock_step:
         return HeldReport(ctx, acceptance, reports, log)
     if bus_on_simulated_time(ctx.scenario):
         return ReportOfStep(ctx, command_gate, acceptance, reports, log)

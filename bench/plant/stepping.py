@@ -18,6 +18,7 @@ from bench.bus.spill import StepColumn
 from bench.plant.acceptance import CommandGate
 from bench.runtime.deadline import PlantCommandDeadline
 from bench.runtime.node import NodeContext
+from bench.runtime.time_model import TimeModel
 
 
 # A wait of the plant this long is reported to the launcher (a StepDone with `waiting`), once per
@@ -126,10 +127,10 @@ class LockStepClock:
 
 
 def step_clock(scenario) -> "LockStepClock | RealTimeClock":
-    """The plant's clock for the scenario's [run] mode: the one place a plant reads the mode."""
-    if scenario.run.mode == "real-time":
-        return RealTimeClock(scenario.step_s / scenario.run.time_factor)
-    return LockStepClock(scenario.run.command_timeout_s)
+    """The plant's clock for the run's time model (bench/runtime/time_model.py)."""
+    if TimeModel.of(scenario).lock_step:
+        return LockStepClock(scenario.run.command_timeout_s)
+    return RealTimeClock(scenario.step_s / scenario.run.time_factor)
 
 
 class RealTimeClock:

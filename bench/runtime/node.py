@@ -39,6 +39,7 @@ from bench.bus.session import SessionOptions, open_session
 from bench.runtime.hop_trace import HopTrace, TracedQueue, from_environment as hop_trace_from_environment
 from bench.runtime.ownership import die_with_launcher
 from bench.runtime.priority import node_realtime_priority, set_realtime_priority
+from bench.runtime.time_model import TimeModel
 from bench.runtime.reports import SIGNED_TYPES, key_from_environment, sign
 from bench.scenario import Scenario
 
@@ -107,6 +108,11 @@ class NodeContext:
     # benchmarks/bench_hop_trace.py: each message's stamps through publish, Zenoh and the hand-off
     # (bench/runtime/hop_trace.py); None, the default: nothing is stamped.
     hop_trace: HopTrace | None = field(default_factory=hop_trace_from_environment)
+
+    @property
+    def time_model(self) -> TimeModel:
+        """What the run's time model asks of this node (bench/runtime/time_model.py)."""
+        return TimeModel.of(self.scenario)
 
     # --- publishing -----------------------------------------------------------------------
     def publish(self, topic: str, message: Message) -> None:
