@@ -16,13 +16,14 @@ the Zenoh callback, before it is queued, and counted per topic and reason in the
 The budgets are ten times what the bench's own loop publishes in lock-step on this machine, so a
 run of the bench never loses a sample to them.
 
-The recording is assembled at the end, off the loop's hot path. During the run, Zenoh's callback
-only copies each admitted sample's bytes with its arrival time into a queue, and the node's thread
-moves them every DRAIN_PERIOD_S into a spool file (an unlinked temporary file in the run
-directory: memory stays flat); checking MACs, classifying, encoding JSON and writing the MCAP wait
-for the stop, in arrival order. In lock-step a recorder that did that work as the samples came
-competed with the loop's processes for the two cores at every hop (benchmarks/bench_loop.py,
-docs/performance.md). The price: a recorder killed before its stop leaves no recording.
+The recording is assembled off the loop's hot path. During the run, Zenoh's callback only copies
+each admitted sample's bytes with its arrival time into a queue, and the node's thread moves them
+every DRAIN_PERIOD_S into a spool file (an unlinked temporary file in the run directory: memory
+stays flat); checking MACs, classifying, encoding JSON and writing the MCAP wait until the spool
+holds ASSEMBLE_AT_SAMPLES, and for the stop, in arrival order. In lock-step a recorder that did
+that work as each sample came competed with the loop's processes for the two cores at every hop
+(benchmarks/bench_loop.py, docs/performance.md). A recorder killed mid-run loses what it had spooled
+and not yet written (at most ASSEMBLE_AT_SAMPLES samples).
 
 Time (`SimTimeBase`): a message's MCAP log time is the run's simulated time, so a viewer's timeline
 is the mission's (a 48 h rendezvous spans 48 h): the sim_time_s of its header, counted from the
@@ -86,6 +87,11 @@ CLOCK_SYNC_EARLY_FOR_S = 3.0
 # The node's thread wakes this often and spools everything queued since, rather than once per
 # sample: on a small machine each wake-up of the recorder competes with the loop's processes for a core.
 DRAIN_PERIOD_S = 0.2
+# The spool is recorded (MACs, classification, MCAP) once it holds this many samples, and at the
+# stop: a run of up to this many samples (a 2000-step lock-step rendezvous publishes 14 000) is
+# recorded only at its stop, a long one in bursts of about 1-2 s of the recorder's CPU, and the
+# stop never has more than that left to do within the launcher's grace (5 s, bench/launcher/children.py).
+ASSEMBLE_AT_SAMPLES = 50_000
 
 # Messages whose header has no simulated time of the loop: the shutdown counts, the board's
 # report (the board sees CAN frames, not steps; its header carries 0.0), and what the driver
@@ -454,7 +460,8 @@ class Recorder:
         self.arrived += 1
 
     def drain(self, timeout_s: float) -> None:
-        """Spool every queued sample, waiting up to timeout_s for the first one."""
+        """Spool every queued sample, waiting up to timeout_s for the first one; record the spool
+        once it holds ASSEMBLE_AT_SAMPLES."""
         try:
             item = self.samples.get(timeout=timeout_s) if timeout_s > 0 else self.samples.get_nowait()
         except queue.Empty:
@@ -464,12 +471,14 @@ class Recorder:
             try:
                 item = self.samples.get_nowait()
             except queue.Empty:
-                return
+                break
+        if len(self.spool) >= ASSEMBLE_AT_SAMPLES:
+            self._assemble()
 
     def _assemble(self) -> None:
-        """The MCAP from the spool, in arrival order: MACs checked (a replay is a counter seen
-        before, so the order matters), samples classified and written."""
-        for key_expr, payload, attachment, received_ns in self.spool:
+        """The spooled samples into the MCAP, in arrival order: MACs checked (a replay is a counter
+        seen before, so the order matters), samples classified and written."""
+        for key_expr, payload, attachment, received_ns in self.spool.take():
             topic = topic_of(key_expr, self.ctx.run_id)
             unauthentic = sender = None
             if self.verifier is not None and not topic.startswith(CAN_TOPIC + "/"):

@@ -4,12 +4,13 @@ as they arrived, until the recording is assembled at the stop."""
 from __future__ import annotations
 
 import struct
+import tempfile
 import threading
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Iterator
 
-from bench.bus.spill import SpilledRecords
 
 # Budgets (bench/recorder.py's docstring). The default loop publishes ~2 000 samples/s per topic of
 # ~0.5 kB in lock-step (README, loop rate); a saturated 1 Mbit/s CAN bus is ~7 900 frames/s.
@@ -83,34 +84,39 @@ class RecordingBudget:
 
 class SampleSpool:
     """The samples of a run as they arrived (key expression, payload, MAC attachment, arrival wall
-    time), on disk until the recording is assembled from them."""
+    time), on disk (an unlinked file) until the recording takes them."""
 
     _HEAD = struct.Struct("<IIiq")     # key length, payload length, attachment length (-1: none), arrival ns
 
     def __init__(self, directory: Path):
-        self._records = SpilledRecords(self._encode, directory)
-
-    @classmethod
-    def _encode(cls, sample: tuple[str, bytes, bytes | None, int]) -> bytes:
-        key_expr, payload, attachment, received_ns = sample
-        key = key_expr.encode()
-        head = cls._HEAD.pack(len(key), len(payload), -1 if attachment is None else len(attachment), received_ns)
-        return b"".join((head, key, payload, attachment or b""))
+        self._file = tempfile.TemporaryFile(prefix="bench-spool-", dir=directory)
+        self._count = 0
 
     def append(self, sample: tuple[str, bytes, bytes | None, int]) -> None:
-        self._records.append(sample)
+        key_expr, payload, attachment, received_ns = sample
+        key = key_expr.encode()
+        head = self._HEAD.pack(len(key), len(payload), -1 if attachment is None else len(attachment), received_ns)
+        self._file.write(b"".join((head, key, payload, attachment or b"")))
+        self._count += 1
 
-    def __iter__(self):
-        """(key expression, payload, attachment, arrival ns), in arrival order."""
-        for record in self._records:
-            data = record.data
-            key_len, payload_len, attachment_len, received_ns = self._HEAD.unpack_from(data)
-            at = self._HEAD.size
-            key_expr = data[at:at + key_len].decode()
-            at += key_len
-            payload = data[at:at + payload_len]
-            attachment = None if attachment_len < 0 else data[at + payload_len:at + payload_len + attachment_len]
+    def __len__(self) -> int:
+        """Samples waiting to be taken."""
+        return self._count
+
+    def take(self) -> Iterator[tuple[str, bytes, bytes | None, int]]:
+        """Every waiting sample, in arrival order, as (key expression, payload, attachment, arrival
+        ns); the spool is empty afterwards (read it to its end)."""
+        self._file.flush()
+        self._file.seek(0)
+        for _ in range(self._count):
+            key_len, payload_len, attachment_len, received_ns = self._HEAD.unpack(self._file.read(self._HEAD.size))
+            key_expr = self._file.read(key_len).decode()
+            payload = self._file.read(payload_len)
+            attachment = None if attachment_len < 0 else self._file.read(attachment_len)
             yield key_expr, payload, attachment, received_ns
+        self._file.seek(0)
+        self._file.truncate()
+        self._count = 0
 
     def close(self) -> None:
-        self._records.close()
+        self._file.close()

@@ -91,8 +91,11 @@ def test_the_recorder_spool_gives_back_each_sample_as_it_took_it(tmp_path):
     spool = SampleSpool(tmp_path)
     for sample in samples:
         spool.append(sample)
-    assert list(spool) == samples
-    assert list(spool) == samples     # read again: the same
+    assert len(spool) == 3
+    assert list(spool.take()) == samples
+    assert len(spool) == 0 and list(spool.take()) == []     # taken once
+    spool.append(samples[1])
+    assert list(spool.take()) == [samples[1]]
     spool.close()
 
 

@@ -211,3 +211,28 @@ def test_unauthentic_samples_are_counted_apart_and_their_stats_not_taken(tmp_pat
     assert counts["topics"][stats_topic]["unauthentic"] == {FORGED: 1}
     channels = sorted({channel.topic for _, channel, _ in read_back(tmp_path / RECORDING_FILE)})
     assert channels == [stats_topic, UNAUTHENTIC_PREFIX + keys.COMMAND_THRUST, UNAUTHENTIC_PREFIX + stats_topic]
+
+
+def test_a_long_run_is_recorded_in_bursts_while_a_short_one_waits_for_the_stop(tmp_path, monkeypatch):
+    """The spool is written into the recording once it holds ASSEMBLE_AT_SAMPLES (here 10), so a
+    long run never leaves more than that for the stop; below it nothing is written during the run."""
+    import bench.recorder as recorder_module
+
+    monkeypatch.setattr(recorder_module, "ASSEMBLE_AT_SAMPLES", 10)
+    with session_pair() as (recorder_session, publisher_session):
+        recorder = Recorder(node_context("recorder", RUN_ID, recorder_session, tmp_path))
+        publisher = node_context("plant", RUN_ID, publisher_session, tmp_path)
+        publisher.declare_ready([keys.TRUTH, keys.SENSE_RELPOS, keys.COMMAND_THRUST])
+        hdr = header(RUN_ID, 0, 0.0)
+        for _ in range(3):
+            publisher.publish(keys.TRUTH, TruthState(hdr, [0.0] * 6, [0.0] * 3))
+        wait_until(lambda: recorder.arrived == 3)
+        recorder.drain(0.0)
+        assert sum(recorder.recording.recorded.values()) == 0 and len(recorder.spool) == 3   # waits for the stop
+        sent = 3 + publish_loop_samples(publisher)
+        wait_until(lambda: recorder.arrived == sent)
+        recorder.drain(0.0)
+        assert sum(recorder.recording.recorded.values()) == sent and len(recorder.spool) == 0
+        counts = recorder.finish()
+    assert counts["topics"][keys.TRUTH]["recorded"] == 3 + N_STEPS
+    assert len(read_back(tmp_path / RECORDING_FILE)) == sent
