@@ -1,6 +1,7 @@
 """The board check's bound on a frame's age on arrival (bench.contract_check.late_arrivals), on made-up
 timelines: a stale refusal the host can explain is excused, one it cannot is the board's."""
 import numpy as np
+import pytest
 
 from bench.bus.can import protocol as p
 from bench.contract_check.board_check import BoardCheck
@@ -137,3 +138,23 @@ def test_the_check_blames_the_board_for_refusing_a_fresh_command():
                check.problems), check.problems
     assert any("EMCY for genuine commands: 0x8100 STALE counter 4, 0x8100 OK_SOME_LOST counter 5" in problem
                for problem in check.problems), check.problems
+
+
+def setpoint(t_s: float, am2) -> Heard:
+    return Heard(t_s, p.TLM_SETPOINT, {f"Setpoint{a}": v for a, v in zip(p.AXES, am2)}, None, True)
+
+
+def test_a_hold_settles_from_when_the_board_echoed_its_set_point_if_that_came_late():
+    contract = BoardContract.of(board_scenario(None).can, 0.03, None, real_time_only=False)
+    off, previous = np.zeros(3), np.array([0.1, -0.1, 0.05])
+    start, end = 10.0, 10.25
+    # The hold's first frames held up on this host: the board echoes the new set-point 60 ms in.
+    heard = [setpoint(10.002, previous), setpoint(10.060, off), setpoint(10.080, off)]
+    check = BoardCheck(_Recorded([], heard), contract, started_by_check=True)
+    assert check.settled_from_s(start, end, off) == pytest.approx(10.060 + contract.settle_s)
+    # Echoed at once: settle_s after the hold's start, as without an echo.
+    check = BoardCheck(_Recorded([], [setpoint(start, off)]), contract, started_by_check=True)
+    assert check.settled_from_s(start, end, off) == pytest.approx(start + contract.settle_s)
+    no_echo = BoardContract.of(board_scenario(None).can, 0.03, None, real_time_only=True)
+    check = BoardCheck(_Recorded([], heard), no_echo, started_by_check=True)
+    assert check.settled_from_s(start, end, off) == pytest.approx(start + no_echo.settle_s)

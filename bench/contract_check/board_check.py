@@ -162,7 +162,7 @@ class BoardCheck(CheckRecord):
             end = time.monotonic()
             sent = [s for s in f.sent if s.kind == "command" and start <= s.t_s < end]
             expected, saturated = sent[-1].expected_am2, sent[-1].saturated
-            settled = f.frames(p.TLM_DIPOLE, start + c.settle_s, end)
+            settled = f.frames(p.TLM_DIPOLE, self.settled_from_s(start, end, expected), end)
             result = {"hold": name, "commanded_am2": [float(x) for x in dipole], "mode": mode,
                       "expected_am2": expected.tolist(), "expected_saturated": saturated, "telemetry_frames": len(settled)}
             results.append(result)
@@ -195,6 +195,20 @@ class BoardCheck(CheckRecord):
                         self.problem(f"commands: {name} {fmt(dipole)} A m^2: set-point echoed {fmt(echoed_am2(last))}, "
                                      f"the contract's {fmt(expected)} (DAC step {r:g}, each axis at most {m:g} A m^2)")
         self.measured["commands"] = results
+
+    def settled_from_s(self, start_s: float, end_s: float, expected_am2: np.ndarray) -> float:
+        """When a hold's coils have settled: settle_s after its first command, or, if the board
+        echoes its set-point, settle_s after the first echo of this hold's set-point, if that is
+        later. On a loaded host the hold's first frames may reach the board late (they wait in this
+        host's queues), and the coils follow the command from when the board took it."""
+        c = self.contract
+        settled_s = start_s + c.settle_s
+        if c.setpoint_echo:
+            first = next((h for h in self.flight.frames(p.TLM_SETPOINT, start_s, end_s)
+                          if np.max(np.abs(echoed_am2(h) - expected_am2)) <= 0.5e-4), None)
+            if first is not None:
+                settled_s = max(settled_s, first.t_s + c.settle_s)
+        return settled_s
 
     def refusals(self) -> None:
         c, f = self.contract, self.flight
