@@ -1,16 +1,17 @@
 """What the recorder takes in during a run: the budget that admits a sample (anyone on the bus
 can publish under the run's keys, bench/recorder.py) and the spool that keeps the admitted ones,
-as they arrived, until the recording is assembled at the stop."""
+as they arrived, until the recorder writes them into the recording (bench/recorder.py: in bursts and
+at the stop)."""
 from __future__ import annotations
 
 import struct
-import tempfile
 import threading
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator
 
+from bench.bus.spill import SpilledRecords
 
 # Budgets (bench/recorder.py's docstring). The default loop publishes ~2 000 samples/s per topic of
 # ~0.5 kB in lock-step (README, loop rate); a saturated 1 Mbit/s CAN bus is ~7 900 frames/s.
@@ -84,39 +85,37 @@ class RecordingBudget:
 
 class SampleSpool:
     """The samples of a run as they arrived (key expression, payload, MAC attachment, arrival wall
-    time), on disk (an unlinked file) until the recording takes them."""
+    time), on disk (bench/bus/spill.py) until the recording takes them."""
 
     _HEAD = struct.Struct("<IIiq")     # key length, payload length, attachment length (-1: none), arrival ns
 
     def __init__(self, directory: Path):
-        self._file = tempfile.TemporaryFile(prefix="bench-spool-", dir=directory)
-        self._count = 0
+        self._records = SpilledRecords(self._encode, directory)
 
-    def append(self, sample: tuple[str, bytes, bytes | None, int]) -> None:
+    @classmethod
+    def _encode(cls, sample: tuple[str, bytes, bytes | None, int]) -> bytes:
         key_expr, payload, attachment, received_ns = sample
         key = key_expr.encode()
-        head = self._HEAD.pack(len(key), len(payload), -1 if attachment is None else len(attachment), received_ns)
-        self._file.write(b"".join((head, key, payload, attachment or b"")))
-        self._count += 1
+        head = cls._HEAD.pack(len(key), len(payload), -1 if attachment is None else len(attachment), received_ns)
+        return b"".join((head, key, payload, attachment or b""))
+
+    def append(self, sample: tuple[str, bytes, bytes | None, int]) -> None:
+        self._records.append(sample)
 
     def __len__(self) -> int:
         """Samples waiting to be taken."""
-        return self._count
+        return len(self._records)
 
     def take(self) -> Iterator[tuple[str, bytes, bytes | None, int]]:
         """Every waiting sample, in arrival order, as (key expression, payload, attachment, arrival
         ns); the spool is empty afterwards (read it to its end)."""
-        self._file.flush()
-        self._file.seek(0)
-        for _ in range(self._count):
-            key_len, payload_len, attachment_len, received_ns = self._HEAD.unpack(self._file.read(self._HEAD.size))
-            key_expr = self._file.read(key_len).decode()
-            payload = self._file.read(payload_len)
-            attachment = None if attachment_len < 0 else self._file.read(attachment_len)
-            yield key_expr, payload, attachment, received_ns
-        self._file.seek(0)
-        self._file.truncate()
-        self._count = 0
+        for record in self._records:
+            data = record.data
+            key_len, payload_len, attachment_len, received_ns = self._HEAD.unpack_from(data)
+            at = self._HEAD.size + key_len
+            attachment = None if attachment_len < 0 else data[at + payload_len:at + payload_len + attachment_len]
+            yield data[self._HEAD.size:at].decode(), data[at:at + payload_len], attachment, received_ns
+        self._records.clear()
 
     def close(self) -> None:
-        self._file.close()
+        self._records.close()

@@ -190,6 +190,12 @@ class SpilledRecords:
         finally:
             self._file.seek(0, os.SEEK_END)
 
+    def clear(self) -> None:
+        """Forget every record (the file is emptied)."""
+        self._file.seek(0)
+        self._file.truncate()
+        self._count = 0
+
     def close(self) -> None:
         self._file.close()
 

@@ -22,7 +22,6 @@ from bench.estimator.frontend import StateEstimator
 from bench.runtime.node import NodeContext
 
 
-
 class CommandHistory:
     """Thrust commanded per step, from the controller's published commands."""
 
