@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import threading
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -112,28 +113,26 @@ class AppliedLog:
         self.board_applied_ns = StepColumn(n_steps, (), np.int64, -1)   # board set its coils (sense-to-torque)
         self.command_received_ns = StepColumn(n_steps, (), np.int64, -1)  # step k's command in (on time in real time)
 
+@dataclass
 class ReportOfCommand:
     """Lock-step on the wall clock: the board's report of the frame that carried step k's command.
     external_board: the BoardTelemetry of an external board (its echoes are the reports)."""
 
-    def __init__(self, ctx: NodeContext, command_gate: CommandGate, acceptance: DipoleAcceptance,
-                 reports: BoardReports, log: AppliedLog, external_board=None):
-        self.ctx, self.command_gate, self.acceptance, self.reports, self.log = ctx, command_gate, acceptance, reports, log
-        self.external_board = external_board
+    ctx: NodeContext
+    command_gate: CommandGate
+    acceptance: DipoleAcceptance
+    reports: BoardReports
+    log: AppliedLog
+    external_board: object | None = None
 
     def for_step(self, k: int, command: DipoleCommand | None, since_ns: int) -> tuple[np.ndarray, MtqApplied | None]:
         """since_ns: reports received from then on (the previous step's integration) can be this step's."""
         command = _every_step_commanded(command, k, self.command_gate)
         self.reports.on_wait = WaitReport(self.ctx, k, keys.ACTUATOR_MTQ).poll   # the launcher hears of a long wait
-        scenario, acceptance, reports, log, external_board = (self.ctx.scenario, self.acceptance, self.reports,
-                                                              self.log, self.external_board)
-        log.commanded[k] = command.dipole_am2
-        log.counter[k] = command.alive_counter
+        scenario, acceptance, log, external_board = self.ctx.scenario, self.acceptance, self.log, self.external_board
+        _log_command(log, k, command)
         if scenario.can is None:
-            dipole, reason = acceptance.accept(board_dipole_without_bus(command.dipole_am2, None), None)
-            log.reported[k] = dipole
-            log.refused[k] = reason is not None
-            return dipole, None
+            return _through_board_model(acceptance, log, k, command.dipole_am2)
         report = None
         if command.alive_counter >= 0:
             expected = board_dipole_without_bus(command.dipole_am2, scenario.can)
@@ -142,14 +141,14 @@ class ReportOfCommand:
                 from bench.plant.board_telemetry import as_echoed
 
                 expected = as_echoed(external_board.protocol, expected)
-            report = reports.wait_for_report(command.alive_counter, expected, since_ns, exact_wait_s,
-                                             acknowledgements_only=external_board is not None)
+            report = self.reports.wait_for_report(command.alive_counter, expected, since_ns, exact_wait_s,
+                                                  acknowledgements_only=external_board is not None)
             if report is None and external_board is not None and not external_board.reports:
                 raise LoopBroken(_no_echo_message(external_board, k, exact_wait_s + REPORT_WAIT_S))
         if report is None:
             # No report of this command (never sent, or every frame lost for 2 s): coils as last
             # reported if that is current, else off. Counted as a refusal of the command.
-            latest = reports.latest
+            latest = self.reports.latest
             report = latest[1] if latest else None
             dipole, _ = acceptance.accept(report.dipole_am2, report.header.stamps_ns.get("applied")) if report else (np.zeros(3), None)
             acceptance.rejected["no_report"] += 1
@@ -162,23 +161,25 @@ class ReportOfCommand:
         return dipole, report
 
 
+@dataclass
 class ReportOfStep:
     """Lock-step on simulated time: the canbus process's report of the coils over step k."""
 
-    def __init__(self, ctx: NodeContext, command_gate: CommandGate, acceptance: DipoleAcceptance,
-                 reports: BoardReports, log: AppliedLog):
-        self.ctx, self.command_gate, self.acceptance, self.reports, self.log = ctx, command_gate, acceptance, reports, log
+    ctx: NodeContext
+    command_gate: CommandGate
+    acceptance: DipoleAcceptance
+    reports: BoardReports
+    log: AppliedLog
 
     def for_step(self, k: int, command: DipoleCommand | None, since_ns: int) -> tuple[np.ndarray, MtqApplied | None]:
         command = _every_step_commanded(command, k, self.command_gate)
         self.reports.on_wait = WaitReport(self.ctx, k, keys.ACTUATOR_MTQ).poll
-        scenario, acceptance, reports, log = self.ctx.scenario, self.acceptance, self.reports, self.log
-        log.commanded[k] = command.dipole_am2
-        log.counter[k] = command.alive_counter
-        report = reports.wait_for_step(k, scenario.run.command_timeout_s)
+        timeout_s, log = self.ctx.scenario.run.command_timeout_s, self.log
+        _log_command(log, k, command)
+        report = self.reports.wait_for_step(k, timeout_s)
         if report is None:
-            raise LoopBroken(f"step {k}: no report of the coils from the CAN bus within {scenario.run.command_timeout_s:g} s")
-        dipole, reason = acceptance.accept(report.dipole_am2, None)
+            raise LoopBroken(f"step {k}: no report of the coils from the CAN bus within {timeout_s:g} s")
+        dipole, reason = self.acceptance.accept(report.dipole_am2, None)
         # The step's command not applied (lost, rejected, the board in safe state): what the coils did
         # is still what the plant gets, and the step counts as refused.
         log.refused[k] = reason is not None or not report.command_applied
@@ -187,37 +188,47 @@ class ReportOfStep:
         return dipole, report
 
 
+@dataclass
 class HeldReport:
     """Real time: the board's latest report, held over the step; a late command (None) leaves the
     last one in force."""
 
-    def __init__(self, ctx: NodeContext, acceptance: DipoleAcceptance, reports: BoardReports, log: AppliedLog):
-        self.ctx, self.acceptance, self.reports, self.log = ctx, acceptance, reports, log
-        self.last_command: DipoleCommand | None = None
+    ctx: NodeContext
+    acceptance: DipoleAcceptance
+    reports: BoardReports
+    log: AppliedLog
+    last_command: DipoleCommand | None = None
 
     def for_step(self, k: int, command: DipoleCommand | None, since_ns: int) -> tuple[np.ndarray, MtqApplied | None]:
-        self.last_command = command or self.last_command
-        scenario, acceptance, reports, log, command = (self.ctx.scenario, self.acceptance, self.reports, self.log,
-                                                       self.last_command)
+        self.last_command = command = command or self.last_command
+        log = self.log
         if command is not None:
-            log.commanded[k] = command.dipole_am2
-            log.counter[k] = command.alive_counter
-        if scenario.can is None:
-            requested = command.dipole_am2 if command is not None else np.zeros(3)
-            dipole, reason = acceptance.accept(board_dipole_without_bus(requested, None), None)
-            log.reported[k] = dipole
-            log.refused[k] = reason is not None
-            return dipole, None
-        latest = reports.latest
+            _log_command(log, k, command)
+        if self.ctx.scenario.can is None:
+            return _through_board_model(self.acceptance, log, k, command.dipole_am2 if command is not None else np.zeros(3))
+        latest = self.reports.latest
         if latest is None:
             log.reported[k] = 0.0
             return np.zeros(3), None
         report = latest[1]
-        dipole, reason = acceptance.accept(report.dipole_am2, report.header.stamps_ns.get("applied", latest[0]))
+        dipole, reason = self.acceptance.accept(report.dipole_am2, report.header.stamps_ns.get("applied", latest[0]))
         log.refused[k] = reason is not None
         log.safe_state[k] = report.safe_state
         log.reported[k] = dipole
         return dipole, report
+
+
+def _log_command(log: AppliedLog, k: int, command: DipoleCommand) -> None:
+    log.commanded[k] = command.dipole_am2
+    log.counter[k] = command.alive_counter
+
+
+def _through_board_model(acceptance: DipoleAcceptance, log: AppliedLog, k: int, requested_am2) -> tuple[np.ndarray, None]:
+    """No [can] section: the requested dipole through the in-process board model."""
+    dipole, reason = acceptance.accept(board_dipole_without_bus(requested_am2, None), None)
+    log.reported[k] = dipole
+    log.refused[k] = reason is not None
+    return dipole, None
 
 
 def _every_step_commanded(command: DipoleCommand | None, k: int, command_gate: CommandGate) -> DipoleCommand:
