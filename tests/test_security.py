@@ -241,18 +241,27 @@ def _wait_port(port: int, timeout_s: float) -> None:
 
 class RogueCommander:
     """Answers every truth sample of step k with its own thrust command for step k, at once:
-    it wins the race against the real controller whenever its command is delivered. signer: the
-    run's data key (bench/bus/data_auth.py), for a rogue that could read the run's bus.key. It
-    stops after max_commands: a plant flown by it for hundreds of steps diverges and ends the run."""
+    it wins the race against the real controller whenever its command is delivered first. signer:
+    the run's data key (bench/bus/data_auth.py), for a rogue that could read the run's bus.key.
+    It stops once the plant has applied max_applied of its commands (it reads command/applied): a
+    plant flown by it for hundreds of steps diverges and ends the run. It counts what the plant
+    applied, not what it sent: a rogue held up by a loaded host answers truth samples the plant has
+    long passed, and once capped what it sent, it had given up before any of its commands could win
+    (the CI run of stop 51)."""
 
-    def __init__(self, session, run_id: str, signer=None, max_commands: int = 30):
-        self.session, self.run_id, self.sent, self.signer = session, run_id, 0, signer
-        self.max_commands = max_commands
+    def __init__(self, session, run_id: str, signer=None, max_applied: int = 30):
+        self.session, self.run_id, self.sent, self.applied, self.signer = session, run_id, 0, 0, signer
+        self.max_applied = max_applied
         self.publisher = session.declare_publisher(keys.key(run_id, keys.COMMAND_THRUST))
+        self.applied_subscriber = session.declare_subscriber(keys.key(run_id, keys.COMMAND_APPLIED), self._on_applied)
         self.subscriber = session.declare_subscriber(keys.key(run_id, keys.TRUTH), self._on_truth)
 
+    def _on_applied(self, sample) -> None:
+        if decode(sample.payload.to_bytes(), ThrustCommand).status == "rogue":
+            self.applied += 1
+
     def _on_truth(self, sample) -> None:
-        if self.sent >= self.max_commands:
+        if self.applied >= self.max_applied:
             return
         k = decode(sample.payload.to_bytes(), TruthState).header.seq
         payload = encode(ThrustCommand(header(self.run_id, k, 0.0), [0.9, -0.9, 0.9], True, "rogue", 0.0))
