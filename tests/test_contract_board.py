@@ -207,3 +207,44 @@ def test_an_nmt_frame_this_host_delivered_stale_is_sent_again_not_blamed_on_the_
     assert measured["late_on_arrival"]["nmt"] == 1
     assert "1 NMT frame(s)" in verdict.summary
     assert measured["heartbeat"]["states"][-2:] == ["boot-up", "pre-operational"]
+
+
+def test_a_board_this_host_froze_in_the_command_timeout_is_tried_again_not_failed(tmp_path, monkeypatch):
+    """The host stops the bench's board (SIGSTOP) for 0.2 s just after the check's last command,
+    as a loaded host can: its timeout EMCY comes 0.2 s late and its frames stop. The check sees the
+    board fall silent, repeats the command timeout, which then holds, and excuses the telemetry gap
+    the board's own lateness record explains; it passes, saying so (the negative: a board late on
+    its timeout while it keeps sending fails, test_a_broken_board_fails_the_check_naming_the_problem
+    [no-safe-state])."""
+    import os
+    import signal
+    import threading
+
+    from bench.contract_check.board_check import BoardCheck
+
+    frozen = []
+    attempt = BoardCheck._timeout_attempt
+
+    def freeze(pid: int) -> None:
+        os.kill(pid, signal.SIGSTOP)
+        time.sleep(0.2)
+        os.kill(pid, signal.SIGCONT)
+        frozen.append(pid)
+
+    def first_attempt_frozen(self):
+        if not frozen:
+            threading.Timer(0.03, freeze, (self.process.pid,)).start()
+        return attempt(self)
+
+    monkeypatch.setattr(BoardCheck, "_timeout_attempt", first_attempt_frozen)
+    verdict = run_board_check(board_scenario(None), "frozen", tmp_path / "check", _board_command(), None, None, None)
+    assert frozen
+    assert verdict.passed, verdict.text("board")
+    measured = json.loads((tmp_path / "check" / "contract_check.json").read_text())["measured"]
+    repeated = measured["command_timeout"]["repeated_attempts"]
+    assert len(repeated) == 1 and repeated[0]["held_up"].startswith("the board silent for ")
+    assert any("EMCY 0x8250" in problem for problem in repeated[0]["problems"])
+    assert measured["command_timeout"]["emcy_after_s"] <= measured["command_timeout"]["bound_s"]
+    gaps = measured.get("held_up_by_host", [])
+    assert all(g["gap_s"] - g["host_held_s"] <= 0.3 for g in gaps)
+    assert "held up by this host: command timeout repeated 1x (the board silent for" in verdict.summary

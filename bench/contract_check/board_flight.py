@@ -17,6 +17,7 @@ import numpy as np
 from bench.bus.can import protocol as p
 from bench.bus.can import secoc
 from bench.bus.can.config import CanConfig
+from bench.bus.can.wire_time import WireClock
 from bench.runtime.priority import set_realtime_priority
 
 NMT_NAMES = {p.NMT_BOOT_UP: "boot-up", p.NMT_STOPPED: "stopped", p.NMT_OPERATIONAL: "operational",
@@ -93,7 +94,7 @@ class BoardContract:
 # --- the flight side ----------------------------------------------------------------------------
 @dataclass
 class Heard:
-    t_s: float                 # arrival on the check's clock
+    t_s: float                 # on the wire, on the check's clock (its arrival if its stamp is another clock's)
     name: str | None           # DBC name; None: not a frame of the protocol
     signals: dict
     counter: int | None
@@ -126,6 +127,8 @@ class FlightSide:
         self.sent: list[Sent] = []
         self.heard: list[Heard] = []
         self.unknown = 0
+        self.stamped_on_arrival = 0   # frames whose stamp was not on this host's clock: timed on arrival
+        self._wire_clock = WireClock()
         self._lock = threading.Lock()
         self._capture = can.Logger(str(capture))
         self._stop = threading.Event()
@@ -143,14 +146,16 @@ class FlightSide:
                 return
             if msg is None:
                 continue
-            t_s = time.monotonic()
+            arrival_ns = time.monotonic_ns()
+            on_wire_ns = self._wire_clock.sent_ns(msg, arrival_ns)
             frame = self.reader.decode(msg)
             with self._lock:
+                self.stamped_on_arrival += on_wire_ns == arrival_ns
                 self._capture.on_message_received(msg)
                 if frame is None:
                     self.unknown += 1
                     continue
-                self.heard.append(Heard(t_s, frame.name, frame.signals, frame.counter, frame.crc_ok))
+                self.heard.append(Heard(on_wire_ns / 1e9, frame.name, frame.signals, frame.counter, frame.crc_ok))
 
     def close(self) -> None:
         self._stop.set()

@@ -33,6 +33,7 @@ from bench.bus.session import SessionOptions, free_loopback_port, loopback_endpo
 from bench.contract_check.board_check import BoardCheck
 from bench.contract_check.board_flight import BoardContract, FlightSide, ms
 from bench.contract_check.check import OUTSIDE_LOG, Verdict
+from bench.contract_check.host_stalls import StallWatch, board_records
 from bench.runtime.priority import set_realtime_priority
 from bench.scenario import Scenario, ScenarioError, load_scenario, parse_scenario
 
@@ -127,6 +128,7 @@ def run_board_check(scenario: Scenario, run_id: str, run_dir: Path, command: str
         spec = BusSpec(interface="zenoh", channel=board_channel)
     process = None
     flight = None
+    stalls = StallWatch()
     try:
         bus = open_bus(spec, run_id=run_id, session=session or bus_session)
         if priority:
@@ -138,7 +140,7 @@ def run_board_check(scenario: Scenario, run_id: str, run_dir: Path, command: str
         t_started_s = time.monotonic()
         # A board on the user's own channel without --command may be running already (no boot-up to see).
         check = BoardCheck(flight, contract, started_by_check=bool(command) or hub is not None,
-                           log_path=str(run_dir / "logs" / OUTSIDE_LOG))
+                           log_path=str(run_dir / "logs" / OUTSIDE_LOG), stalls=stalls)
         if command:
             argv = [a.format(connect=hub or "", run_id=run_id, scenario=str(scenario_path), run_dir=str(run_dir),
                              channel=board_channel) for a in shlex.split(command)]
@@ -149,23 +151,20 @@ def run_board_check(scenario: Scenario, run_id: str, run_dir: Path, command: str
                     check.problem(f"could not start the board ({' '.join(argv)}): {exc}")
         else:
             print(f"bench: waiting for the board: {where}", file=sys.stderr)
-        if not check.problems:
-            check.run(startup_timeout_s, t_started_s)
+        finished = not check.problems and check.run(startup_timeout_s, t_started_s)
         if (process is not None and process.poll() is not None
                 and not any("the board's command exited" in problem for problem in check.problems)):
             check.problem(f"the board's command exited with code {process.returncode} during the check "
                           f"(its output: {run_dir / 'logs' / OUTSIDE_LOG})")
+        _stop(process)                            # the bench's board writes how late its host held it
+        if finished:
+            check.throughout(board_records(run_dir))
     finally:
+        stalls.close()
         if flight is not None:
             flight.close()
             bus.shutdown()
-        if process is not None and process.poll() is None:
-            process.send_signal(signal.SIGTERM)     # the board the check started, by its handle
-            try:
-                process.wait(timeout=EXIT_TIMEOUT_S)
-            except subprocess.TimeoutExpired:
-                process.kill()
-                process.wait(timeout=EXIT_TIMEOUT_S)
+        _stop(process)
         if session is not None:
             session.close()
         if priority:
@@ -173,6 +172,18 @@ def run_board_check(scenario: Scenario, run_id: str, run_dir: Path, command: str
     verdict = Verdict(check.problems, summary(check, contract, spec, flight))
     write_board_verdict(run_dir, verdict, contract, check.measured)
     return verdict
+
+
+def _stop(process: subprocess.Popen | None) -> None:
+    """The board the check started, by its handle: SIGTERM, then SIGKILL."""
+    if process is None or process.poll() is not None:
+        return
+    process.send_signal(signal.SIGTERM)
+    try:
+        process.wait(timeout=EXIT_TIMEOUT_S)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.wait(timeout=EXIT_TIMEOUT_S)
 
 
 def summary(check: BoardCheck, c: BoardContract, spec: BusSpec, flight: FlightSide) -> str:
@@ -199,6 +210,13 @@ def summary(check: BoardCheck, c: BoardContract, spec: BusSpec, flight: FlightSi
     refused = [r["probe"] for r in m.get("refusals", []) if r["emcy_after_s"] is not None and not r["moved"]]
     if refused:
         parts.append(f"refused with EMCY 0x8100: {', '.join(refused)}")
+    repeated = timeout.get("repeated_attempts", [])
+    gaps = m.get("held_up_by_host", [])
+    if repeated or gaps:
+        parts.append("held up by this host: " + ", ".join(
+            ([f"command timeout repeated {len(repeated)}x ({repeated[0]['held_up']})"] if repeated else [])
+            + [f"a {g['gap']} gap of {ms(g['gap_s'])} excused (the board's host held it {ms(g['host_held_s'])})"
+               for g in gaps]))
     late = m.get("late_on_arrival", {})
     if late.get("commands") or late.get("nmt"):
         parts.append(f"excused as late on arrival (this host, over the {ms(late['freshness_window_s'])} freshness "

@@ -1,10 +1,12 @@
 """The board check's record and what it judges over the whole run rather than in one step.
 
 The record: the problems found, the numbers measured, the windows in which the steps expect EMCYs
-or no set-point echo, and the genuine frames this host may have delivered stale. The judgements
-over the whole run: the heartbeat period and its longest gap, the telemetry period, the E2E check
-of every protected frame the board sends, each applied command's set-point echo, the commands
-excused as late on arrival (bench/contract_check/late_arrivals.py), and no EMCY for a genuine command.
+or no set-point echo, the genuine frames this host may have delivered stale, and the check's own
+stalls. The judgements over the whole run: the heartbeat period and its longest gap, the telemetry
+period and its longest gap (a gap excused where this host held the board up for as long as it is
+over: bench/contract_check/host_stalls.py), the E2E check of every protected frame the board sends,
+each applied command's set-point echo, the commands excused as late on arrival
+(bench/contract_check/late_arrivals.py), and no EMCY for a genuine command.
 The steps themselves are bench/contract_check/board_check.py.
 """
 from __future__ import annotations
@@ -15,9 +17,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from bench.bus.can import protocol as p
+from bench.bus.can.host_lateness import HostLate
 from bench.contract_check.board_flight import (PROTECTED, BoardContract, FlightSide, Heard, Sent, echoed_am2, fmt, ms,
                                          state_name)
 from bench.contract_check.check import OUTSIDE_LOG
+from bench.contract_check.host_stalls import StallWatch, held_up_s, silence_s
 from bench.contract_check.late_arrivals import explained_emcys, may_have_arrived_stale
 
 LATE_SHARE_LIMIT = 0.1        # more genuine commands than this share late on arrival: the host is too busy to judge
@@ -35,19 +39,36 @@ class CheckRecord:
     problems: list[str] = field(default_factory=list)
     measured: dict = field(default_factory=dict)
     probe_windows: list[tuple[float, float]] = field(default_factory=list)   # EMCYs expected in these
-    timeout_window: tuple[float, float] | None = None                        # the command timeout's
+    timeout_windows: list[tuple[float, float]] = field(default_factory=list)  # the command timeout's attempts'
     echo_free: list[tuple[float, float]] = field(default_factory=list)      # no echo expected here
     late: list[Sent] = field(default_factory=list)   # genuine frames this host may have delivered stale
+    stalls: StallWatch | None = None                 # the check's own stalls (None: not watched)
 
     def problem(self, text: str) -> None:
         self.problems.append(text)
 
+    def held_up(self, from_s: float, to_s: float) -> str | None:
+        """What says this host held the board or the check up within [from_s, to_s]: the board's
+        frames silent for longer than a telemetry period and the margin, or a stall of the check's;
+        None: nothing."""
+        c = self.contract
+        silent = silence_s([h.t_s for h in self.flight.frames(None, from_s, to_s)], from_s, to_s)
+        if silent > c.telemetry_period_s + c.margin_s:
+            return f"the board silent for {ms(silent)}"
+        stalled = self.stalls.longest_s(from_s, to_s) if self.stalls is not None else 0.0
+        return f"the check held up {ms(stalled)}" if stalled else None
+
     # --- over the whole check ----------------------------------------------------------------
-    def throughout(self) -> None:
+    def throughout(self, host_records: list[HostLate] = ()) -> None:
+        """host_records: what says when this host held the board up (host_stalls.board_records);
+        a gap they explain is excused and counted."""
         c, f = self.contract, self.flight
+        if f.stamped_on_arrival and self.stalls is not None:   # the check's own stalls show in these frames' times
+            host_records = [*host_records, *self.stalls.records()]
         self._late_commands()
         beats = f.frames(p.HEARTBEAT)
-        gaps = [b.t_s - a.t_s for a, b in zip(beats, beats[1:]) if b.signals["NmtState"] != p.NMT_BOOT_UP]
+        pairs = [(a.t_s, b.t_s) for a, b in zip(beats, beats[1:]) if b.signals["NmtState"] != p.NMT_BOOT_UP]
+        gaps = [b - a for a, b in pairs]
         hb = {"count": len(beats), "states": [state_name(s) for s in _runs(int(b.signals["NmtState"]) for b in beats)]}
         self.measured["heartbeat"] = hb
         if gaps:
@@ -57,25 +78,44 @@ class CheckRecord:
             if abs(median - c.heartbeat_period_s) > 0.1 * c.heartbeat_period_s:
                 self.problem(f"heartbeat: period {ms(median)} (median of {len(gaps)}), the contract's "
                              f"{ms(c.heartbeat_period_s)} (within 10 %)")
+            longest = self._longest_unexcused("heartbeat", pairs, c.heartbeat_timeout_s, host_records)
             if longest > c.heartbeat_timeout_s:
                 self.problem(f"heartbeat: a gap of {ms(longest)}, longer than the flight side's consumer time "
                              f"{ms(c.heartbeat_timeout_s)}: the board was lost")
         tlm = f.frames(p.TLM_DIPOLE)
         nmt_sent = [s.t_s for s in f.sent if s.kind in ("nmt", "plain-nmt-stop")]
-        op = [b.t_s - a.t_s for a, b in zip(tlm, tlm[1:]) if f.state_at(a.t_s) == p.NMT_OPERATIONAL
-              and not any(a.t_s <= t < b.t_s for t in nmt_sent)]
+        op_pairs = [(a.t_s, b.t_s) for a, b in zip(tlm, tlm[1:]) if f.state_at(a.t_s) == p.NMT_OPERATIONAL
+                    and not any(a.t_s <= t < b.t_s for t in nmt_sent)]
+        op = [b - a for a, b in op_pairs]
         if op:
             median = float(np.median(op))
             self.measured["telemetry"] = {"period_median_s": round(median, 5), "period_max_s": round(max(op), 5),
                                           "contract_period_s": c.telemetry_period_s, "frames": len(tlm)}
             if abs(median - c.telemetry_period_s) > 0.1 * c.telemetry_period_s:
                 self.problem(f"telemetry: period {ms(median)} (median), the contract's {ms(c.telemetry_period_s)}")
-            if max(op) > c.telemetry_timeout_s:
-                self.problem(f"telemetry: a gap of {ms(max(op))} while operational, over the flight side's "
+            longest = self._longest_unexcused("telemetry", op_pairs, c.telemetry_timeout_s, host_records)
+            if longest > c.telemetry_timeout_s:
+                self.problem(f"telemetry: a gap of {ms(longest)} while operational, over the flight side's "
                              f"{ms(c.telemetry_timeout_s)}")
         self._e2e_of_board_frames()
         self._echoes()
         self._unexpected_emcys()
+
+    def _longest_unexcused(self, what: str, pairs: list[tuple[float, float]], allowed_s: float,
+                           host_records: list[HostLate]) -> float:
+        """The longest gap between frames (a, b) in pairs that host_records do not explain: a gap
+        over allowed_s is excused if the host held the board up for as long as it is over, and
+        recorded in measured["held_up_by_host"]."""
+        longest = 0.0
+        for a, b in pairs:
+            if b - a > allowed_s:
+                held = held_up_s(host_records, a, b)
+                if b - a - held <= allowed_s:
+                    self.measured.setdefault("held_up_by_host", []).append(
+                        {"gap": what, "at_s": round(a, 4), "gap_s": round(b - a, 5), "host_held_s": round(held, 5)})
+                    continue
+            longest = max(longest, b - a)
+        return longest
 
     def _late_commands(self) -> None:
         """Genuine commands the board did not apply (no echo) or refused as stale, that this host
@@ -173,8 +213,7 @@ class CheckRecord:
     def _unexpected_emcys(self) -> None:
         c, f = self.contract, self.flight
         windows = list(self.probe_windows)
-        if self.timeout_window:
-            windows.append(self.timeout_window)
+        windows += self.timeout_windows
         explained = {id(h) for h in explained_emcys(self.late, f.sent, f.frames())}
         odd = [h for h in f.frames(p.EMCY)
                if h.signals["ErrorCode"] != p.EMCY_NO_ERROR and not any(a <= h.t_s < b for a, b in windows)

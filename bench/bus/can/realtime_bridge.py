@@ -10,6 +10,7 @@ import can
 
 from bench.bus.can.busmodel import BusModel, Delivery
 from bench.bus.can.host_lateness import HostLateLog
+from bench.bus.can.wire_time import WireClock
 
 
 class RealTimeBridge:
@@ -36,8 +37,6 @@ class RealTimeBridge:
 
     MAX_OTHER_SENDERS = 8
 
-    # A timestamp further from the arrival than this is another host's clock: use the arrival.
-    MAX_TRANSPORT_DELAY_NS = 1_000_000_000
     # A delivery leaving this much after its last bit passed in the model, or a wait ending this
     # much after it should: this process was not scheduled in time (a host overrun). Recorded so
     # the flight side's fault checks can tell a starved bridge from a bus fault.
@@ -49,7 +48,7 @@ class RealTimeBridge:
         self.granularity_s = granularity_s
         self.send_failures = 0
         self.host_lateness = HostLateLog()                     # on the monotonic clock
-        self._wall_minus_monotonic_ns = time.time_ns() - time.monotonic_ns()
+        self._wire_clock = WireClock()                         # a frame enters the model when it was sent
         # queue.Queue, not SimpleQueue: on CPython 3.11 a SimpleQueue.get(timeout) that a signal
         # interrupts (SIGTERM: stop) was seen never to return, so the node could not stop.
         self._inbox: queue.Queue = queue.Queue()
@@ -91,7 +90,8 @@ class RealTimeBridge:
             item = self._inbox.get(timeout=wait_s)
             while True:
                 side, msg, arrival_ns, *sender = item
-                arrivals.append((self._sent_ns(msg, arrival_ns), self._node(side, sender[0] if sender else None), msg))
+                sent_ns = self._wire_clock.sent_ns(msg, arrival_ns)
+                arrivals.append((sent_ns, self._node(side, sender[0] if sender else None), msg))
                 item = self._inbox.get_nowait()
         except queue.Empty:
             pass
@@ -112,13 +112,6 @@ class RealTimeBridge:
                 self.model.add_node(node)
                 self.model.wire_of[node] = side
         return node
-
-    def _sent_ns(self, msg: can.Message, arrival_ns: int) -> int:
-        if msg.timestamp:
-            sent_ns = round(msg.timestamp * 1e9) - self._wall_minus_monotonic_ns
-            if 0 <= arrival_ns - sent_ns <= self.MAX_TRANSPORT_DELAY_NS:
-                return sent_ns
-        return arrival_ns
 
     def _count_late(self, late_s: float) -> None:
         if late_s > self.HOST_LATE_S:
