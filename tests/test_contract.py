@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import ast
 import json
+import re
 import sys
 
 import jsonschema
@@ -188,9 +189,12 @@ def test_the_bench_estimator_from_outside_passes_the_estimator_check(runs_dir):
 
 def test_an_estimator_that_trusts_its_inputs_fails_the_estimator_check(runs_dir):
     """The bench's own estimator broken on purpose (`bench node --break trust-inputs`): it takes
-    the check's forged sensor samples, and the check names it."""
+    the check's forged sensor samples, and the check names it. How many of the three it answers
+    before the run ends is a race (each forged fix makes it wait up to 2 s for a command of a step
+    that never was, as long as the plant's command timeout here): one is enough to fail."""
     result = run_bench_cli("contract", "check", "estimator", "--steps", "8", "--command-timeout", "2",
                            "--runs-dir", str(runs_dir), "--run-id", "est-trust",
                            "--command", _bench_node_command("estimator", "--break trust-inputs"), timeout_s=240)
     assert result.returncode == 1, result.stdout + result.stderr
-    assert "acted on forged samples: 3 estimate(s) answer samples the check sent with a wrong tag" in result.stdout
+    assert re.search(r"acted on forged samples: [123] estimate\(s\) answer samples the check sent with a wrong tag "
+                     r"\(seq 100000[012]\.\.\.\)", result.stdout), result.stdout
