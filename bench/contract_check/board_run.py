@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import json
 import shlex
-import signal
 import subprocess
 import sys
 import time
@@ -35,6 +34,7 @@ from bench.contract_check.board_flight import BoardContract, FlightSide, ms
 from bench.contract_check.check import OUTSIDE_LOG, Verdict
 from bench.contract_check.host_stalls import StallWatch, board_records
 from bench.runtime.priority import set_realtime_priority
+from bench.runtime.process import terminate
 from bench.scenario import Scenario, ScenarioError, load_scenario, parse_scenario
 
 STARTUP_TIMEOUT_S = 60.0      # until the board's first heartbeat (a node's start on a loaded host)
@@ -156,7 +156,7 @@ def run_board_check(scenario: Scenario, run_id: str, run_dir: Path, command: str
                 and not any("the board's command exited" in problem for problem in check.problems)):
             check.problem(f"the board's command exited with code {process.returncode} during the check "
                           f"(its output: {run_dir / 'logs' / OUTSIDE_LOG})")
-        _stop(process)                            # the bench's board writes how late its host held it
+        terminate(process, EXIT_TIMEOUT_S)        # the bench's board writes how late its host held it
         if finished:
             check.throughout(board_records(run_dir))
     finally:
@@ -164,7 +164,7 @@ def run_board_check(scenario: Scenario, run_id: str, run_dir: Path, command: str
         if flight is not None:
             flight.close()
             bus.shutdown()
-        _stop(process)
+        terminate(process, EXIT_TIMEOUT_S)
         if session is not None:
             session.close()
         if priority:
@@ -172,18 +172,6 @@ def run_board_check(scenario: Scenario, run_id: str, run_dir: Path, command: str
     verdict = Verdict(check.problems, summary(check, contract, spec, flight))
     write_board_verdict(run_dir, verdict, contract, check.measured)
     return verdict
-
-
-def _stop(process: subprocess.Popen | None) -> None:
-    """The board the check started, by its handle: SIGTERM, then SIGKILL."""
-    if process is None or process.poll() is not None:
-        return
-    process.send_signal(signal.SIGTERM)
-    try:
-        process.wait(timeout=EXIT_TIMEOUT_S)
-    except subprocess.TimeoutExpired:
-        process.kill()
-        process.wait(timeout=EXIT_TIMEOUT_S)
 
 
 def summary(check: BoardCheck, c: BoardContract, spec: BusSpec, flight: FlightSide) -> str:

@@ -14,8 +14,6 @@ accounts for every frame.
 from __future__ import annotations
 
 import json
-import signal
-import subprocess
 import time
 from collections import Counter
 from dataclasses import dataclass, field
@@ -34,7 +32,7 @@ from bench.bus.can.transport import open_can_bus
 from bench.bus.schemas import MtqApplied, decode
 from bench.bus.presence import PresenceQuery
 from bench.bus.session import SessionOptions, free_loopback_port, loopback_endpoint, open_session
-from bench.runtime.process import start_node
+from bench.runtime.process import start_node, terminate
 from bench.scenario import load_scenario
 
 # Bounds a hang at start-up, not a speed check: a node's start on UML's one CPU under a loaded host
@@ -248,15 +246,7 @@ class CanBench:
         return None
 
     def _terminate(self, name: str) -> None:
-        proc = self.procs.get(name)
-        if proc is None or proc.poll() is not None:
-            return
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(timeout=EXIT_TIMEOUT_S)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+        if terminate(self.procs.get(name), EXIT_TIMEOUT_S):
             with open(self.run_dir / f"{name}.log", "a") as log:
                 log.write(f"\n[can_bench] no exit {EXIT_TIMEOUT_S} s after SIGTERM: killed\n")
 

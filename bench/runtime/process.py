@@ -1,4 +1,4 @@
-"""Starting a bench node as its own operating-system process.
+"""Starting a bench node as its own operating-system process, and stopping one.
 
 The one way a node process is started, by the launcher (`bench run`) and by the CAN bench
 (`bench.runtime.can_bench`): `python -m bench.cli node NAME ...` with the interpreter running now,
@@ -8,6 +8,7 @@ imported; by fork+exec when the zygote cannot (or BENCH_NODE_START=exec).
 """
 from __future__ import annotations
 
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -51,3 +52,18 @@ def start_node(name: str, run_id: str, scenario_path: Path, hub: str, run_dir: P
     with open(log_path, "w") as log_file:
         return subprocess.Popen(cmd, stdout=log_file, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                 **popen_kwargs)
+
+
+def terminate(process, timeout_s: float) -> bool:
+    """Stop a process this one started, by its handle: SIGTERM (a node then writes its report),
+    and SIGKILL if it has not exited within timeout_s. Whether it had to be killed."""
+    if process is None or process.poll() is not None:
+        return False
+    process.send_signal(signal.SIGTERM)
+    try:
+        process.wait(timeout=timeout_s)
+        return False
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.wait(timeout=timeout_s)
+        return True
