@@ -20,7 +20,14 @@ from bench.bus.schemas import (ProcessStats, RangeBearing, RelativePosition, Thr
 from test_forged_reports import attacked_beside_clean, comparable
 
 REPLAY_LAG_STEPS = 2
-STEPS = 60
+# Long enough for the rogue to be on the bus while the loop runs: it joins through the launcher's
+# endpoint after the run has started (here its first sample comes 0.3 s after it subscribed), and
+# a 60-step lock-step loop (about 40 ms since the hot path got shorter) was once over before its
+# subscription saw a truth sample (stop 51's CI18: it saw one sample in all); 2000 steps are about
+# 1.3 s. It attacks only the first ATTACK_STEPS steps it sees, so that its own load (a Python
+# callback answering every sample) is the same however long the run.
+STEPS = 2000
+ATTACK_STEPS = 30
 
 
 class RogueData:
@@ -28,7 +35,8 @@ class RogueData:
     the race against the controller's): forged messages for step k on every loop topic, half
     without an attachment and half with a made-up MAC (the layout of a genuine one, the sender
     'controller'); forged stats claiming the controller published one command. Every genuine
-    sample it sees is sent again at once, and those of REPLAY_LAG_STEPS steps ago once more."""
+    sample it sees is sent again at once, and those of REPLAY_LAG_STEPS steps ago once more. After
+    ATTACK_STEPS truth samples it only listens."""
 
     def __init__(self, session, run_id: str):
         self.session, self.run_id = session, run_id
@@ -48,6 +56,8 @@ class RogueData:
         self._put(keys.key(self.run_id, topic), payload, made_up, "forged")
 
     def _on_sample(self, sample) -> None:
+        if len(self._captured) > ATTACK_STEPS:
+            return
         attachment = None if sample.attachment is None else sample.attachment.to_bytes()
         key_expr, payload = str(sample.key_expr), sample.payload.to_bytes()
         with self._lock:

@@ -225,8 +225,9 @@ def test_only_the_plant_may_publish_the_attitude_sensors_and_the_estimator_reads
 # ------------------------------------------------------------------------------------------------
 # Long enough for the rogue to be connected to the plant while the loop runs: it joins through the
 # launcher's endpoint after the run has started, and a 60-step lock-step loop (about 0.1 s) was
-# once over before it heard a truth sample (CI96, three test workers on two cores).
-STEPS = 600
+# once over before it heard a truth sample (CI96, three test workers on two cores); 2000 steps
+# (about 1.3 s) leave it that long (tests/test_forged_data.py's rogue the same).
+STEPS = 2000
 
 
 def _wait_port(port: int, timeout_s: float) -> None:
