@@ -152,7 +152,7 @@ FIELDS: dict[str, dict[str, Field]] = {
     },
     "TruthState": {
         "state_m_mps": Field("The true relative state [x, y, z, vx, vy, vz] of the chaser with respect to the "
-                             f"target at step k; read only by a truth-mode estimator and the recorder.", unit=STATE,
+                             "target at step k; read only by a truth-mode estimator and the recorder.", unit=STATE,
                              frame="navigation"),
         "thrust_applied_n": Field("The thrust the plant applied over the step that ended at step k (zero at "
                                   "step 0): the output stage's output, as commanded.", unit="N", frame="navigation"),
