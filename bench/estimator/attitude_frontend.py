@@ -88,6 +88,9 @@ class AttitudeEstimator:
         mag = None if magnetometer_t is None else np.asarray(magnetometer_t, float)
         if mag is not None:
             self._field_model_inertial_t = np.asarray(field_model_inertial_t, float)
+        if self._valid:
+            # Carried by the gyro since the last keyframe: so is its uncertainty.
+            self._covariance = self.smoother.predicted_attitude_covariance()
         if mag is not None or star_tracker_wxyz is not None:
             result = self.smoother.update(seq, sim_time_s, mag, None if mag is None else self._field_model_inertial_t,
                                           None if star_tracker_wxyz is None else np.asarray(star_tracker_wxyz, float))
