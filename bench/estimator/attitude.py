@@ -292,10 +292,9 @@ class AttitudeSmoother:
 
     def predicted_attitude_covariance(self) -> np.ndarray | None:
         """The attitude covariance (rad^2, body frame) of the last keyframe's estimate carried by
-        the gyro to now: what an estimate between keyframes is worth. The last keyframe's own
-        covariance left out the gyro's noise and bias error since, and between star-tracker fixes
-        0.5 s apart the estimate's NEES grew to ten times its three degrees of freedom. None
-        before the first fix."""
+        the gyro to now: what an estimate between keyframes is worth (the keyframe's own leaves
+        out the gyro's noise and the bias error since, which grow the error as t^2). None before
+        the first fix."""
         if self._last is None:
             return None
         if self._preintegrated is None or self._preintegrated.deltaTij() <= 0.0:
