@@ -447,12 +447,15 @@ class Recorder:
         self.spool = SampleSpool(ctx.run_dir)
         self.budget = RecordingBudget()
         self.arrived = 0     # samples handed over by Zenoh so far, kept or dropped (tests wait on it)
+        self.closing = False    # set at the stop: what arrives later is not the run's
         key = getattr(ctx, "data_key", None)
         self.verifier = data_auth.Verifier(key) if key is not None else None
         self.subscriber = ctx.session.declare_subscriber(keys.all_topics(ctx.run_id), self._on_sample)
 
     def _on_sample(self, sample) -> None:
         """Zenoh's thread: the budget's verdict and a copy of the bytes, nothing more (the hot path)."""
+        if self.closing:
+            return
         payload = sample.payload
         key_expr = str(sample.key_expr)
         if self.budget.admit(topic_of(key_expr, self.ctx.run_id), len(payload), time.monotonic()) is None:
@@ -487,8 +490,10 @@ class Recorder:
             self.recording.write(topic, payload, received_ns, unauthentic, sender)
 
     def finish(self) -> dict:
-        """Stop listening, spool what is still queued, assemble and close the file; the counts."""
-        self.subscriber.undeclare()
+        """Stop taking samples, spool what is still queued, assemble and close the file, write the
+        counts; the subscription is undeclared after that, so that the recording is whole even if
+        Zenoh's undeclare (which waits for callbacks in flight) is slow to return."""
+        self.closing = True
         self.drain(0.0)
         self._assemble()
         self.spool.close()
@@ -496,6 +501,7 @@ class Recorder:
         self.recording.close()
         counts = self.recording.counts()
         _write_json(self.ctx.run_dir / COUNTS_FILE, counts)
+        self.subscriber.undeclare()
         return counts
 
 

@@ -18,6 +18,7 @@ peers comes only from such answers.
 from __future__ import annotations
 
 import dataclasses
+import faulthandler
 import logging
 import queue
 import signal
@@ -46,6 +47,8 @@ from bench.scenario import Scenario
 # How often a node waiting for a message looks at its stop flag: a run's end waits for the slowest
 # node of each stop stage to see it (0.2 s here made every `bench run` 0.1 s longer on average).
 STOP_POLL_S = 0.02
+# A node still stopping this long after SIGTERM writes every thread's stack to its log.
+STOP_STACKS_AFTER_S = 4.0
 # ProcessStats' name for the presence answers a node refused (bench/bus/presence.py).
 PRESENCE_TOPIC = "presence"
 
@@ -441,6 +444,9 @@ def run_node(name: str, run_id: str, scenario: Scenario, options: SessionOptions
 
     def request_stop(signum, _frame):
         log.info("signal %d: stopping", signum)
+        # A stop that hangs says where: every thread's stack into this node's log, before the
+        # launcher kills a node that idles past its grace (5 s, bench/launcher/children.py).
+        faulthandler.dump_traceback_later(STOP_STACKS_AFTER_S)
         ctx.stop.set()
 
     signal.signal(signal.SIGTERM, request_stop)
