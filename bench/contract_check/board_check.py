@@ -36,9 +36,9 @@ stale is the board's fault only if its refusal (or the next answer) came back wi
 window; later than that, this host may have held it up (bench/contract_check/late_arrivals.py): the
 frame is excused and counted (an NMT frame is sent again), and more than a tenth of the commands
 so excused is a problem of its own (the host too busy to judge).
-Frames are timed on the wire, and a command timeout that fails while this host held the board or
-the check up is repeated; a heartbeat or telemetry gap the board's own lateness record explains is
-excused (bench/contract_check/host_stalls.py).
+Frames are timed on the wire, and a command timeout or a refusal that fails while this host held
+the board or the check up is repeated; a heartbeat or telemetry gap the board's own lateness record
+explains is excused (bench/contract_check/host_stalls.py).
 
 Here are the steps; the contract and the flight side are bench/contract_check/board_flight.py, the
 judgements over the whole run bench/contract_check/board_throughout.py, the command and the verdict
@@ -230,24 +230,49 @@ class BoardCheck(CheckRecord):
         # command timeout with the margin to spare (0.05 s with the defaults).
         pause_s = max(c.command_period_s, min(1.5 * c.telemetry_period_s,
                                               c.command_timeout_s - c.command_period_s - c.margin_s))
-        expected_steady = None
         results = []
         for kind, status in probes:
-            f.command_for(PROBE_LEAD_S, steady)
-            expected_steady = [s for s in f.sent if s.kind == "command"][-1].expected_am2
-            sleep_until(f.sent[-1].t_s + 0.5 * c.command_period_s)
-            probe = f.probe(kind, wrong)
-            sleep_until(probe.t_s + pause_s)
-            f.command_for(PROBE_LEAD_S, steady)
-            end = time.monotonic()
-            self.probe_windows.append((probe.t_s, end))
-            results.append(self._judge_probe(kind, status, probe, end, expected_steady))
-            if kind == "plain-nmt-stop" and f.state_at(time.monotonic()) != p.NMT_OPERATIONAL:
-                self.start_operational("NMT start after an obeyed plain NMT stop")
+            # A probe judged while this host held the check's commands up past the command timeout
+            # (the board then rightly went to its safe state) is sent again, as the timeout step is.
+            repeated = []
+            for attempt in range(HELD_UP_RETRIES + 1):
+                f.command_for(PROBE_LEAD_S, steady)
+                expected_steady = [s for s in f.sent if s.kind == "command"][-1].expected_am2
+                sleep_until(f.sent[-1].t_s + 0.5 * c.command_period_s)
+                probe = f.probe(kind, wrong)
+                sleep_until(probe.t_s + pause_s)
+                f.command_for(PROBE_LEAD_S, steady)
+                end = time.monotonic()
+                self.probe_windows.append((probe.t_s, end))
+                result, problems = self._judge_probe(kind, status, probe, end, expected_steady)
+                if kind == "plain-nmt-stop" and f.state_at(time.monotonic()) != p.NMT_OPERATIONAL:
+                    self.start_operational("NMT start after an obeyed plain NMT stop")
+                held_up = self.commands_held_up(probe.t_s - PROBE_LEAD_S, end) if problems else None
+                if held_up is None or attempt == HELD_UP_RETRIES:
+                    break
+                repeated.append({"problems": problems, "held_up": held_up})
+            if repeated:
+                result["repeated_attempts"] = repeated
+            results.append(result)
+            for text in problems:
+                self.problem(text if held_up is None else f"{text} ({held_up} in each of {len(repeated) + 1} "
+                                                          f"attempts: this host may be too busy to judge the board)")
         f.command_for(PROBE_LEAD_S, steady)
         self.measured["refusals"] = results
 
-    def _judge_probe(self, kind: str, status: p.E2EStatus, probe: Sent, end_s: float, steady: np.ndarray) -> dict:
+    def commands_held_up(self, from_s: float, to_s: float) -> str | None:
+        """What says this host held the check's genuine commands up within [from_s, to_s]: two of
+        them further apart than the command timeout, or what `held_up` finds; None: nothing."""
+        c = self.contract
+        sent = [s.t_s for s in self.flight.sent if s.kind == "command" and from_s <= s.t_s <= to_s]
+        gap = max((b - a for a, b in zip(sent, sent[1:])), default=0.0)
+        if gap > c.command_timeout_s:
+            return f"the check sent no command for {ms(gap)}"
+        return self.held_up(from_s, to_s)
+
+    def _judge_probe(self, kind: str, status: p.E2EStatus, probe: Sent, end_s: float,
+                     steady: np.ndarray) -> tuple[dict, list[str]]:
+        """The probe's measurements and its problems (not yet the check's)."""
         c, f = self.contract, self.flight
         what = PROBE_WORDS[kind]
         emcys = f.frames(p.EMCY, probe.t_s, end_s)
@@ -270,15 +295,16 @@ class BoardCheck(CheckRecord):
         result = {"probe": kind, "expected_emcy": f"0x{p.EMCY_E2E_CHECK_FAILED:04X} {status.name}",
                   "emcy_after_s": _after(match, probe), "moved": moved,
                   "emcys": [emcy_words(h) for h in emcys]}
+        problems = []
         if moved or match is None:
             said = (f"; EMCYs heard: {', '.join(result['emcys'])}" if emcys and match is None else "")
-            self.problem(f"{what}: " + " and ".join(
+            problems.append(f"{what}: " + " and ".join(
                 (["not refused: " + ", ".join(moved) + f" (the steady dipole {fmt(steady)}, the frame's "
                   f"{fmt([-0.75 * c.max_dipole_am2, 0.75 * c.max_dipole_am2, -0.75 * c.max_dipole_am2])})"] if moved else [])
                 + ([f"no EMCY 0x{p.EMCY_E2E_CHECK_FAILED:04X} with E2eStatus {status.name} ({int(status)})"
                     + ("" if probe.counter is None else f" and RejectedCounter {probe.counter}") + said]
                    if match is None else [])))
-        return result
+        return result, problems
 
     def command_timeout(self) -> None:
         """Stop commanding: the timeout's EMCY, the coils off, the safe state's echo; commands
