@@ -250,30 +250,44 @@ def test_a_board_this_host_froze_in_the_command_timeout_is_tried_again_not_faile
     assert "held up by this host: command timeout repeated 1x (the board silent for" in verdict.summary
 
 
-def test_a_probe_this_host_held_the_commands_up_around_is_sent_again_not_failed(tmp_path, monkeypatch):
-    """After the repeated-counter probe the check's commands stop for 0.2 s, as a loaded host once
-    made them (CI22): the board rightly times out, its coils leave the steady dipole, and the probe
-    looks accepted. The check sees its own commands 0.2 s apart, over the command timeout, sends the
-    probe again, which is refused, and passes saying so."""
+@pytest.mark.parametrize("when", ["after", "before"])
+def test_a_probe_this_host_held_the_commands_up_around_is_sent_again_not_failed(tmp_path, monkeypatch, when):
+    """Around the repeated-counter probe the check's commands stop for 0.2 s, as a loaded host once
+    made them (CI22: after it, CI24: before it): the board rightly times out (EMCY 0x8250), its coils
+    leave the steady dipole, and the probe may look accepted. The check sees its own commands 0.2 s
+    apart, over the command timeout, sends the probe again if it failed, which is then refused, takes
+    the board's timeout EMCY as the board doing its job (it had no command applied for the timeout),
+    and passes saying so."""
     from bench.contract_check.board_flight import FlightSide
 
     held = []
     probe = FlightSide.probe
 
-    def probe_then_hold_up(self, kind, dipole_am2):
+    def probe_with_hold_up(self, kind, dipole_am2):
+        hold = kind == "repeated-counter" and not held
+        if hold and when == "before":
+            held.append(kind)
+            time.sleep(0.2)
         sent = probe(self, kind, dipole_am2)
-        if kind == "repeated-counter" and not held:
+        if hold and when == "after":
             held.append(kind)
             time.sleep(0.2)
         return sent
 
-    monkeypatch.setattr(FlightSide, "probe", probe_then_hold_up)
-    verdict = run_board_check(board_scenario(None), "held-probe", tmp_path / "check", _board_command(), None, None,
-                              None)
+    monkeypatch.setattr(FlightSide, "probe", probe_with_hold_up)
+    verdict = run_board_check(board_scenario(None), f"held-probe-{when}", tmp_path / "check", _board_command(), None,
+                              None, None)
     assert held
     assert verdict.passed, verdict.text("board")
-    refusals = json.loads((tmp_path / "check" / "contract_check.json").read_text())["measured"]["refusals"]
-    repeated = next(r for r in refusals if r["probe"] == "repeated-counter")["repeated_attempts"]
-    assert len(repeated) == 1 and repeated[0]["held_up"].startswith("the check sent no command for 2")
-    assert repeated[0]["problems"][0].startswith("repeated alive counter (the last command's counter again, "
-                                                 "otherwise valid): not refused")
+    measured = json.loads((tmp_path / "check" / "contract_check.json").read_text())["measured"]
+    refused = next(r for r in measured["refusals"] if r["probe"] == "repeated-counter")
+    for attempt in refused.get("repeated_attempts", []):
+        assert attempt["held_up"].startswith("the check sent no command for 2"), attempt
+    if when == "after":      # the board went to its safe state after the probe: it looked accepted
+        assert len(refused["repeated_attempts"]) == 1
+        assert refused["repeated_attempts"][0]["problems"][0].startswith(
+            "repeated alive counter (the last command's counter again, otherwise valid): not refused")
+    else:                    # its timeout EMCY came before the probe: outside the probe's window
+        timeouts = [g for g in measured["held_up_by_host"] if g["gap"] == "command"]
+        assert timeouts and all(g["gap_s"] >= 0.098 for g in timeouts), measured["held_up_by_host"]
+        assert "a command timeout EMCY after" in verdict.summary

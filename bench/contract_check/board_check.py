@@ -236,6 +236,7 @@ class BoardCheck(CheckRecord):
             # (the board then rightly went to its safe state) is sent again, as the timeout step is.
             repeated = []
             for attempt in range(HELD_UP_RETRIES + 1):
+                lead_s = time.monotonic()
                 f.command_for(PROBE_LEAD_S, steady)
                 expected_steady = [s for s in f.sent if s.kind == "command"][-1].expected_am2
                 sleep_until(f.sent[-1].t_s + 0.5 * c.command_period_s)
@@ -247,7 +248,7 @@ class BoardCheck(CheckRecord):
                 result, problems = self._judge_probe(kind, status, probe, end, expected_steady)
                 if kind == "plain-nmt-stop" and f.state_at(time.monotonic()) != p.NMT_OPERATIONAL:
                     self.start_operational("NMT start after an obeyed plain NMT stop")
-                held_up = self.commands_held_up(probe.t_s - PROBE_LEAD_S, end) if problems else None
+                held_up = self.commands_held_up(lead_s, end) if problems else None
                 if held_up is None or attempt == HELD_UP_RETRIES:
                     break
                 repeated.append({"problems": problems, "held_up": held_up})

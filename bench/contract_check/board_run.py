@@ -204,6 +204,8 @@ def summary(check: BoardCheck, c: BoardContract, spec: BusSpec, flight: FlightSi
         parts.append("held up by this host: " + ", ".join(
             ([f"command timeout repeated {len(repeated)}x ({repeated[0]['held_up']})"] if repeated else [])
             + [f"a {g['gap']} gap of {ms(g['gap_s'])} excused (the board's host held it {ms(g['host_held_s'])})"
+               if g["host_held_s"] is not None else
+               f"a command timeout EMCY after {ms(g['gap_s'])} without a command applied (the board was right)"
                for g in gaps]))
     late = m.get("late_on_arrival", {})
     if late.get("commands") or late.get("nmt"):

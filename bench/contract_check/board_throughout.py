@@ -210,6 +210,24 @@ class CheckRecord:
         if stray:
             self.problem(f"set-point echo: {len(stray)} echo(es) while not operational")
 
+    def _timed_out_rightly(self, h: Heard) -> bool:
+        """A command-timeout EMCY (0x8250) outside the steps that expect one is the board doing its
+        job if it had no command for the command timeout before it: this host held the check's
+        commands up (or delivered them late). Judged from the board's own last echo of an applied
+        command (the check's last genuine command without the echo); recorded as held up by this host."""
+        c, f = self.contract, self.flight
+        if h.signals["ErrorCode"] != p.EMCY_COMMAND_TIMEOUT:
+            return False
+        if c.setpoint_echo:
+            last_s = _last_before([e.t_s for e in f.frames(p.TLM_SETPOINT) if e.signals["CommandApplied"]], h.t_s)
+        else:
+            last_s = _last_before([s.t_s for s in f.sent if s.kind == "command"], h.t_s)
+        if last_s is None or h.t_s - last_s < c.command_timeout_s - 0.002:
+            return False
+        self.measured.setdefault("held_up_by_host", []).append(
+            {"gap": "command", "at_s": round(last_s, 4), "gap_s": round(h.t_s - last_s, 5), "host_held_s": None})
+        return True
+
     def _unexpected_emcys(self) -> None:
         c, f = self.contract, self.flight
         windows = list(self.probe_windows)
@@ -217,7 +235,7 @@ class CheckRecord:
         explained = {id(h) for h in explained_emcys(self.late, f.sent, f.frames())}
         odd = [h for h in f.frames(p.EMCY)
                if h.signals["ErrorCode"] != p.EMCY_NO_ERROR and not any(a <= h.t_s < b for a, b in windows)
-               and id(h) not in explained]
+               and id(h) not in explained and not self._timed_out_rightly(h)]
         self.measured["unexpected_emcys"] = [emcy_words(h) for h in odd]
         self.measured["check_max_command_gap_s"] = round(f.max_gap_s, 5)
         if odd:
@@ -225,6 +243,10 @@ class CheckRecord:
                     if f.max_gap_s > c.freshness_max_age_s else "")
             self.problem(f"EMCY for genuine commands: {', '.join(emcy_words(h) for h in odd[:5])}"
                          f"{' ...' if len(odd) > 5 else ''}{host}")
+
+
+def _last_before(times_s: list[float], t_s: float) -> float | None:
+    return max((x for x in times_s if x < t_s), default=None)
 
 
 def emcy_words(h: Heard) -> str:
