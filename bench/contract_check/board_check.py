@@ -234,8 +234,7 @@ class BoardCheck(CheckRecord):
         for kind, status in probes:
             # A probe judged while this host held the check's commands up past the command timeout
             # (the board then rightly went to its safe state) is sent again, as the timeout step is.
-            repeated = []
-            for attempt in range(HELD_UP_RETRIES + 1):
+            def attempt():
                 lead_s = time.monotonic()
                 f.command_for(PROBE_LEAD_S, steady)
                 expected_steady = [s for s in f.sent if s.kind == "command"][-1].expected_am2
@@ -248,16 +247,9 @@ class BoardCheck(CheckRecord):
                 result, problems = self._judge_probe(kind, status, probe, end, expected_steady)
                 if kind == "plain-nmt-stop" and f.state_at(time.monotonic()) != p.NMT_OPERATIONAL:
                     self.start_operational("NMT start after an obeyed plain NMT stop")
-                held_up = self.commands_held_up(lead_s, end) if problems else None
-                if held_up is None or attempt == HELD_UP_RETRIES:
-                    break
-                repeated.append({"problems": problems, "held_up": held_up})
-            if repeated:
-                result["repeated_attempts"] = repeated
-            results.append(result)
-            for text in problems:
-                self.problem(text if held_up is None else f"{text} ({held_up} in each of {len(repeated) + 1} "
-                                                          f"attempts: this host may be too busy to judge the board)")
+                return result, problems, self.commands_held_up(lead_s, end) if problems else None
+
+            results.append(self.judged_unless_held_up(attempt))
         f.command_for(PROBE_LEAD_S, steady)
         self.measured["refusals"] = results
 
@@ -312,20 +304,29 @@ class BoardCheck(CheckRecord):
         again: the error reset. An attempt that fails while the board went silent or the check
         stalled (bench/contract_check/host_stalls.py) is repeated, at most HELD_UP_RETRIES times,
         and recorded; the last attempt is judged."""
-        repeated = []
-        for attempt in range(HELD_UP_RETRIES + 1):
+        def attempt():
             problems, result, window = self._timeout_attempt()
-            held_up = self.held_up(*window) if problems else None
-            if held_up is None or attempt == HELD_UP_RETRIES:
+            return result, problems, self.held_up(*window) if problems else None
+
+        self.measured["command_timeout"] = self.judged_unless_held_up(attempt)
+
+    def judged_unless_held_up(self, attempt) -> dict:
+        """Run a timed step's `attempt()` -> (its measurements, its problems, what says this host
+        held it up or None) again while it fails held up, at most HELD_UP_RETRIES times; the last
+        attempt's problems are the check's, the attempts before it are kept in its measurements'
+        repeated_attempts. Returns the last attempt's measurements."""
+        repeated = []
+        for n in range(HELD_UP_RETRIES + 1):
+            result, problems, held_up = attempt()
+            if held_up is None or n == HELD_UP_RETRIES:
                 break
             repeated.append({"problems": problems, "held_up": held_up})
         if repeated:
             result["repeated_attempts"] = repeated
-        self.measured["command_timeout"] = result
         for text in problems:
-            self.problem(text if held_up is None else
-                         f"{text} ({held_up}; this host held up each of {len(repeated) + 1} attempts: it may be too "
-                         f"busy to judge the board)")
+            self.problem(text if held_up is None else f"{text} ({held_up} in each of {len(repeated) + 1} "
+                                                      f"attempts: this host may be too busy to judge the board)")
+        return result
 
     def _timeout_attempt(self) -> tuple[list[str], dict, tuple[float, float]]:
         """One attempt: its problems, its measurements and its window (from the last command)."""
